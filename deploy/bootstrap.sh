@@ -1,0 +1,67 @@
+#!/usr/bin/env bash
+# Prepare .venv for `make demo` / `make test` on a fresh Debian/Ubuntu machine.
+# Idempotent: reinstalls only when pyproject.toml or the requested extras change.
+#   usage: deploy/bootstrap.sh [EXTRAS]     (default: all,dev)
+set -euo pipefail
+extras="${1:-all,dev}"
+cd "$(dirname "$0")/.."
+
+as_root() { [ "$(id -u)" = 0 ]; }
+apt_install() {  # apt_install PKG... (root only)
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null 2>&1 || {
+    DEBIAN_FRONTEND=noninteractive apt-get update -qq >/dev/null
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+  }
+}
+
+# 1. a Python >= 3.11
+py=""
+for cand in ${PYTHON:-} python3.13 python3.12 python3.11 python3; do
+  if command -v "$cand" >/dev/null 2>&1 &&
+     "$cand" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+    py="$cand"; break
+  fi
+done
+if [ -z "$py" ]; then
+  echo "mrslam needs Python >= 3.11 (none found on PATH; set PYTHON=/path/to/python3.11)" >&2
+  exit 1
+fi
+
+# 2. the virtual environment (Debian ships venv separately)
+if [ ! -x .venv/bin/python ]; then
+  if ! "$py" -m venv .venv >/dev/null 2>&1; then
+    rm -rf .venv
+    ver=$("$py" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+    if as_root; then
+      echo "installing python${ver}-venv (Debian's venv module)" >&2
+      apt_install "python${ver}-venv" || apt_install python3-venv
+      "$py" -m venv .venv
+    else
+      echo "Python's venv module is missing. Run: sudo apt-get install -y python${ver}-venv" >&2
+      exit 1
+    fi
+  fi
+fi
+
+# 3. open3d's system library
+if [[ "$extras" == *all* || "$extras" == *server* ]]; then
+  if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+    if as_root; then
+      echo "installing libusb-1.0-0 (needed by open3d)" >&2
+      apt_install libusb-1.0-0
+    else
+      echo "open3d needs libusb. Run: sudo apt-get install -y libusb-1.0-0" >&2
+      exit 1
+    fi
+  fi
+fi
+
+# 4. the project and its extras
+stamp=".venv/.installed-$(cat pyproject.toml <(echo "$extras") | sha1sum | cut -c1-12)"
+if [ ! -f "$stamp" ]; then
+  echo "installing mrslam[$extras] into .venv (first run takes a minute)" >&2
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[$extras]"
+  rm -f .venv/.installed-*
+  touch "$stamp"
+fi

@@ -1,0 +1,1 @@
+"""GTSAM factors and noise models: scan-match between-factors, rendezvous factors, kernels."""

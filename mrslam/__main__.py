@@ -1,0 +1,3 @@
+from mrslam.cli import main
+
+main()

@@ -1,0 +1,183 @@
+"""The ``mrslam`` command. Each subcommand parses its arguments and calls a ``run`` function.
+
+Heavy imports (gtsam, open3d, zenoh) happen inside the commands, so ``mrslam --help`` is fast
+and ``mrslam agent`` never loads the server's libraries.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
+
+import typer
+
+from mrslam import __version__
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Multi-robot active SLAM: server, robot agent, simulator and tools.")
+log = logging.getLogger("mrslam")
+
+ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file")]
+VerboseOpt = Annotated[int, typer.Option("--verbose", "-v", count=True, help="more logging")]
+
+
+def setup_logging(verbose: int) -> None:
+    from rich.logging import RichHandler
+
+    level = logging.WARNING - 10 * min(verbose, 2)
+    logging.basicConfig(level=level, format="%(name)s: %(message)s", datefmt="[%X]",
+                        handlers=[RichHandler(show_path=False, rich_tracebacks=False)])
+
+
+def _fail(text: str, code: int = 2) -> NoReturn:
+    typer.echo(f"mrslam: {text}", err=True)
+    raise typer.Exit(code)
+
+
+def call(command: str, fn: Callable[[], Any]) -> Any:
+    """Run a command body; expected failures become one line on stderr and exit code 2."""
+    from mrslam.config import ConfigError
+    from schemas.bus import BusError
+    from schemas.errors import SchemaError
+
+    try:
+        return fn()
+    except NotImplementedError:
+        _fail(f"{command}: not implemented yet")
+    except (ConfigError, BusError, SchemaError, FileNotFoundError, IsADirectoryError) as e:
+        _fail(f"{command}: {e}")
+    except KeyboardInterrupt:
+        _fail(f"{command}: interrupted", 130)
+    except Exception as e:
+        if getattr(e, "user_error", False):  # typed errors of our packages about bad input
+            _fail(f"{command}: {e}")
+        raise
+
+
+def _version(value: bool) -> None:
+    if value:
+        typer.echo(f"mrslam {__version__}")
+        raise typer.Exit(0)
+
+
+@app.callback()
+def main_callback(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="print the version and exit")] = False,
+) -> None:
+    """mrslam command line."""
+
+
+@app.command()
+def server(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+    """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from server.daemon import run
+
+        return run(config)
+
+    call("server", body)
+
+
+@app.command()
+def agent(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+    """Run the robot agent (hardware drivers or the simulator backend)."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from robot_agent.runtime import run
+
+        return run(config)
+
+    call("agent", body)
+
+
+@app.command()
+def sim(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+    """Run the 2D multi-robot simulator as its own process."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from sim.process import run
+
+        return run(config)
+
+    call("sim", body)
+
+
+@app.command()
+def demo(
+    scenario: Annotated[str, typer.Option(help="scenario name")] = "thesis-case-2",
+    out: Annotated[Path | None, typer.Option(help="run folder")] = None,
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Start server, simulator and agents on loopback and explore a scenario."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from mrslam.demo import run
+
+        return run(scenario=scenario, out=out)
+
+    call("demo", body)
+
+
+@app.command("slam-log")
+def slam_log(
+    log_file: Annotated[Path, typer.Argument(help="CARMEN log (.clf/.log, optionally .gz/.bz2)")],
+    out: Annotated[Path, typer.Option(help="output folder")],
+    config: ConfigOpt = None,
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Run per-robot graph SLAM offline on a CARMEN laser log."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from server.slam_log import run
+
+        return run(log_file, out, config)
+
+    call("slam-log", body)
+
+
+@app.command("eval-relations")
+def eval_relations(
+    poses: Annotated[Path, typer.Argument(help="poses.txt: timestamp x y theta per line")],
+    relations: Annotated[Path, typer.Argument(help="relations file: t1 t2 x y z roll pitch yaw")],
+) -> None:
+    """Score poses against reference relations (Kümmerle et al. 2009)."""
+
+    def body() -> Any:
+        from server.evaluation import run
+
+        return run(poses, relations)
+
+    call("eval-relations", body)
+
+
+@app.command("world-map")
+def world_map(
+    world: Annotated[Path, typer.Argument(help="Gazebo .world/.sdf file or nav2 map .yaml")],
+    out: Annotated[Path, typer.Option(help="output folder")],
+    resolution: Annotated[float, typer.Option(help="cell size [m]")] = 0.05,
+) -> None:
+    """Write a world's ground-truth occupancy map (nav2 format) and its free area."""
+
+    def body() -> Any:
+        from sim.world_map import run
+
+        return run(world, resolution, out)
+
+    call("world-map", body)
+
+
+def main() -> None:
+    app(prog_name="mrslam")
+
+
+if __name__ == "__main__":
+    main()

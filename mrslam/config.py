@@ -1,0 +1,96 @@
+"""Load a run's configuration once: pydantic model <- YAML file <- environment overrides.
+
+Environment variables ``MRSLAM_<FIELD>[__<SUBFIELD>...]`` override the file, e.g.
+``MRSLAM_BUS__CONNECT='["tcp/10.0.0.2:7447"]'`` or ``MRSLAM_ROBOT_ID=r2``; values are parsed
+as YAML scalars or lists. The resolved configuration is written next to a run's outputs.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pydantic
+import yaml
+
+T = TypeVar("T", bound=pydantic.BaseModel)
+ENV_PREFIX = "MRSLAM_"
+
+
+class ConfigError(ValueError):
+    """The configuration file or an override is missing, unreadable or invalid."""
+
+
+def _set_path(tree: dict[str, Any], path: list[str], value: Any) -> None:
+    node = tree
+    for part in path[:-1]:
+        child = node.get(part)
+        if not isinstance(child, dict):
+            child = node[part] = {}
+        node = child
+    node[path[-1]] = value
+
+
+def env_overrides(model: type[pydantic.BaseModel], environ: Mapping[str, str],
+                  prefix: str = ENV_PREFIX) -> dict[str, Any]:
+    """Nested overrides from ``PREFIX`` variables whose first part is a field of ``model``."""
+    out: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(prefix):
+            continue
+        path = [p.lower() for p in name[len(prefix):].split("__") if p]
+        if not path or path[0] not in model.model_fields:
+            continue
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else raw
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{name}: not a YAML value ({e})") from None
+        _set_path(out, path, value)
+    return out
+
+
+def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_config(model: type[T], path: str | Path | None = None,
+                overrides: Mapping[str, Any] | None = None,
+                environ: Mapping[str, str] | None = None) -> T:
+    """Validate ``model`` from the YAML at ``path``, then env, then explicit ``overrides``."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        p = Path(path)
+        try:
+            loaded = yaml.safe_load(p.read_text())
+        except OSError as e:
+            raise ConfigError(f"{p}: cannot read config ({e.strerror})") from None
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{p}: not valid YAML ({e})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{p}: expected a mapping at the top level")
+        data = loaded or {}
+    data = _merge(data, env_overrides(model, os.environ if environ is None else environ))
+    data = _merge(data, overrides or {})
+    try:
+        return model.model_validate(data)
+    except pydantic.ValidationError as e:
+        where = f" in {path}" if path else ""
+        raise ConfigError(f"invalid {model.__name__}{where}:\n{e}") from None
+
+
+def write_resolved(cfg: pydantic.BaseModel, out_dir: str | Path,
+                   name: str = "config.yaml") -> Path:
+    """Write the validated configuration, defaults filled in, into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    target = out / name
+    target.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    return target

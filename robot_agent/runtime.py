@@ -1,0 +1,9 @@
+"""The robot agent (not built yet)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def run(*args: Any, **kwargs: Any) -> Any:
+    raise NotImplementedError("robot agent")

@@ -1,0 +1,1 @@
+"""The central daemon: per-robot SLAM, team graphs and merging, exploration, planning, control."""

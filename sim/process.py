@@ -1,0 +1,9 @@
+"""The simulator process (not built yet)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def run(*args: Any, **kwargs: Any) -> Any:
+    raise NotImplementedError("simulator process")

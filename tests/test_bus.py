@@ -1,0 +1,121 @@
+"""The Zenoh layer on loopback: real router and client sessions in one process."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+
+import pytest
+
+from schemas import MESSAGE_TYPES, MapUpdate, Message, Scan, keys
+from schemas.bus import Bus, BusError
+from tests.examples import all_examples, scan
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+def key_for(name: str) -> str:
+    return keys.KEY_TEMPLATES[name].replace("<id>", "r1")
+
+
+def test_every_message_type_crosses_the_bus(router: Bus, endpoint: str) -> None:
+    examples = all_examples()
+    got: dict[str, Message] = {}
+    lock = threading.Lock()
+    with Bus.open("client", connect=[endpoint]) as a, Bus.open("client", connect=[endpoint]) as b:
+        for name, cls in MESSAGE_TYPES.items():
+            def on(key: str, msg: Message, name: str = name) -> None:
+                with lock:
+                    got[name] = msg
+            b.subscribe(key_for(name), cls, on)
+        time.sleep(0.3)
+        for name, msg in examples.items():
+            a.publish(key_for(name), msg, block=True)
+        assert wait_for(lambda: len(got) == len(examples))
+    assert got == examples
+
+
+def test_garbage_is_counted_and_not_delivered(router: Bus, endpoint: str) -> None:
+    delivered: list[Scan] = []
+    with Bus.open("client", connect=[endpoint]) as a:
+        router.subscribe(keys.ALL_SCANS, Scan, lambda k, m: delivered.append(m))
+        time.sleep(0.3)
+        a.session.put(keys.robot_scan("r1"), b"\x93garbage")
+        a.session.put(keys.robot_scan("r2"), b"")
+        a.publish(keys.robot_scan("r3"), scan("r3"), block=True)
+        assert wait_for(lambda: len(delivered) == 1 and router.stats.rejected["Scan"] == 2)
+    assert delivered[0].robot_id == "r3"
+    assert "mrslam/robot/r" in router.stats.last_error
+
+
+def test_a_failing_handler_does_not_stop_delivery(router: Bus, endpoint: str) -> None:
+    seen: list[int] = []
+
+    def handler(key: str, msg: Scan) -> None:
+        seen.append(msg.seq)
+        if msg.seq == 0:
+            raise RuntimeError("boom")
+
+    with Bus.open("client", connect=[endpoint]) as a:
+        router.subscribe(keys.ALL_SCANS, Scan, handler)
+        time.sleep(0.3)
+        for i in range(3):
+            a.publish(keys.robot_scan("r1"), scan(seq=i), block=True)
+        assert wait_for(lambda: len(seen) == 3)
+    assert router.stats.callback_errors["Scan"] == 1
+
+
+def test_latest_map_queryable(router: Bus, endpoint: str) -> None:
+    latest = all_examples()["MapUpdate"]
+    router.serve(keys.SERVER_MAP, lambda: [latest])
+    with Bus.open("client", connect=[endpoint]) as a:
+        replies = a.get(keys.SERVER_MAP, MapUpdate, timeout_s=3.0)
+    assert replies == [latest]
+
+
+def test_liveliness_appears_and_vanishes_when_a_client_is_killed(
+        router: Bus, endpoint: str) -> None:
+    events: list[tuple[str, bool]] = []
+    router.watch_alive(keys.ALL_ALIVE, lambda k, alive: events.append((k, alive)))
+    code = (
+        "import time, sys\n"
+        "from schemas.bus import Bus\n"
+        "from schemas import keys\n"
+        f"bus = Bus.open('client', connect=['{endpoint}'])\n"
+        "bus.declare_alive(keys.robot_alive('r9'))\n"
+        "print('up', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
+        assert wait_for(lambda: ("mrslam/robot/r9/alive", True) in events)
+        proc.kill()
+        proc.wait(timeout=5)
+        t_kill = time.monotonic()
+        assert wait_for(lambda: ("mrslam/robot/r9/alive", False) in events, timeout_s=5.0)
+        assert time.monotonic() - t_kill < 5.0
+    finally:
+        proc.kill()
+
+
+def test_unreachable_router_is_a_bus_error() -> None:
+    from schemas.bus import free_local_endpoint
+
+    with pytest.raises(BusError, match="client session"):
+        Bus.open("client", connect=[free_local_endpoint()], connect_timeout_ms=300)
+
+
+def test_bad_listen_endpoint_is_a_bus_error() -> None:
+    with pytest.raises(BusError):
+        Bus.open("router", listen=["tcp/256.1.1.1:1"])

@@ -1,0 +1,83 @@
+"""Config loading (YAML <- env <- overrides) and the CLI's contract."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import typer
+import yaml
+from pydantic import BaseModel
+from typer.testing import CliRunner
+
+from mrslam import __version__
+from mrslam.cli import app, call
+from mrslam.config import ConfigError, load_config, write_resolved
+from schemas.config import BusConfig
+
+
+class Demo(BaseModel):
+    robot_id: str = "r1"
+    rate_hz: float = 10.0
+    bus: BusConfig = BusConfig()
+
+
+def test_yaml_env_and_overrides_in_order(tmp_path: Path) -> None:
+    f = tmp_path / "c.yaml"
+    f.write_text("robot_id: r2\nrate_hz: 5\nbus:\n  mode: client\n")
+    env = {"MRSLAM_RATE_HZ": "7.5", "MRSLAM_BUS__CONNECT": '["tcp/10.0.0.2:7447"]',
+           "MRSLAM_UNRELATED": "x", "OTHER": "y"}
+    cfg = load_config(Demo, f, environ=env)
+    assert (cfg.robot_id, cfg.rate_hz, cfg.bus.connect) == ("r2", 7.5, ["tcp/10.0.0.2:7447"])
+    cfg = load_config(Demo, f, overrides={"rate_hz": 1.0}, environ=env)
+    assert cfg.rate_hz == 1.0
+
+
+def test_invalid_config_names_the_field(tmp_path: Path) -> None:
+    f = tmp_path / "c.yaml"
+    f.write_text("bus:\n  mode: satellite\n")
+    with pytest.raises(ConfigError, match=r"bus\.mode"):
+        load_config(Demo, f, environ={})
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(Demo, tmp_path / "missing.yaml", environ={})
+    f.write_text("- a list\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(Demo, f, environ={})
+    with pytest.raises(ConfigError, match="rate_hz"):
+        load_config(Demo, None, environ={"MRSLAM_RATE_HZ": "fast"})
+
+
+def test_resolved_config_round_trips(tmp_path: Path) -> None:
+    cfg = load_config(Demo, None, overrides={"robot_id": "r3"}, environ={})
+    path = write_resolved(cfg, tmp_path / "run")
+    assert Demo.model_validate(yaml.safe_load(path.read_text())) == cfg
+
+
+def test_version() -> None:
+    res = CliRunner().invoke(app, ["--version"])
+    assert res.exit_code == 0 and __version__ in res.output
+
+
+def test_every_subcommand_exists() -> None:
+    res = CliRunner().invoke(app, ["--help"])
+    for cmd in ("server", "agent", "sim", "demo", "slam-log", "eval-relations", "world-map"):
+        assert cmd in res.output
+
+
+def test_unbuilt_command_exits_2_with_message(capsys: pytest.CaptureFixture[str]) -> None:
+    def not_built() -> None:
+        raise NotImplementedError
+
+    with pytest.raises(typer.Exit) as ex:
+        call("frobnicate", not_built)
+    assert ex.value.exit_code == 2
+    assert "frobnicate: not implemented yet" in capsys.readouterr().err
+
+
+def test_expected_errors_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    def bad() -> None:
+        raise ConfigError("invalid Demo: bus.mode")
+
+    with pytest.raises(typer.Exit) as ex:
+        call("server", bad)
+    assert ex.value.exit_code == 2 and "bus.mode" in capsys.readouterr().err
