@@ -1,0 +1,114 @@
+#!/usr/bin/env python3
+"""Write Zenoh json5 configs for a secured deployment (standard library only).
+
+    python deploy/zenoh/config.py server --certs DIR --listen tls/0.0.0.0:7447 r1 r2 > s.json5
+    python deploy/zenoh/config.py agent --certs DIR --connect tls/server:7447 --robot r1 > a.json5
+    python deploy/zenoh/config.py client --certs DIR --connect tls/server:7447 --name dashboard
+
+The server's router requires mutual TLS and applies access control keyed on the certificate's
+common name: robot <id> may publish, declare tokens and queryables only under
+``mrslam/robot/<id>/**`` and may subscribe to its own keys and to ``mrslam/server/**`` (its
+commands, the map, the server's liveliness). Names passed with ``--observer`` (dashboards,
+loggers) may read everything and write nothing. Everything else is denied. The server's own
+session is the router, so its publications and subscriptions are local and always allowed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+# what a remote sends into the router (ingress) and receives from it (egress)
+WRITE = ["put", "delete", "declare_queryable", "liveliness_token", "reply"]
+SUBSCRIBE = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
+RECEIVE = ["put", "delete", "reply", "liveliness_token", "query"]
+
+
+def tls_block(certs: Path, name: str, listen: bool) -> dict[str, object]:
+    block: dict[str, object] = {
+        "root_ca_certificate": str(certs / "ca.pem"),
+        "enable_mtls": True,
+        "verify_name_on_connect": False,
+    }
+    side = "listen" if listen else "connect"
+    block[f"{side}_private_key"] = str(certs / f"{name}.key")
+    block[f"{side}_certificate"] = str(certs / f"{name}.pem")
+    return block
+
+
+def _rule(rid: str, flow: str, messages: list[str], keys: list[str]) -> dict[str, object]:
+    return {"id": rid, "permission": "allow", "flows": [flow], "messages": messages,
+            "key_exprs": keys}
+
+
+def access_control(robots: list[str], observers: list[str]) -> dict[str, object]:
+    rules: list[dict[str, object]] = []
+    subjects: list[dict[str, object]] = []
+    policies: list[dict[str, object]] = []
+    for rid in robots:
+        own = [f"mrslam/robot/{rid}/**"]
+        readable = [*own, "mrslam/server/**"]
+        rules += [_rule(f"{rid}-write", "ingress", WRITE, own),
+                  _rule(f"{rid}-subscribe", "ingress", SUBSCRIBE, readable),
+                  _rule(f"{rid}-receive", "egress", RECEIVE, readable)]
+        subjects.append({"id": f"robot-{rid}", "cert_common_names": [rid]})
+        policies.append({"id": f"policy-{rid}", "subjects": [f"robot-{rid}"],
+                         "rules": [f"{rid}-write", f"{rid}-subscribe", f"{rid}-receive"]})
+    if observers:
+        rules += [_rule("observe-subscribe", "ingress", SUBSCRIBE, ["mrslam/**"]),
+                  _rule("observe-receive", "egress", RECEIVE, ["mrslam/**"])]
+        subjects.append({"id": "observers", "cert_common_names": observers})
+        policies.append({"id": "policy-observers", "subjects": ["observers"],
+                         "rules": ["observe-subscribe", "observe-receive"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+def server_config(certs: Path, listen: list[str], robots: list[str],
+                  observers: list[str]) -> dict[str, object]:
+    return {
+        "mode": "router",
+        "listen": {"endpoints": listen},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": tls_block(certs, "server", listen=True)}},
+        "access_control": access_control(robots, observers),
+    }
+
+
+def client_config(certs: Path, connect: list[str], name: str) -> dict[str, object]:
+    return {
+        "mode": "client",
+        "connect": {"endpoints": connect, "timeout_ms": -1},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": tls_block(certs, name, listen=False)}},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("role", choices=["server", "agent", "client"])
+    ap.add_argument("--certs", type=Path, required=True, help="folder from make-certs.sh")
+    ap.add_argument("--listen", action="append", default=[])
+    ap.add_argument("--connect", action="append", default=[])
+    ap.add_argument("--robot", help="robot id (agent)")
+    ap.add_argument("--name", help="certificate name (client)")
+    ap.add_argument("--observer", action="append", default=[],
+                    help="certificate name allowed to read everything (server)")
+    ap.add_argument("robots", nargs="*", help="robot ids (server)")
+    a = ap.parse_intermixed_args(argv)
+    if a.role == "server":
+        conf = server_config(a.certs, a.listen or ["tls/0.0.0.0:7447"], a.robots, a.observer)
+    else:
+        name = a.robot if a.role == "agent" else a.name
+        if not name:
+            ap.error("--robot (agent) or --name (client) is required")
+        conf = client_config(a.certs, a.connect or ["tls/127.0.0.1:7447"], name)
+    json.dump(conf, sys.stdout, indent=2)
+    sys.stdout.write("\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,121 @@
+"""Secured deployment on loopback: mutual TLS and per-robot access control in the router."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from schemas import MapUpdate, Scan, VelocityCommand, keys
+from schemas.bus import Bus, BusError, free_local_endpoint
+from tests.conftest import ROOT
+from tests.examples import all_examples, scan
+
+DEPLOY = ROOT / "deploy" / "zenoh"
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+
+
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("certs")
+    subprocess.run(["bash", str(DEPLOY / "make-certs.sh"), str(out), "127.0.0.1", "r1", "r2",
+                    "dashboard"], check=True, capture_output=True)
+    return out
+
+
+def write_config(tmp: Path, name: str, *args: str) -> str:
+    out = subprocess.run([sys.executable, str(DEPLOY / "config.py"), *args], check=True,
+                         capture_output=True, text=True).stdout
+    json.loads(out)  # the generated file is valid JSON (hence json5)
+    path = tmp / f"{name}.json5"
+    path.write_text(out)
+    return str(path)
+
+
+@pytest.fixture
+def secured(certs: Path, tmp_path: Path) -> Iterator[tuple[Bus, str, Path]]:
+    endpoint = free_local_endpoint().replace("tcp/", "tls/")
+    conf = write_config(tmp_path, "server", "server", "--certs", str(certs), "--listen",
+                        endpoint, "--observer", "dashboard", "r1", "r2")
+    with Bus.open("router", config_file=conf) as server:
+        yield server, endpoint, tmp_path
+
+
+def client(certs: Path, tmp: Path, endpoint: str, name: str) -> Bus:
+    role = ["agent", "--robot", name] if name.startswith("r") else ["client", "--name", name]
+    conf = write_config(tmp, name, role[0], "--certs", str(certs), "--connect", endpoint,
+                        *role[1:])
+    return Bus.open("client", config_file=conf, connect_timeout_ms=3000)
+
+
+def wait_for(cond: object, timeout_s: float = 3.0) -> bool:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if cond():  # type: ignore[operator]
+            return True
+        time.sleep(0.02)
+    return bool(cond())  # type: ignore[operator]
+
+
+def test_client_without_a_valid_certificate_cannot_connect(
+        secured: tuple[Bus, str, Path], tmp_path: Path) -> None:
+    _, endpoint, _ = secured
+    # plain TCP to a TLS listener
+    with pytest.raises(BusError):
+        Bus.open("client", connect=[endpoint.replace("tls/", "tcp/")], connect_timeout_ms=800)
+    # TLS with a certificate from another CA
+    rogue = tmp_path / "rogue"
+    subprocess.run(["bash", str(DEPLOY / "make-certs.sh"), str(rogue), "127.0.0.1", "r1"],
+                   check=True, capture_output=True)
+    conf = write_config(tmp_path, "rogue", "agent", "--certs", str(rogue), "--connect",
+                        endpoint, "--robot", "r1")
+    with pytest.raises(BusError):
+        Bus.open("client", config_file=conf, connect_timeout_ms=800)
+
+
+def test_robot_can_publish_only_under_its_own_keys(
+        secured: tuple[Bus, str, Path], certs: Path) -> None:
+    server, endpoint, tmp = secured
+    got: list[tuple[str, str]] = []
+    lock = threading.Lock()
+
+    def on_scan(key: str, msg: Scan) -> None:
+        with lock:
+            got.append((key, msg.robot_id))
+
+    server.subscribe(keys.ALL_SCANS, Scan, on_scan)
+    maps: list[MapUpdate] = []
+    r1 = client(certs, tmp, endpoint, "r1")
+    r2 = client(certs, tmp, endpoint, "r2")
+    dash = client(certs, tmp, endpoint, "dashboard")
+    try:
+        cmds: list[VelocityCommand] = []
+        r1.subscribe(keys.robot_cmd_vel("r1"), VelocityCommand, lambda k, m: cmds.append(m))
+        dash.subscribe(keys.SERVER_MAP, MapUpdate, lambda k, m: maps.append(m))
+        spoofed: list[MapUpdate] = []
+        server.subscribe(keys.SERVER_MAP, MapUpdate, lambda k, m: spoofed.append(m))
+        time.sleep(0.5)
+        r2.publish(keys.robot_scan("r1"), scan("r1", seq=1), block=True)  # spoof: refused
+        r2.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)  # refused
+        r2.publish(keys.robot_scan("r2"), scan("r2", seq=2), block=True)
+        r1.publish(keys.robot_scan("r1"), scan("r1", seq=3), block=True)
+        server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+            robot_id="r1", v_mps=0.1, omega_rps=0.0), block=True)
+        assert wait_for(lambda: len(got) >= 2 and cmds)
+        time.sleep(0.5)  # would a refused message still arrive?
+        with lock:
+            assert sorted(got) == [("mrslam/robot/r1/scan", "r1"), ("mrslam/robot/r2/scan", "r2")]
+        assert [c.robot_id for c in cmds] == ["r1"]
+        assert spoofed == [] and maps == []
+        server.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)
+        assert wait_for(lambda: len(maps) == 1)  # observers read what the server publishes
+    finally:
+        for b in (r1, r2, dash):
+            b.close()
