@@ -1,0 +1,139 @@
+"""Pure pursuit path following for a differential-drive robot.
+
+The look-ahead point is the path point an arc length L past the point of the path closest to the
+robot (the path's end when less than L remains). In the robot frame it lies at (x_r, y_r), at
+distance D and bearing α = atan2(y_r, x_r). The arc through it has curvature
+
+    κ = 2 · y_r / D²,     ω = v · κ,
+
+with v fixed. When |ω| would exceed ω_max, ω is clipped and v lowered to ω_max/|κ| so the robot
+still drives the same arc. When |α| exceeds ``rotate_in_place_above_rad`` (the path lies behind
+or beside the robot) the robot turns on the spot, ω = clip(k·α, ω_max).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from server.control.geometry import STOP, Twist, clip, world_to_robot
+
+
+@dataclass(frozen=True)
+class PursuitParams:
+    lookahead_m: float = 1.0
+    v_mps: float = 0.3
+    omega_max_rps: float = 1.5
+    goal_tolerance_m: float = 0.25
+    rotate_in_place_above_rad: float = math.pi / 3
+    rotate_gain: float = 2.0
+
+
+@dataclass(frozen=True)
+class PursuitStep:
+    twist: Twist
+    reached: bool
+    lookahead_xy: tuple[float, float]
+    heading_error_rad: float    # α: bearing of the look-ahead point in the robot frame
+    cross_track_m: float        # distance from the robot to the path
+
+
+def closest_point(path_xy: NDArray[np.float64], p: NDArray[np.float64], first_segment: int = 0,
+                  last_segment: int | None = None) -> tuple[int, float, float]:
+    """Closest point of segments [first, last] of a polyline to p.
+
+    Returns (segment index i, fraction t ∈ [0, 1] along segment i, distance [m]).
+    """
+    a = path_xy[first_segment:(None if last_segment is None else last_segment + 1)]
+    b = path_xy[first_segment + 1:(None if last_segment is None else last_segment + 2)]
+    a = a[:len(b)]
+    d = b - a
+    L2 = np.einsum("ij,ij->i", d, d)
+    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
+    q = a + t[:, None] * d
+    dist = np.hypot(*(q - p).T)
+    k = int(np.argmin(dist))
+    return first_segment + k, float(t[k]), float(dist[k])
+
+
+class PurePursuit:
+    """Follows one path at a time; the progress along it only moves forward, so a path that
+    passes near itself is not cut short. A different path array restarts the progress."""
+
+    def __init__(self, params: PursuitParams | None = None) -> None:
+        self.params = params or PursuitParams()
+        self._path: NDArray[np.float64] | None = None
+        self._cum: NDArray[np.float64] = np.zeros(1)
+        self._segment = 0
+
+    def reset(self) -> None:
+        self._path = None
+
+    def _load(self, path_xy: ArrayLike) -> NDArray[np.float64]:
+        path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
+        if len(path) == 0 or not np.all(np.isfinite(path)):
+            raise ValueError("path must hold at least one finite (x, y) point")
+        if self._path is None or path.shape != self._path.shape or not np.array_equal(
+                path, self._path):
+            self._path = path.copy()
+            seg = np.hypot(*np.diff(path, axis=0).T) if len(path) > 1 else np.zeros(0)
+            self._cum = np.concatenate([[0.0], np.cumsum(seg)])
+            self._segment = 0
+        return self._path
+
+    def reached(self, pose: ArrayLike, path_xy: ArrayLike) -> bool:
+        goal = np.asarray(path_xy, np.float64).reshape(-1, 2)[-1]
+        xy = np.asarray(pose, np.float64).reshape(3)[:2]
+        return bool(np.hypot(*(goal - xy)) < self.params.goal_tolerance_m)
+
+    def command(self, pose: ArrayLike, path_xy: ArrayLike) -> Twist:
+        return self.step(pose, path_xy).twist
+
+    def step(self, pose: ArrayLike, path_xy: ArrayLike) -> PursuitStep:
+        p = self.params
+        path = self._load(path_xy)
+        pose_a = np.asarray(pose, np.float64).reshape(3)
+        xy = pose_a[:2]
+        goal = path[-1]
+        if np.hypot(*(goal - xy)) < p.goal_tolerance_m:
+            return PursuitStep(STOP, True, (float(goal[0]), float(goal[1])), 0.0,
+                               float(np.hypot(*(goal - xy))))
+        if len(path) == 1:
+            target, cross = goal, 0.0
+        else:
+            # Search forward from the current progress, up to one look-ahead beyond it.
+            s0 = self._cum[self._segment]
+            last = int(np.searchsorted(self._cum, s0 + p.lookahead_m + 1.0, side="right")) - 1
+            last = min(max(last, self._segment), len(path) - 2)
+            seg, t, cross = closest_point(path, xy, self._segment, last)
+            self._segment = seg
+            s = self._cum[seg] + t * (self._cum[seg + 1] - self._cum[seg]) + p.lookahead_m
+            target = self._point_at(path, s)
+        local = world_to_robot(pose_a, target)
+        xr, yr = float(local[0]), float(local[1])
+        alpha = math.atan2(yr, xr)
+        tgt = (float(target[0]), float(target[1]))
+        if abs(alpha) > p.rotate_in_place_above_rad:
+            twist = Twist(0.0, clip(p.rotate_gain * alpha, p.omega_max_rps))
+            return PursuitStep(twist, False, tgt, alpha, cross)
+        d2 = xr * xr + yr * yr
+        kappa = 2.0 * yr / d2 if d2 > 1e-12 else 0.0
+        v, omega = p.v_mps, p.v_mps * kappa
+        if abs(omega) > p.omega_max_rps:
+            omega = math.copysign(p.omega_max_rps, omega)
+            v = p.omega_max_rps / abs(kappa)
+        return PursuitStep(Twist(v, omega), False, tgt, alpha, cross)
+
+    def _point_at(self, path: NDArray[np.float64], s: float) -> NDArray[np.float64]:
+        """The path point at arc length s (clamped to the ends)."""
+        cum = self._cum
+        if s >= cum[-1]:
+            return path[-1]
+        i = int(np.searchsorted(cum, s, side="right")) - 1
+        i = min(max(i, 0), len(path) - 2)
+        span = cum[i + 1] - cum[i]
+        t = (s - cum[i]) / span if span > 0 else 0.0
+        return path[i] + t * (path[i + 1] - path[i])

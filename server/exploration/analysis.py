@@ -1,0 +1,63 @@
+"""Everything one exploration decision derives from the map, computed once per decision."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from server.exploration.frontiers import Frontiers, find_frontiers
+from server.exploration.skeleton import SkeletonGraph, skeleton_graph, voronoi_skeleton
+from server.planning.costmap import CostLayer, CostParams, build_cost_layer
+from server.planning.grid import OccupancyGrid, small_components
+
+
+@dataclass(frozen=True)
+class AnalysisParams:
+    """Map analysis settings (lengths in metres)."""
+
+    cost: CostParams = field(default_factory=CostParams)
+    # Voronoi ridge cells need nearest boundary cells at least this far apart (prunes the
+    # ridges of a jagged boundary).
+    min_separation_m: float = 0.3
+    # Frontier clusters shorter than this (counted in cells × resolution) are ignored.
+    min_frontier_m: float = 0.3
+    # Border of unknown cells kept around the observed part of the grid.
+    margin_cells: int = 3
+
+
+@dataclass(frozen=True, eq=False)
+class MapAnalysis:
+    """The grid cropped to its observed part, with its cost layer, skeleton and frontiers."""
+
+    grid: OccupancyGrid
+    layer: CostLayer               # includes the skeleton preference
+    space: NDArray[np.bool_]       # known free space (free cells and small unobserved pockets)
+    unexplored: NDArray[np.bool_]  # unobserved cells outside those pockets
+    graph: SkeletonGraph
+    frontiers: Frontiers
+
+
+def analyse(grid: OccupancyGrid, params: AnalysisParams,
+            include_xy: ArrayLike | None = None) -> MapAnalysis:
+    """Crop to the observed cells (and ``include_xy``, e.g. robot positions), then build the
+    cost layer, the Voronoi skeleton of known free space and the frontier clusters."""
+    crop = grid.crop_to_known(params.margin_cells, include_xy=include_xy)
+    res = crop.resolution_m
+    cp = params.cost
+    hole_cells = int(cp.hole_area_m2 / (res * res))
+    holes = small_components(crop.unobserved, hole_cells)
+    space = crop.free | holes
+    unexplored = crop.unobserved & ~holes
+    obstacles = crop.occupied | unexplored if cp.unknown_is_obstacle else crop.occupied
+    layer = build_cost_layer(crop, cp, obstacles=obstacles)
+    # With unknown space as obstacle the layer's feature transform is that of ``space``.
+    nearest = layer.nearest_obstacle if cp.unknown_is_obstacle else None
+    skeleton = voronoi_skeleton(space, min_separation_cells=params.min_separation_m / res,
+                                nearest_boundary=nearest)
+    graph = skeleton_graph(skeleton, clearance=layer.clearance_m)
+    layer = layer.with_preferred(skeleton, cp.skeleton_factor)
+    frontiers = find_frontiers(space, unexplored,
+                               min_cells=int(np.ceil(params.min_frontier_m / res)))
+    return MapAnalysis(crop, layer, space, unexplored, graph, frontiers)

@@ -1,0 +1,232 @@
+"""Exploration decisions: where one robot goes next, and the path there.
+
+Both explorers share one loop (:meth:`Explorer.decide`):
+
+1. stop if the coverage threshold is reached (when the total area is known);
+2. analyse the map: crop, cost layer, Voronoi skeleton, frontiers;
+3. propose targets (the Voronoi explorer: rule-1 junctions, or frontier clusters when the
+   skeleton offers none; the frontier explorer: frontier clusters);
+4. settle path costs from the robot to every cell once (Dijkstra over the cost layer) and score
+   every target; drop visited, reserved, lethal and unreachable ones;
+5. take the cheapest and trace its path — or report that no reachable frontier remains.
+
+``d_robot`` is the length [m] of the minimum-cost path from the robot (the Dijkstra path, which
+costs the same as the A* path of :func:`server.planning.plan`); ``d_origin`` is the straight-line
+distance [m] from the robot's start pose.
+"""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from server.exploration.analysis import AnalysisParams, MapAnalysis, analyse
+from server.exploration.candidates import rule1_candidates
+from server.exploration.coverage import coverage
+from server.exploration.visited import VisitedTargets
+from server.planning.dijkstra import CostField
+from server.planning.grid import OccupancyGrid
+from server.planning.path import Path
+
+log = logging.getLogger(__name__)
+
+VORONOI, FRONTIER = "voronoi", "frontier"
+OK, VISITED, RESERVED, AT_ROBOT, LETHAL, UNREACHABLE = (
+    "ok", "visited", "reserved", "at robot", "lethal", "unreachable")
+
+
+@dataclass(frozen=True)
+class ExplorerParams:
+    analysis: AnalysisParams = field(default_factory=AnalysisParams)
+    # λ in C = λ·d_robot + (1−λ)·d_origin (Voronoi explorer).
+    lam: float = 1.0
+    # Coverage stop: when total_area_m2 is None the run stops when no reachable frontier remains.
+    total_area_m2: float | None = None
+    coverage_threshold: float = 0.98
+    # Rule-1 junctions count as near a frontier within this distance.
+    frontier_radius_m: float = 0.6
+    # Lethal target cells move to the nearest traversable cell within this distance.
+    snap_radius_m: float = 0.5
+    # Targets closer than this to the robot are where it already is.
+    min_target_distance_m: float = 0.4
+    # Targets within this distance of another robot's goal are reserved for it.
+    reserve_radius_m: float = 2.0
+    escape_radius_m: float = 0.5
+    smooth: bool = True
+    # Frontier explorer (explore_lite's defaults): cost = potential·d_robot − gain·size_m.
+    potential_scale: float = 3.0
+    gain_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class Target:
+    """One scored candidate target."""
+
+    xy: tuple[float, float]
+    kind: str                 # VORONOI or FRONTIER
+    status: str               # OK or why it was dropped
+    d_robot_m: float = float("inf")
+    d_origin_m: float = float("inf")
+    cost: float = float("inf")
+    frontier_size_m: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Decision:
+    target_xy: tuple[float, float]
+    path: Path
+    reason: str               # which rule produced the target
+    candidates: tuple[Target, ...]
+    coverage: float | None
+
+
+@dataclass(frozen=True)
+class Finished:
+    """Nothing left to explore: the coverage threshold is reached, or no reachable frontier
+    remains (``candidates`` then says why each one was dropped)."""
+
+    reason: str
+    coverage: float | None
+    candidates: tuple[Target, ...] = field(default=())
+
+
+@dataclass
+class _Proposal:
+    rc: NDArray[np.int64]                 # (K, 2) target cells in the analysed grid
+    kind: str
+    size_cells: NDArray[np.int64] | None = None
+
+
+class Explorer(ABC):
+    """Shared decision loop; subclasses propose and score targets."""
+
+    name = "base"
+
+    def __init__(self, params: ExplorerParams | None = None) -> None:
+        self.params = params or ExplorerParams()
+
+    def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
+               visited: VisitedTargets, *,
+               reserved_xy: ArrayLike = ()) -> Decision | Finished:
+        """Next target and path for a robot at ``robot_pose`` (x, y, θ) that started at
+        ``start_pose``; ``reserved_xy`` are other robots' goals (targets near them are skipped).
+
+        Raises :class:`server.planning.StartOccupied` when the robot is inside the lethal zone
+        with nothing traversable within the escape radius (the caller recovers, then retries).
+        """
+        p = self.params
+        robot_xy = np.asarray(robot_pose, np.float64).reshape(-1)[:2]
+        start_xy = np.asarray(start_pose, np.float64).reshape(-1)[:2]
+        cov = coverage(grid, p.total_area_m2) if p.total_area_m2 else None
+        if cov is not None and cov >= p.coverage_threshold:
+            return Finished(f"coverage {cov:.3f} reached the threshold {p.coverage_threshold}",
+                            cov)
+        analysis = analyse(grid, p.analysis, include_xy=robot_xy)
+        if len(analysis.frontiers) == 0:
+            return Finished("no frontier left", cov)
+        field_ = CostField(analysis.layer, robot_xy, escape_radius_m=p.escape_radius_m)
+        targets: list[Target] = []
+        for proposal in self._proposals(analysis):
+            scored = self._score(analysis, field_, proposal, robot_xy, start_xy, visited,
+                                 np.asarray(reserved_xy, np.float64).reshape(-1, 2))
+            targets.extend(scored)
+            ok = [t for t in scored if t.status == OK]
+            if ok:
+                best = min(ok, key=lambda t: t.cost)
+                path = field_.path_to(best.xy, smooth=p.smooth)
+                return Decision(best.xy, path, proposal.kind, tuple(targets), cov)
+        return Finished("no reachable frontier", cov, tuple(targets))
+
+    @abstractmethod
+    def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
+        """Groups of targets, tried in order: a later group only when no earlier one has a
+        reachable target."""
+
+    @abstractmethod
+    def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
+        """Score of a reachable target (the cheapest is chosen)."""
+
+    def _score(self, analysis: MapAnalysis, field_: CostField, proposal: _Proposal,
+               robot_xy: NDArray[np.float64], start_xy: NDArray[np.float64],
+               visited: VisitedTargets, reserved_xy: NDArray[np.float64]) -> list[Target]:
+        p = self.params
+        layer = analysis.layer
+        res = layer.geometry.resolution_m
+        out: list[Target] = []
+        sizes = (proposal.size_cells if proposal.size_cells is not None
+                 else np.zeros(len(proposal.rc), np.int64))
+        snapped = [layer.escape((int(r), int(c)), p.snap_radius_m) for r, c in proposal.rc]
+        xy_all = layer.geometry.cell_to_world(
+            np.asarray([s if s is not None else rc for s, rc in zip(snapped, proposal.rc,
+                                                                    strict=True)]).reshape(-1, 2))
+        is_visited = visited.mask(xy_all)
+        for i, xy in enumerate(xy_all):
+            t_xy = (float(xy[0]), float(xy[1]))
+            size_m = float(sizes[i]) * res
+            d_origin = float(np.hypot(*(xy - start_xy)))
+            status = OK
+            if snapped[i] is None:
+                status = LETHAL
+            elif is_visited[i]:
+                status = VISITED
+            elif len(reserved_xy) and np.min(np.hypot(*(reserved_xy - xy).T)) < p.reserve_radius_m:
+                status = RESERVED
+            elif np.hypot(*(xy - robot_xy)) < p.min_target_distance_m:
+                status = AT_ROBOT
+            if status != OK:
+                out.append(Target(t_xy, proposal.kind, status, d_origin_m=d_origin,
+                                  frontier_size_m=size_m))
+                continue
+            d_robot = field_.length_m(xy)
+            if not np.isfinite(d_robot):
+                out.append(Target(t_xy, proposal.kind, UNREACHABLE, d_origin_m=d_origin,
+                                  frontier_size_m=size_m))
+                continue
+            out.append(Target(t_xy, proposal.kind, OK, d_robot, d_origin,
+                              self._target_cost(d_robot, d_origin, size_m), size_m))
+        return out
+
+
+class VoronoiExplorer(Explorer):
+    """Rule-1 Voronoi junctions near frontiers, scored C = λ·d_robot + (1−λ)·d_origin; frontier
+    clusters (same score) when no junction qualifies."""
+
+    name = VORONOI
+
+    def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
+        res = analysis.layer.geometry.resolution_m
+        nodes = rule1_candidates(analysis.graph, analysis.frontiers,
+                                 self.params.frontier_radius_m / res)
+        fr = analysis.frontiers
+        return [_Proposal(analysis.graph.node_rc[nodes], VORONOI),
+                _Proposal(fr.middle_rc, FRONTIER, fr.size_cells)]
+
+    def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
+        lam = self.params.lam
+        return lam * d_robot_m + (1.0 - lam) * d_origin_m
+
+
+class FrontierExplorer(Explorer):
+    """Nearest-frontier baseline (the explore_lite strategy): frontier clusters scored
+    potential_scale·d_robot − gain_scale·size_m; visited/blacklisted ones skipped."""
+
+    name = FRONTIER
+
+    def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
+        fr = analysis.frontiers
+        return [_Proposal(fr.middle_rc, FRONTIER, fr.size_cells)]
+
+    def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
+        return self.params.potential_scale * d_robot_m - self.params.gain_scale * size_m
+
+
+def make_explorer(name: str, params: ExplorerParams | None = None) -> Explorer:
+    """``"voronoi"`` or ``"frontier"``."""
+    kinds: dict[str, type[Explorer]] = {VORONOI: VoronoiExplorer, FRONTIER: FrontierExplorer}
+    if name not in kinds:
+        raise ValueError(f"unknown explorer {name!r}; choose one of {sorted(kinds)}")
+    return kinds[name](params)

@@ -1,0 +1,60 @@
+"""Frontiers: known free cells next to unexplored space, grouped into clusters."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from server.planning.grid import EIGHT_CONNECTED
+
+_FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
+
+
+@dataclass(frozen=True, eq=False)
+class Frontiers:
+    """Frontier clusters of at least the minimum size, as cells of the analysed grid."""
+
+    mask: NDArray[np.bool_]            # (H, W) cells of the kept clusters
+    cells_rc: NDArray[np.int64]        # (M, 2) the same cells
+    cell_cluster: NDArray[np.int64]    # (M,) cluster index of each cell, 0..K-1
+    centroid_rc: NDArray[np.float64]   # (K, 2) mean cell of each cluster
+    middle_rc: NDArray[np.int64]       # (K, 2) the cluster's cell nearest to its centroid
+    size_cells: NDArray[np.int64]      # (K,)
+
+    def __len__(self) -> int:
+        return len(self.size_cells)
+
+
+def frontier_mask(space: NDArray[np.bool_], unexplored: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Cells of ``space`` (known free) with a 4-neighbour in ``unexplored``."""
+    near = ndimage.binary_dilation(unexplored, structure=_FOUR_CONNECTED)
+    return space & near
+
+
+def find_frontiers(space: NDArray[np.bool_], unexplored: NDArray[np.bool_], *,
+                   min_cells: int) -> Frontiers:
+    """Frontier cells grouped 8-connected; clusters with fewer than ``min_cells`` are dropped."""
+    labels, n = ndimage.label(frontier_mask(space, unexplored), structure=EIGHT_CONNECTED)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)
+    keep = sizes >= max(1, min_cells)
+    keep[0] = False
+    remap = np.full(n + 1, -1, dtype=np.int64)
+    remap[keep] = np.arange(int(keep.sum()))
+    cluster_of = remap[labels]
+    mask = cluster_of >= 0
+    cells = np.argwhere(mask).astype(np.int64)
+    cell_cluster = cluster_of[mask]
+    k = int(keep.sum())
+    size = np.bincount(cell_cluster, minlength=k).astype(np.int64)
+    if k == 0:
+        empty = np.zeros((0, 2))
+        return Frontiers(mask, cells, cell_cluster, empty, empty.astype(np.int64), size)
+    centroid = np.stack([np.bincount(cell_cluster, weights=cells[:, i], minlength=k)
+                         for i in (0, 1)], axis=1) / size[:, None]
+    d2 = np.sum((cells - centroid[cell_cluster]) ** 2, axis=1)
+    order = np.lexsort((d2, cell_cluster))
+    first = order[np.searchsorted(cell_cluster[order], np.arange(k))]
+    return Frontiers(mask, cells, cell_cluster, centroid, cells[first], size)

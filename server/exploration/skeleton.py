@@ -1,0 +1,142 @@
+"""The Voronoi graph of known free space: EDT ridge cells, thinned, cut into nodes and edges.
+
+A free cell lies on the generalised Voronoi diagram when it and an 8-neighbour have nearest
+boundary cells (the EDT feature transform) at least ``min_separation`` apart: the two cells are
+then closest to different stretches of boundary (walls, or the edge of the unknown). Requiring a
+separation prunes the tiny ridges a jagged boundary produces; ridges into a concave corner stop
+``≈ min_separation/√2`` short of it. The marked band is thinned to one cell (Zhang–Suen).
+
+Graph: skeleton cells with ≥ 3 skeleton neighbours form junction clusters (one node each), cells
+with one neighbour are end nodes; the remaining cells form branches, each an edge between the
+nodes it touches. A node's degree is the number of distinct branches it touches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from skimage.morphology import skeletonize
+
+from server.planning.grid import EIGHT_CONNECTED
+
+JUNCTION, END = 2, 1
+_NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.uint8)
+# Half of the 8-neighbourhood: each unordered neighbour pair is visited once.
+_HALF_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1))
+_ALL_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, -1), (-1, 0), (-1, -1), (-1, 1))
+
+
+def _pair_slices(dr: int, dc: int, shape: tuple[int, ...]
+                 ) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """Slices a, b such that cell a[k] and cell b[k] are neighbours at offset (dr, dc)."""
+    H, W = shape
+    a = (slice(max(0, -dr), H - max(0, dr)), slice(max(0, -dc), W - max(0, dc)))
+    b = (slice(max(0, dr), H + min(0, dr)), slice(max(0, dc), W + min(0, dc)))
+    return a, b
+
+
+def voronoi_skeleton(space: NDArray[np.bool_], *, min_separation_cells: float,
+                     nearest_boundary: NDArray[np.intp] | None = None) -> NDArray[np.bool_]:
+    """One-cell-wide Voronoi skeleton of the ``space`` mask (see the module docstring).
+
+    ``nearest_boundary`` is the (2, H, W) feature transform of ``space`` (row/col of the nearest
+    cell outside it, as from ``ndimage.distance_transform_edt(space, return_indices=True)``);
+    computed here when not given.
+    """
+    if not space.any() or space.all():
+        return np.zeros_like(space)
+    if nearest_boundary is None:
+        _, nearest_boundary = ndimage.distance_transform_edt(space, return_indices=True)
+    fr = nearest_boundary[0].astype(np.int32)
+    fc = nearest_boundary[1].astype(np.int32)
+    tau2 = min_separation_cells * min_separation_cells
+    ridge = np.zeros(space.shape, dtype=bool)
+    for dr, dc in _HALF_OFFSETS:
+        a, b = _pair_slices(dr, dc, space.shape)
+        sep2 = (fr[a] - fr[b]) ** 2 + (fc[a] - fc[b]) ** 2
+        m = space[a] & space[b] & (sep2 >= tau2)
+        ridge[a] |= m
+        ridge[b] |= m
+    return np.asarray(skeletonize(ridge), dtype=bool)
+
+
+@dataclass(frozen=True, eq=False)
+class SkeletonGraph:
+    """Nodes and edges of a skeleton (cells as (row, col) of the grid the skeleton came from)."""
+
+    skeleton: NDArray[np.bool_]
+    node_rc: NDArray[np.int64]          # (N, 2) a representative cell per node
+    node_kind: NDArray[np.int8]         # (N,) JUNCTION (cluster of ≥3-neighbour cells) or END
+    node_degree: NDArray[np.int64]      # (N,) distinct branches touching the node
+    edges: NDArray[np.int64]            # (E, 2) node indices, i < j, self-loops dropped
+    edge_length_cells: NDArray[np.int64]  # (E,) cells in the branch
+
+    def neighbours(self, node: int) -> NDArray[np.int64]:
+        e = self.edges
+        return np.concatenate([e[e[:, 0] == node, 1], e[e[:, 1] == node, 0]])
+
+
+def skeleton_graph(skeleton: NDArray[np.bool_],
+                   clearance: NDArray[np.floating] | None = None) -> SkeletonGraph:
+    """Cut a one-cell-wide skeleton into junction / end nodes and branch edges.
+
+    A junction cluster is represented by its cell of largest ``clearance`` (its first cell when
+    no clearance is given).
+    """
+    skel = np.asarray(skeleton, dtype=bool)
+    count = ndimage.convolve(skel.astype(np.uint8), _NEIGHBOURS, mode="constant")
+    junction = skel & (count >= 3)
+    end = skel & (count == 1)
+    jlab, nj = ndimage.label(junction, structure=EIGHT_CONNECTED)
+    blab, nb = ndimage.label(skel & ~junction, structure=EIGHT_CONNECTED)
+
+    # Junction cluster ↔ branch contacts.
+    pairs = []
+    for dr, dc in _ALL_OFFSETS:
+        a, b = _pair_slices(dr, dc, skel.shape)
+        ja, bb = jlab[a], blab[b]
+        hit = (ja > 0) & (bb > 0)
+        pairs.append(np.stack([ja[hit], bb[hit]], axis=1))
+    contact = np.unique(np.concatenate(pairs), axis=0) if pairs else np.zeros((0, 2), int)
+
+    # Nodes: junction clusters 0..nj-1, then end cells.
+    j_rc = _cluster_representatives(jlab, nj, clearance)
+    end_rc = np.argwhere(end)
+    node_rc = np.concatenate([j_rc, end_rc]).astype(np.int64)
+    node_kind = np.concatenate([np.full(nj, JUNCTION, np.int8), np.full(len(end_rc), END, np.int8)])
+
+    # Which nodes each branch touches: its junction contacts and its end cells.
+    touch_branch = np.concatenate([contact[:, 1], blab[end]]).astype(np.int64)
+    touch_node = np.concatenate([contact[:, 0] - 1, nj + np.arange(len(end_rc))]).astype(np.int64)
+    order = np.argsort(touch_branch, kind="stable")
+    touch_branch, touch_node = touch_branch[order], touch_node[order]
+    branch_len = np.bincount(blab.ravel(), minlength=nb + 1)
+
+    edges, lengths = [], []
+    starts = np.searchsorted(touch_branch, np.arange(1, nb + 2))
+    for k in range(nb):
+        nodes = np.unique(touch_node[starts[k]:starts[k + 1]])
+        for i in range(len(nodes)):
+            for j in range(i + 1, len(nodes)):
+                edges.append((nodes[i], nodes[j]))
+                lengths.append(branch_len[k + 1])
+    edge_arr = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    degree = np.bincount(edge_arr.ravel(), minlength=len(node_rc)).astype(np.int64)
+    # A junction's degree counts branches, including ones that lead nowhere (no second node).
+    if nj:
+        degree[:nj] = np.bincount(contact[:, 0] - 1, minlength=nj)
+    return SkeletonGraph(skel, node_rc, node_kind, degree, edge_arr,
+                         np.asarray(lengths, dtype=np.int64))
+
+
+def _cluster_representatives(labels: NDArray[np.int32], n: int,
+                             clearance: NDArray[np.floating] | None) -> NDArray[np.int64]:
+    if n == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    weight = (np.ones(labels.shape) if clearance is None
+              else np.asarray(clearance, dtype=np.float64))
+    idx = ndimage.maximum_position(weight, labels, index=np.arange(1, n + 1))
+    return np.asarray(idx, dtype=np.int64).reshape(n, 2)
