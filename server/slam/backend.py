@@ -1,0 +1,158 @@
+"""The pose-graph back-end, split in two so that several robots can later share one problem:
+
+- ``RobotTrajectory``: one robot's keys ``gtsam.symbol(c, k)`` and the factors it added (kept,
+  so they can be re-inserted into another graph), its prior factor and that prior's index in
+  the graph that currently holds it (so the prior can be removed when robots are joined);
+- ``PoseGraph``: a GTSAM problem optimised incrementally with ISAM2, holding any number of
+  trajectories; it knows nothing about scans.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from factors.scan_match import pose2, prior_factor
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+class GraphError(RuntimeError):
+    """The optimiser rejected an update (e.g. a key without any constraint)."""
+
+
+@dataclass
+class FactorRecord:
+    """A factor a robot added, what it is, and its index in the graph holding it (or None)."""
+
+    factor: gtsam.NoiseModelFactor
+    kind: str  # "prior", "match", "odometry", "loop"
+    index: int | None = None
+
+
+@dataclass
+class RobotTrajectory:
+    """One robot's keyframe keys and factors, independent of the graph that optimises them."""
+
+    robot_char: str
+    n_keys: int = 0
+    factors: list[FactorRecord] = field(default_factory=list)
+    prior: FactorRecord | None = None
+
+    def __post_init__(self) -> None:
+        if len(self.robot_char) != 1:
+            raise ValueError(f"robot char must be one character, got {self.robot_char!r}")
+
+    def key(self, k: int) -> int:
+        return int(gtsam.symbol(self.robot_char, k))
+
+    def keys(self) -> list[int]:
+        return [self.key(k) for k in range(self.n_keys)]
+
+    def records(self, kind: str | None = None) -> list[FactorRecord]:
+        return [r for r in self.factors if kind is None or r.kind == kind]
+
+
+class PoseGraph:
+    """An ISAM2 problem over Pose2 keys. ``add`` returns the indices of the new factors."""
+
+    def __init__(self, relinearize_threshold: float = 0.01) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = 1
+        self._params = params
+        self.isam = gtsam.ISAM2(params)
+        self._estimate: gtsam.Values | None = None
+        self.n_updates = 0
+
+    def add(self, factors: list[gtsam.NonlinearFactor], new_values: dict[int, F64],
+            remove: list[int] | None = None) -> list[int]:
+        graph = gtsam.NonlinearFactorGraph()
+        for f in factors:
+            graph.add(f)
+        values = gtsam.Values()
+        for key, T in new_values.items():
+            values.insert(key, pose2(T))
+        try:
+            res = self.isam.update(graph, values, list(remove or []))
+        except RuntimeError as e:
+            raise GraphError(f"ISAM2 update failed: {e}") from e
+        self._estimate = None
+        self.n_updates += 1
+        return [int(i) for i in res.getNewFactorsIndices()]
+
+    def iterate(self, n: int) -> None:
+        """Extra ISAM2 steps without new factors (after a loop closure moved many poses)."""
+        for _ in range(n):
+            self.isam.update()
+        self._estimate = None
+
+    def remove(self, indices: list[int]) -> None:
+        if indices:
+            self.add([], {}, remove=indices)
+
+    def estimate(self) -> gtsam.Values:
+        if self._estimate is None:
+            self._estimate = self.isam.calculateEstimate()
+        return self._estimate
+
+    def pose(self, key: int) -> F64:
+        p = self.isam.calculateEstimatePose2(key)
+        return np.array([p.x(), p.y(), p.theta()])
+
+    def poses(self, keys: list[int]) -> F64:
+        """Current estimates (N, 3) of ``keys``, in that order."""
+        if not keys:
+            return np.zeros((0, 3))
+        est = self.estimate()
+        all_keys = np.asarray(est.keys(), dtype=np.uint64)
+        table = gtsam.utilities.extractPose2(est)
+        pos = np.searchsorted(all_keys, np.asarray(keys, dtype=np.uint64))
+        return np.asarray(table[pos], dtype=np.float64)
+
+    def factor(self, index: int) -> gtsam.NonlinearFactor:
+        return self.isam.getFactorsUnsafe().at(index)
+
+
+def start_trajectory(graph: PoseGraph, trajectory: RobotTrajectory, T_map_first: F64,
+                     prior_sigmas: F64) -> None:
+    """Insert a trajectory's first key with its prior."""
+    key = trajectory.key(0)
+    f = prior_factor(key, T_map_first, prior_sigmas)
+    (idx,) = graph.add([f], {key: T_map_first})
+    trajectory.prior = FactorRecord(f, "prior", idx)
+    trajectory.factors.append(trajectory.prior)
+    trajectory.n_keys = 1
+
+
+def extend_trajectory(graph: PoseGraph, trajectory: RobotTrajectory,
+                      factor: gtsam.NoiseModelFactor, kind: str, T_map_new: F64) -> int:
+    """Add the next key of a trajectory, constrained by ``factor`` to the previous key."""
+    key = trajectory.key(trajectory.n_keys)
+    (idx,) = graph.add([factor], {key: T_map_new})
+    trajectory.factors.append(FactorRecord(factor, kind, idx))
+    trajectory.n_keys += 1
+    return idx
+
+
+def add_constraint(graph: PoseGraph, trajectory: RobotTrajectory,
+                   factor: gtsam.NoiseModelFactor, kind: str) -> FactorRecord:
+    """Add a factor between existing keys (a loop closure)."""
+    (idx,) = graph.add([factor], {})
+    rec = FactorRecord(factor, kind, idx)
+    trajectory.factors.append(rec)
+    return rec
+
+
+def drop_constraint(graph: PoseGraph, trajectory: RobotTrajectory, rec: FactorRecord) -> None:
+    """Remove a factor a trajectory added (e.g. a loop closure found inconsistent)."""
+    if rec.index is not None:
+        graph.remove([rec.index])
+        rec.index = None
+    trajectory.factors.remove(rec)

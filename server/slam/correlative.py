@@ -1,0 +1,161 @@
+"""Correlative scan matching over a search window by branch and bound (Olson 2009; Hess et al.
+2016), vectorised over candidates.
+
+The map becomes a likelihood field L(c) = exp(−d(c)² / 2σ²), d = distance from cell c to the
+nearest map point. The score of a pose T for scan points p_i is the mean of L at the cells of
+T·p_i. A precomputed max-pyramid L_h(y, x) = max of L over the 2^h × 2^h cells starting at
+(y, x) bounds the score of every translation in a 2^h-cell block from above, so whole blocks
+are discarded when their bound is below the best exact score found.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import distance_transform_edt
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+MAX_SURVIVORS = 30000
+
+
+@dataclass(frozen=True)
+class CorrelativeMatch:
+    T_map_scan: F64
+    score: float
+
+
+class LikelihoodField:
+    """Likelihood field of map points and its max-pyramid. Row index = y, column index = x."""
+
+    def __init__(self, points_map: F64, resolution_m: float, sigma_m: float, margin_m: float,
+                 levels: int) -> None:
+        self.resolution_m = resolution_m
+        lo = points_map.min(axis=0) - margin_m
+        hi = points_map.max(axis=0) + margin_m
+        self.origin = lo
+        shape = np.ceil((hi - lo) / resolution_m).astype(np.int64) + 1
+        w, h = int(shape[0]), int(shape[1])
+        hits = np.ones((h, w), dtype=bool)
+        ij = np.floor((points_map - lo) / resolution_m).astype(np.int64)
+        hits[ij[:, 1], ij[:, 0]] = False
+        d_cells = distance_transform_edt(hits)
+        sig = sigma_m / resolution_m
+        field = np.exp(-0.5 * (d_cells / sig) ** 2).astype(np.float32)
+        field[0, :] = field[-1, :] = 0.0  # a zero border: indices are clipped onto it
+        field[:, 0] = field[:, -1] = 0.0
+        self.pyramid = [field]
+        for lv in range(1, levels + 1):
+            s = 1 << (lv - 1)
+            prev = self.pyramid[-1]
+            nxt = prev.copy()
+            nxt[:, :-s] = np.maximum(nxt[:, :-s], prev[:, s:])
+            nxt[:-s, :] = np.maximum(nxt[:-s, :], nxt[s:, :])
+            self.pyramid.append(nxt)
+
+    @property
+    def levels(self) -> int:
+        return len(self.pyramid) - 1
+
+    def cells(self, xy: F64) -> I64:
+        return np.floor((xy - self.origin) / self.resolution_m).astype(np.int64)
+
+    def score(self, points_map: F64) -> float:
+        """Mean likelihood of points already in the map frame."""
+        f = self.pyramid[0]
+        ij = self.cells(points_map)
+        ix = np.clip(ij[:, 0], 0, f.shape[1] - 1)
+        iy = np.clip(ij[:, 1], 0, f.shape[0] - 1)
+        return float(f[iy, ix].mean())
+
+
+def angle_step(points: F64, resolution_m: float, lo_rad: float = math.radians(0.25),
+               hi_rad: float = math.radians(2.0)) -> float:
+    """Angular step [rad] moving the far points by about one cell: acos(1 − r²/(2 d²))."""
+    d = float(np.percentile(np.hypot(points[:, 0], points[:, 1]), 90)) if len(points) else 1.0
+    step = math.acos(max(-1.0, 1.0 - resolution_m ** 2 / (2.0 * max(d, 1e-3) ** 2)))
+    return min(max(step, lo_rad), hi_rad)
+
+
+def _evaluate(level: NDArray[np.float32], cx: I64, cy: I64, a: I64, dx: I64, dy: I64) -> F64:
+    """Mean of ``level`` over the points of candidates (angle index a, offset dx, dy)."""
+    h, w = level.shape
+    out = np.empty(len(a), dtype=np.float64)
+    chunk = max(1, 2_000_000 // max(cx.shape[1], 1))
+    for s in range(0, len(a), chunk):
+        sl = slice(s, s + chunk)
+        ix = np.clip(cx[a[sl]] + dx[sl, None], 0, w - 1)
+        iy = np.clip(cy[a[sl]] + dy[sl, None], 0, h - 1)
+        out[sl] = level[iy, ix].mean(axis=1)
+    return out
+
+
+def search(field: LikelihoodField, points: F64, T_center: F64, window_m: float,
+           window_rad: float, min_score: float) -> CorrelativeMatch | None:
+    """Best pose within ±``window_m`` (x, y) and ±``window_rad`` of ``T_center``, or None if no
+    pose scores ``min_score``. ``points`` are in the scan frame."""
+    res = field.resolution_m
+    step = angle_step(points, res)
+    n_ang = math.ceil(window_rad / step)
+    thetas = T_center[2] + step * np.arange(-n_ang, n_ang + 1)
+    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
+    gx = c * points[:, 0] - s * points[:, 1] + T_center[0]
+    gy = s * points[:, 0] + c * points[:, 1] + T_center[1]
+    cx = np.floor((gx - field.origin[0]) / res).astype(np.int64)
+    cy = np.floor((gy - field.origin[1]) / res).astype(np.int64)
+    W = math.ceil(window_m / res)
+    top = min(field.levels, max(0, math.floor(math.log2(max(2 * W + 1, 1)))))
+    size = 1 << top
+    offs = np.arange(-W, W + 1, size, dtype=np.int64)
+    A, X, Y = np.meshgrid(np.arange(len(thetas)), offs, offs, indexing="ij")
+    a, dx, dy = A.ravel(), X.ravel(), Y.ravel()
+    bound = _evaluate(field.pyramid[top], cx, cy, a, dx, dy)
+    # a greedy dive from the best block gives a first exact score to prune with
+    best_score, best = -1.0, (0, 0, 0)
+    k = int(np.argmax(bound))
+    ga, gdx, gdy = a[k:k + 1], dx[k:k + 1], dy[k:k + 1]
+    for lv in range(top - 1, -1, -1):
+        h = 1 << lv
+        ca = np.repeat(ga, 4)
+        cdx = np.repeat(gdx, 4) + np.array([0, h, 0, h])
+        cdy = np.repeat(gdy, 4) + np.array([0, 0, h, h])
+        sc = _evaluate(field.pyramid[lv], cx, cy, ca, cdx, cdy)
+        j = int(np.argmax(sc))
+        ga, gdx, gdy = ca[j:j + 1], cdx[j:j + 1], cdy[j:j + 1]
+    if top == 0:
+        ga, gdx, gdy = a[k:k + 1], dx[k:k + 1], dy[k:k + 1]
+    leaf = float(_evaluate(field.pyramid[0], cx, cy, ga, gdx, gdy)[0])
+    if abs(int(gdx[0])) <= W and abs(int(gdy[0])) <= W:
+        best_score, best = leaf, (int(ga[0]), int(gdx[0]), int(gdy[0]))
+    threshold = max(min_score, best_score)
+    for lv in range(top - 1, -1, -1):
+        keep = bound >= threshold
+        a, dx, dy, bound = a[keep], dx[keep], dy[keep], bound[keep]
+        if len(a) > MAX_SURVIVORS:
+            order = np.argsort(-bound)[:MAX_SURVIVORS]
+            a, dx, dy, bound = a[order], dx[order], dy[order], bound[order]
+        h = 1 << lv
+        a = np.repeat(a, 4)
+        dx = np.repeat(dx, 4) + np.tile(np.array([0, h, 0, h]), len(dx))
+        dy = np.repeat(dy, 4) + np.tile(np.array([0, 0, h, h]), len(dy))
+        inside = (np.abs(dx) <= W) & (np.abs(dy) <= W)
+        a, dx, dy = a[inside], dx[inside], dy[inside]
+        if len(a) == 0:
+            break
+        bound = _evaluate(field.pyramid[lv], cx, cy, a, dx, dy)
+    if top > 0 and len(a):
+        j = int(np.argmax(bound))
+        if bound[j] > best_score and abs(int(dx[j])) <= W and abs(int(dy[j])) <= W:
+            best_score, best = float(bound[j]), (int(a[j]), int(dx[j]), int(dy[j]))
+    elif top == 0 and len(a):
+        j = int(np.argmax(bound))
+        best_score, best = float(bound[j]), (int(a[j]), int(dx[j]), int(dy[j]))
+    if best_score < min_score:
+        return None
+    ia, bx, by = best
+    T = np.array([T_center[0] + bx * res, T_center[1] + by * res, thetas[ia]])
+    T[2] = math.remainder(T[2], 2 * math.pi)
+    return CorrelativeMatch(T, best_score)

@@ -1,0 +1,101 @@
+"""Front-end: match a scan against the local map, starting from the odometry prediction, and
+decide how far to trust the result.
+
+Order of attempts: point-to-line ICP from the prediction (plus, when the odometry step looks
+implausible, from a constant-velocity and a standstill guess); if no attempt explains enough of
+the scan, a correlative search in a wide window around the last pose; if that fails too, the
+odometry prediction. A match that is degenerate (a featureless corridor) keeps its result
+across the corridor and takes the odometry along it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from server.slam.config import MatcherConfig
+from server.slam.correlative import LikelihoodField, search
+from server.slam.geometry import compose, pose_distance
+from server.slam.icp import IcpParams, MatchResult, PointMap, icp
+from server.slam.scan import ScanPoints
+
+F64 = NDArray[np.float64]
+
+
+class MatchKind(Enum):
+    ICP = "icp"
+    DEGENERATE = "degenerate"
+    CORRELATIVE = "correlative"
+    ODOMETRY = "odometry"
+
+
+@dataclass(frozen=True)
+class FrontendMatch:
+    """The pose chosen for a scan, how it was obtained, and its information (map frame)."""
+
+    T_map_robot: F64
+    kind: MatchKind
+    information: F64
+    inlier_fraction: float
+
+
+def icp_params(cfg: MatcherConfig) -> IcpParams:
+    return IcpParams(max_iterations=cfg.max_iterations,
+                     max_correspondence_m=cfg.max_correspondence_m,
+                     min_correspondence_m=cfg.min_correspondence_m, kernel_m=cfg.kernel_m,
+                     min_normal_cos=cfg.min_normal_cos,
+                     degenerate_eigen_ratio=cfg.degenerate_eigen_ratio)
+
+
+def odometry_step_suspicious(step: F64, cfg: MatcherConfig) -> bool:
+    d, a = pose_distance(step)
+    return d > cfg.odometry_jump_m or a > math.radians(cfg.odometry_jump_deg)
+
+
+def along_odometry(res: MatchResult, T_pred: F64) -> F64:
+    """The match with its translation along the degenerate direction v taken from the
+    prediction: t = t_icp + v vᵀ (t_pred − t_icp)."""
+    assert res.degenerate_dir is not None
+    v = res.degenerate_dir
+    T = res.T_map_scan.copy()
+    T[:2] += v * float(v @ (T_pred[:2] - T[:2]))
+    return T
+
+
+def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
+               T_step_velocity: F64, odometry_suspicious: bool, cfg: MatcherConfig,
+               params: IcpParams) -> FrontendMatch:
+    """Pose of ``scan`` in the frame of ``target``; see the module docstring."""
+    pts = scan.points
+    nrm = scan.normals
+    if len(pts) < cfg.min_points:
+        return FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0)
+    guesses = [T_pred]
+    if odometry_suspicious:
+        guesses += [compose(T_last, T_step_velocity), T_last]
+    best: MatchResult | None = None
+    for g in guesses:
+        res = icp(pts, nrm, target, g, params)
+        if best is None or res.inlier_fraction > best.inlier_fraction:
+            best = res
+    assert best is not None
+    kind = MatchKind.ICP
+    if best.inlier_fraction < cfg.min_inlier_fraction:
+        field = LikelihoodField(target.points, 0.1, sigma_m=0.1, margin_m=cfg.fallback_window_m,
+                                levels=4)
+        coarse = search(field, pts, T_last, cfg.fallback_window_m,
+                        math.radians(cfg.fallback_window_deg), min_score=0.3)
+        if coarse is not None:
+            res = icp(pts, nrm, target, coarse.T_map_scan, params)
+            if res.inlier_fraction > best.inlier_fraction:
+                best, kind = res, MatchKind.CORRELATIVE
+    if best.inlier_fraction < cfg.min_inlier_fraction:
+        return FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), best.inlier_fraction)
+    if best.degenerate:
+        return FrontendMatch(along_odometry(best, T_pred), MatchKind.DEGENERATE,
+                             best.information, best.inlier_fraction)
+    return FrontendMatch(best.T_map_scan, kind, best.information, best.inlier_fraction)

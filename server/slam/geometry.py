@@ -1,0 +1,70 @@
+"""SE(2) helpers on numpy arrays: poses are ``(x, y, θ)`` with θ in radians wrapped to (−π, π].
+
+A pose ``T_a_b = (x, y, θ)`` maps points from frame b to frame a: ``p_a = R(θ) p_b + (x, y)``.
+All functions accept a single pose of shape (3,) or a stack of shape (N, 3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+F64 = NDArray[np.float64]
+
+
+def wrap_angle(theta: ArrayLike) -> F64:
+    """Wrap angles [rad] to (−π, π]."""
+    t = np.asarray(theta, dtype=np.float64)
+    w = np.mod(t + np.pi, 2.0 * np.pi) - np.pi
+    return np.where(w == -np.pi, np.pi, w)
+
+
+def compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> F64:
+    """``T_a_c = T_a_b ⊕ T_b_c``: t_ac = t_ab + R(θ_ab) t_bc, θ_ac = θ_ab + θ_bc."""
+    a = np.asarray(T_a_b, dtype=np.float64)
+    b = np.asarray(T_b_c, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(T_a_b: ArrayLike) -> F64:
+    """``T_b_a = T_a_b⁻¹``: t_ba = −R(θ)ᵀ t_ab, θ_ba = −θ_ab."""
+    a = np.asarray(T_a_b, dtype=np.float64)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -(c * a[..., 0] + s * a[..., 1])
+    y = -(-s * a[..., 0] + c * a[..., 1])
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def between(T_w_a: ArrayLike, T_w_b: ArrayLike) -> F64:
+    """``T_a_b = T_w_a⁻¹ ⊕ T_w_b`` (the relative pose of b seen from a)."""
+    return compose(inverse(T_w_a), T_w_b)
+
+
+def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> F64:
+    """Map (N, 2) points from frame b to frame a: ``p_a = R(θ) p_b + t``."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    p = np.asarray(points_b, dtype=np.float64)
+    c, s = np.cos(T[2]), np.sin(T[2])
+    out = np.empty_like(p)
+    out[:, 0] = c * p[:, 0] - s * p[:, 1] + T[0]
+    out[:, 1] = s * p[:, 0] + c * p[:, 1] + T[1]
+    return out
+
+
+def rotate_vectors(theta: float, vectors: ArrayLike) -> F64:
+    """Rotate (N, 2) direction vectors (e.g. normals) by ``theta`` [rad]."""
+    v = np.asarray(vectors, dtype=np.float64)
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.empty_like(v)
+    out[:, 0] = c * v[:, 0] - s * v[:, 1]
+    out[:, 1] = s * v[:, 0] + c * v[:, 1]
+    return out
+
+
+def pose_distance(T_a_b: ArrayLike) -> tuple[float, float]:
+    """Translation [m] and absolute rotation [rad] of a relative pose."""
+    T = np.asarray(T_a_b, dtype=np.float64)
+    return float(np.hypot(T[0], T[1])), float(abs(wrap_angle(T[2])))

@@ -1,0 +1,234 @@
+"""Loop closure: candidates from the current estimate and its uncertainty, verified by matching
+recent keyframes against older submaps.
+
+- Submaps are blocks of consecutive keyframes, fixed in the frame of their middle keyframe
+  (the anchor) once the block is complete.
+- The uncertainty of the current pose relative to a submap grows with the distance travelled
+  between them along the best-connected path of the graph (loop edges count as short), so
+  the search window is ``r = r0 + α·D`` (capped): after long exploration the window is wide
+  enough for the drift, right after a closure it is small.
+- Verification: branch-and-bound correlative search in the window (global within it), then
+  point-to-line ICP; a match must score high, have enough inliers and not be degenerate.
+  A closure that would move the robot by more than ``confirm_correction_m`` waits until a
+  second closure agrees with it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from server.slam.config import LoopClosureConfig
+from server.slam.correlative import LikelihoodField, search
+from server.slam.geometry import between, compose, inverse, pose_distance
+from server.slam.icp import IcpParams, MatchResult, PointMap, icp
+from server.slam.keyframes import Keyframe, points_in_frame
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+FIELD_CACHE = 24
+LOOP_EDGE_LENGTH_M = 0.1
+
+
+@dataclass
+class Submap:
+    """Keyframes ``members`` in the frame of keyframe ``anchor``."""
+
+    anchor: int
+    members: list[int]
+    points: F64
+    normals: F64
+    point_map: PointMap
+
+
+@dataclass(frozen=True)
+class LoopClosure:
+    """A verified constraint ``T_anchor_kf`` between keyframes ``anchor`` and ``keyframe``."""
+
+    anchor: int
+    keyframe: int
+    T_anchor_kf: F64
+    information: F64
+    score: float
+    correction_m: float
+
+
+@dataclass
+class LoopStats:
+    searches: int = 0
+    candidates: int = 0
+    accepted: int = 0
+    rejected_score: int = 0
+    rejected_icp: int = 0
+    rejected_degenerate: int = 0
+    pending: int = 0
+    rejected_unconfirmed: int = 0
+    removed_inconsistent: int = 0
+
+
+@dataclass
+class _Graph:
+    """Edges (i, j, length) of the keyframe graph, for path distances."""
+
+    edges: list[tuple[int, int, float]] = field(default_factory=list)
+
+    def distances_from(self, source: int, n: int) -> F64:
+        if not self.edges:
+            return np.full(n, np.inf)
+        e = np.asarray(self.edges, dtype=np.float64)
+        i, j, w = e[:, 0].astype(np.int64), e[:, 1].astype(np.int64), np.maximum(e[:, 2], 1e-6)
+        m = csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
+                       shape=(n, n))
+        return np.asarray(dijkstra(m, directed=False, indices=source), dtype=np.float64)
+
+
+class LoopCloser:
+    def __init__(self, cfg: LoopClosureConfig, icp_params: IcpParams) -> None:
+        self.cfg = cfg
+        self.icp_params = icp_params
+        self.submaps: list[Submap] = []
+        self.stats = LoopStats()
+        self._graph = _Graph()
+        self._fields: OrderedDict[int, LikelihoodField] = OrderedDict()
+        self._pending: list[LoopClosure] = []
+
+    # -- bookkeeping ---------------------------------------------------------------------
+    def add_edge(self, i: int, j: int, length_m: float) -> None:
+        self._graph.edges.append((i, j, length_m))
+
+    def maybe_close_submap(self, keyframes: list[Keyframe], poses: F64) -> None:
+        """Freeze the next block of keyframes into a submap once it is complete."""
+        b = self.cfg.block_keyframes
+        start = len(self.submaps) * b
+        if len(keyframes) < start + b:
+            return
+        members = list(range(start, start + b))
+        anchor = start + b // 2
+        pts, nrm = points_in_frame([keyframes[i] for i in members], poses[members],
+                                   poses[anchor], voxel_m=0.5 * self.cfg.resolution_m,
+                                   max_range_m=self.cfg.submap_range_m)
+        if len(pts) < 20:
+            pts = np.zeros((1, 2)) if len(pts) == 0 else pts
+            nrm = np.zeros((len(pts), 2)) if len(nrm) == 0 else nrm
+        self.submaps.append(Submap(anchor, members, pts, nrm, PointMap(pts, nrm)))
+
+    def _field(self, sm_index: int) -> LikelihoodField:
+        f = self._fields.get(sm_index)
+        if f is None:
+            sm = self.submaps[sm_index]
+            f = LikelihoodField(sm.points, self.cfg.resolution_m, sigma_m=self.cfg.resolution_m,
+                                margin_m=self.cfg.radius_max_m, levels=7)
+            self._fields[sm_index] = f
+            if len(self._fields) > FIELD_CACHE:
+                self._fields.popitem(last=False)
+        else:
+            self._fields.move_to_end(sm_index)
+        return f
+
+    # -- search --------------------------------------------------------------------------
+    def candidates(self, k: int, poses: F64) -> list[tuple[int, float, float]]:
+        """Submaps to try for keyframe k: (submap index, window [m], window [rad])."""
+        c = self.cfg
+        if not self.submaps:
+            return []
+        dist = self._graph.distances_from(k, len(poses))
+        out: list[tuple[float, int, float, float]] = []
+        for si, sm in enumerate(self.submaps):
+            d_graph = float(dist[sm.anchor])
+            if k in sm.members or d_graph < c.min_graph_distance_m:
+                continue
+            if not math.isfinite(d_graph):
+                continue
+            radius = min(c.radius_max_m, c.radius_base_m + c.radius_per_m * d_graph)
+            angle = min(c.angle_max_deg, c.angle_base_deg + c.angle_per_m_deg * d_graph)
+            gap = float(np.min(np.hypot(*(poses[sm.members, :2] - poses[k, :2]).T)))
+            if gap <= radius + 1.0:
+                out.append((gap - radius, si, radius, math.radians(angle)))
+        out.sort()
+        return [(si, r, a) for _, si, r, a in out[: c.max_candidates]]
+
+    def search(self, k: int, keyframes: list[Keyframe], poses: F64) -> list[LoopClosure]:
+        """Verified closures for keyframe k (confirmed ones only; others may stay pending)."""
+        c = self.cfg
+        self.stats.searches += 1
+        cands = self.candidates(k, poses)
+        if not cands:
+            return []
+        q0 = max(0, k - c.query_keyframes + 1)
+        query_kfs = keyframes[q0:k + 1]
+        q_pts, q_nrm = points_in_frame(query_kfs, poses[q0:k + 1], poses[k],
+                                       voxel_m=c.resolution_m, max_range_m=c.submap_range_m)
+        if len(q_pts) < 30:
+            return []
+        found: list[LoopClosure] = []
+        for si, radius, angle in cands:
+            self.stats.candidates += 1
+            sm = self.submaps[si]
+            T_center = between(poses[sm.anchor], poses[k])
+            lc = self._verify(si, k, q_pts, q_nrm, T_center, radius, angle)
+            if lc is not None:
+                found.append(lc)
+        return self._confirm(found, poses)
+
+    def _verify(self, si: int, k: int, q_pts: F64, q_nrm: F64, T_center: F64, radius: float,
+                angle: float) -> LoopClosure | None:
+        c = self.cfg
+        sm = self.submaps[si]
+        coarse = search(self._field(si), q_pts, T_center, radius, angle, c.min_score)
+        if coarse is None:
+            self.stats.rejected_score += 1
+            return None
+        res: MatchResult = icp(q_pts, q_nrm, sm.point_map, coarse.T_map_scan, self.icp_params)
+        if res.inlier_fraction < c.min_inlier_fraction or not math.isfinite(res.rms_m):
+            self.stats.rejected_icp += 1
+            return None
+        if res.degenerate:
+            self.stats.rejected_degenerate += 1
+            return None
+        corr_m, _ = pose_distance(between(T_center, res.T_map_scan))
+        return LoopClosure(sm.anchor, k, res.T_map_scan, res.information, coarse.score, corr_m)
+
+    def _confirm(self, found: list[LoopClosure], poses: F64) -> list[LoopClosure]:
+        """Small corrections pass; large ones need another closure consistent with them."""
+        c = self.cfg
+        out: list[LoopClosure] = []
+        for lc in found:
+            if lc.correction_m <= c.confirm_correction_m:
+                out.append(lc)
+                continue
+            partner = next((p for p in self._pending if self._consistent(p, lc, poses)), None)
+            if partner is None:
+                self._pending.append(lc)
+                self.stats.pending += 1
+                continue
+            self._pending.remove(partner)
+            out.extend([partner, lc])
+        # pending closures expire when the robot has moved on without confirmation
+        if found:
+            newest = max(lc.keyframe for lc in found)
+            stale = [p for p in self._pending if newest - p.keyframe > c.pending_keyframes]
+            for p in stale:
+                self._pending.remove(p)
+                self.stats.rejected_unconfirmed += 1
+        self.stats.accepted += len(out)
+        return out
+
+    def _consistent(self, a: LoopClosure, b: LoopClosure, poses: F64) -> bool:
+        """Does the cycle anchor_a → kf_a → kf_b → anchor_b → anchor_a close?"""
+        if abs(a.keyframe - b.keyframe) < self.cfg.query_keyframes:
+            return False  # the two queries would share keyframes: not independent evidence
+        T_ka_kb = between(poses[a.keyframe], poses[b.keyframe])
+        T_aa_ab = between(poses[a.anchor], poses[b.anchor])
+        cycle = compose(compose(a.T_anchor_kf, T_ka_kb), inverse(b.T_anchor_kf))
+        err = between(T_aa_ab, cycle)
+        d, ang = pose_distance(err)
+        return d <= self.cfg.confirm_tolerance_m and ang <= math.radians(
+            self.cfg.confirm_tolerance_deg)

@@ -1,0 +1,70 @@
+"""Maps of one robot built from its keyframes: the occupancy grid (kept incrementally while the
+graph holds still, re-rendered when optimisation moved the keyframes) and the point cloud."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.keyframes import Keyframe, gather, voxel_thin
+
+F64 = NDArray[np.float64]
+
+
+def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
+    """A fresh grid from all keyframes at ``poses`` (K, 3)."""
+    if len(keyframes) == 0:
+        return OccupancyGrid(params)
+    pts, _ = gather(keyframes, poses, with_normals=False)
+    both = np.concatenate([pts, poses[:, :2]]) if len(pts) else poses[:, :2]
+    grid = OccupancyGrid.covering(params, both.min(axis=0), both.max(axis=0))
+    for kf, T in zip(keyframes, poses, strict=True):
+        grid.insert_scan(T, kf.scan.points)
+    return grid
+
+
+class GridMapper:
+    """The occupancy grid of a set of keyframes, refreshed lazily.
+
+    ``update(keyframes, poses)`` inserts keyframes not yet in the grid; if any keyframe already
+    in the grid has moved by more than ``tolerance`` since it was inserted, the grid is rendered
+    again from scratch (a loop closure bent the trajectory).
+    """
+
+    def __init__(self, params: GridParams) -> None:
+        self.params = params
+        self.grid = OccupancyGrid(params)
+        self._inserted_poses = np.zeros((0, 3))
+        self.renders = 0
+
+    def _moved(self, poses: F64) -> bool:
+        n = len(self._inserted_poses)
+        if n == 0:
+            return False
+        d = poses[:n] - self._inserted_poses
+        shift = np.hypot(d[:, 0], d[:, 1])
+        turn = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
+        return bool((shift > 0.5 * self.params.resolution_m).any()
+                    or (turn > math.radians(0.5)).any())
+
+    def update(self, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
+        n = len(self._inserted_poses)
+        if len(keyframes) < n or self._moved(poses):
+            self.grid = render_grid(self.params, keyframes, poses)
+            self.renders += 1
+        else:
+            for kf, T in zip(keyframes[n:], poses[n:], strict=True):
+                self.grid.insert_scan(T, kf.scan.points)
+        self._inserted_poses = np.array(poses, dtype=np.float64).reshape(-1, 3)
+        return self.grid
+
+
+def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05) -> F64:
+    """All keyframe points in the map frame, one per ``voxel_m`` cell."""
+    pts, _ = gather(keyframes, poses, with_normals=False)
+    (thin,) = voxel_thin(pts, voxel_m)
+    return thin

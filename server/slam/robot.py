@@ -1,0 +1,269 @@
+"""``RobotSlam``: graph SLAM of one robot, fed one scan at a time (offline from a log, or live
+by the server daemon). Its pose graph may be shared with other robots (see ``backend``)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
+from server.slam.backend import (
+    FactorRecord,
+    PoseGraph,
+    RobotTrajectory,
+    add_constraint,
+    drop_constraint,
+    extend_trajectory,
+    start_trajectory,
+)
+from server.slam.config import SlamConfig
+from server.slam.frontend import (
+    FrontendMatch,
+    MatchKind,
+    icp_params,
+    match_scan,
+    odometry_step_suspicious,
+)
+from server.slam.geometry import between, compose, pose_distance
+from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.icp import PointMap
+from server.slam.keyframes import Keyframe, local_point_map
+from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser
+from server.slam.mapping import GridMapper, point_cloud
+from server.slam.scan import ScanPoints, scan_to_points
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+IDENTITY = np.zeros(3)
+
+
+class SlamInputError(ValueError):
+    """A scan or odometry pose that cannot be used (non-finite, out of order...)."""
+
+    user_error = True
+
+
+@dataclass
+class SlamStats:
+    scans: int = 0
+    keyframes: int = 0
+    matches: dict[str, int] = field(default_factory=lambda: {k.value: 0 for k in MatchKind})
+    loop_closures: int = 0
+    loop_closures_removed: int = 0
+
+
+@dataclass(frozen=True)
+class ScanPose:
+    """Where a scan was, relative to the keyframe it was matched after."""
+
+    stamp_ns: int
+    keyframe: int
+    T_kf_robot: F64
+
+
+class RobotSlam:
+    """Per-robot graph SLAM: predict → match → keyframe → optimise → loop closure → map."""
+
+    def __init__(self, robot_char: str = "a", config: SlamConfig | None = None,
+                 graph: PoseGraph | None = None,
+                 T_map_start: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+        self.cfg = config or SlamConfig()
+        c = self.cfg
+        self.trajectory = RobotTrajectory(robot_char)
+        self.graph = graph or PoseGraph(c.graph.relinearize_threshold)
+        self.keyframes: list[Keyframe] = []
+        self.stats = SlamStats()
+        self._icp = icp_params(c.matcher)
+        self._loops = LoopCloser(c.loop, self._icp)
+        self._mapper = GridMapper(GridParams(**c.grid.model_dump()))
+        self._T_map_start = np.asarray(T_map_start, dtype=np.float64)
+        self._scan_poses: list[ScanPose] = []
+        self._local_map: PointMap | None = None
+        self._last_odom: F64 | None = None
+        self._last_stamp_ns: int | None = None
+        self._T_kf_robot = IDENTITY.copy()  # the robot relative to the newest keyframe
+        self._T_kf_map_cache: F64 = self._T_map_start.copy()
+        self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
+
+    # -- the method ----------------------------------------------------------------------
+    def add_scan(self, stamp_ns: int, odom_pose_xyt: ArrayLike, ranges_m: ArrayLike,
+                 angles_rad: ArrayLike) -> F64:
+        """Process one scan; returns the robot pose (x, y, θ) in the map frame.
+
+        ``odom_pose_xyt`` is the wheel-odometry pose at the scan's time; ranges that are not
+        finite (or outside the configured range) are beams without a return.
+        """
+        odom = self._check_input(stamp_ns, odom_pose_xyt)
+        scan = self._scan_points(ranges_m, angles_rad)
+        if not self.keyframes:
+            self._first_keyframe(stamp_ns, scan, odom)
+            return self.pose
+        T_last = self.pose
+        assert self._last_odom is not None
+        step = between(self._last_odom, odom)
+        T_pred = compose(T_last, step)                                 # 1. predict (odometry)
+        match = self._match(scan, T_pred, T_last, step)                # 2. match the local map
+        self._velocity = between(T_last, match.T_map_robot)
+        self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
+        self._last_odom, self._last_stamp_ns = odom, stamp_ns
+        if self._is_keyframe():                                        # 3. keyframe?
+            k = self._add_keyframe(stamp_ns, scan, odom, match)        # 4. optimise (ISAM2)
+            if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
+                self._close_loops(k)                                   # 5. loop closure
+            self._refresh_local_map()                                  # 6. maps follow poses
+        self._scan_poses.append(ScanPose(stamp_ns, len(self.keyframes) - 1,
+                                         self._T_kf_robot.copy()))
+        self.stats.scans += 1
+        return self.pose
+
+    # -- steps ---------------------------------------------------------------------------
+    def _check_input(self, stamp_ns: int, odom_pose_xyt: ArrayLike) -> F64:
+        odom = np.asarray(odom_pose_xyt, dtype=np.float64).reshape(-1)
+        if odom.shape != (3,) or not np.all(np.isfinite(odom)):
+            raise SlamInputError(f"odometry pose must be 3 finite numbers, got {odom!r}")
+        if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+            raise SlamInputError(f"scan stamp {stamp_ns} is older than the previous "
+                                 f"({self._last_stamp_ns})")
+        return odom
+
+    def _scan_points(self, ranges_m: ArrayLike, angles_rad: ArrayLike) -> ScanPoints:
+        s = self.cfg.scan
+        return scan_to_points(np.asarray(ranges_m, dtype=np.float64),
+                              np.asarray(angles_rad, dtype=np.float64), s.min_range_m,
+                              s.max_range_m, s.normal_window, s.normal_max_gap_m,
+                              s.min_point_spacing_m)
+
+    def _first_keyframe(self, stamp_ns: int, scan: ScanPoints, odom: F64) -> None:
+        g = self.cfg.graph
+        prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
+        start_trajectory(self.graph, self.trajectory, self._T_map_start, prior)
+        self.keyframes.append(Keyframe(0, stamp_ns, scan, odom))
+        self._last_odom, self._last_stamp_ns = odom, stamp_ns
+        self._T_kf_map_cache = self._T_map_start.copy()
+        self._scan_poses.append(ScanPose(stamp_ns, 0, IDENTITY.copy()))
+        self.stats.scans += 1
+        self.stats.keyframes = 1
+        self._refresh_local_map()
+
+    def _match(self, scan: ScanPoints, T_pred: F64, T_last: F64, step: F64) -> FrontendMatch:
+        assert self._local_map is not None
+        m = match_scan(scan, self._local_map, T_pred, T_last, self._velocity,
+                       odometry_step_suspicious(step, self.cfg.matcher), self.cfg.matcher,
+                       self._icp)
+        self.stats.matches[m.kind.value] += 1
+        return m
+
+    def _is_keyframe(self) -> bool:
+        d, a = pose_distance(self._T_kf_robot)
+        k = self.cfg.keyframes
+        return d >= k.distance_m or a >= math.radians(k.angle_deg)
+
+    def _relative_information(self, match: FrontendMatch, T_rel: F64) -> F64:
+        """Information of the keyframe-to-keyframe measurement in the new keyframe's frame:
+        the match's (rotated from the map frame) plus odometry's, which keeps degenerate
+        directions constrained."""
+        g = self.cfg.graph
+        c, s = math.cos(match.T_map_robot[2]), math.sin(match.T_map_robot[2])
+        A = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        info = A.T @ match.information @ A if match.kind != MatchKind.ODOMETRY else np.zeros((3, 3))
+        d, a = pose_distance(T_rel)
+        s_xy = g.odometry_sigma_m_per_m * d + g.match_sigma_floor_m
+        s_th = math.radians(g.odometry_sigma_deg_per_rad * a + g.match_sigma_floor_deg)
+        return info + np.diag([s_xy ** -2, s_xy ** -2, s_th ** -2])
+
+    def _add_keyframe(self, stamp_ns: int, scan: ScanPoints, odom: F64,
+                      match: FrontendMatch) -> int:
+        g = self.cfg.graph
+        k = len(self.keyframes)
+        T_rel = self._T_kf_robot.copy()
+        tr = self.trajectory
+        floor = np.array([g.match_sigma_floor_m, g.match_sigma_floor_m,
+                          math.radians(g.match_sigma_floor_deg)])
+        scale = g.match_cov_scale if match.kind != MatchKind.ODOMETRY else 1.0
+        factor = scan_match_factor(tr.key(k - 1), tr.key(k), T_rel,
+                                   self._relative_information(match, T_rel), scale, floor)
+        kind = "odometry" if match.kind == MatchKind.ODOMETRY else "match"
+        extend_trajectory(self.graph, tr, factor, kind, match.T_map_robot)
+        self.keyframes.append(Keyframe(k, stamp_ns, scan, odom))
+        self.stats.keyframes = len(self.keyframes)
+        self._loops.add_edge(k - 1, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
+        self._T_kf_robot = IDENTITY.copy()
+        self._T_kf_map_cache = self.graph.pose(tr.key(k))
+        return k
+
+    def _close_loops(self, k: int) -> None:
+        poses = self.keyframe_poses()
+        self._loops.maybe_close_submap(self.keyframes, poses)
+        closures = self._loops.search(k, self.keyframes, poses)
+        if not closures:
+            return
+        c, g = self.cfg.loop, self.cfg.graph
+        floor = np.array([g.match_sigma_floor_m, g.match_sigma_floor_m,
+                          math.radians(g.match_sigma_floor_deg)])
+        added: list[FactorRecord] = []
+        for lc in closures:
+            tr = self.trajectory
+            f = loop_closure_factor(tr.key(lc.anchor), tr.key(lc.keyframe), lc.T_anchor_kf,
+                                    lc.information, c.sigma_scale ** 2, floor, "huber", c.huber_k)
+            added.append(add_constraint(self.graph, self.trajectory, f, "loop"))
+            self._loops.add_edge(lc.anchor, lc.keyframe, LOOP_EDGE_LENGTH_M)
+        self.graph.iterate(g.extra_iterations_after_loop)
+        est = self.graph.estimate()
+        for rec in added:
+            chi2 = whitened_chi2(rec.factor, est)
+            if chi2 > c.max_chi2:
+                log.info("loop closure removed: χ² %.1f after optimisation", chi2)
+                drop_constraint(self.graph, self.trajectory, rec)
+                self._loops.stats.removed_inconsistent += 1
+                self.stats.loop_closures_removed += 1
+            else:
+                self.stats.loop_closures += 1
+        self._T_kf_map_cache = self.graph.pose(self.trajectory.key(k))
+
+    def _refresh_local_map(self) -> None:
+        n = self.cfg.local_map.keyframes
+        kfs = self.keyframes[-n:]
+        keys = [self.trajectory.key(kf.index) for kf in kfs]
+        self._local_map = local_point_map(kfs, self.graph.poses(keys),
+                                          self.cfg.local_map.max_points)
+
+    # -- accessors -----------------------------------------------------------------------
+    @property
+    def robot_char(self) -> str:
+        return self.trajectory.robot_char
+
+    @property
+    def pose(self) -> F64:
+        """Current robot pose (x, y, θ) in the map frame."""
+        return compose(self._T_kf_map_cache, self._T_kf_robot)
+
+    def keyframe_poses(self) -> F64:
+        """Optimised poses (K, 3) of all keyframes, in keyframe order."""
+        return self.graph.poses(self.trajectory.keys())
+
+    def scan_poses(self) -> tuple[NDArray[np.int64], F64]:
+        """Stamps [ns] and optimised map-frame poses (N, 3) of every scan added so far."""
+        kf_poses = self.keyframe_poses()
+        stamps = np.array([s.stamp_ns for s in self._scan_poses], dtype=np.int64)
+        if not self._scan_poses:
+            return stamps, np.zeros((0, 3))
+        idx = np.array([s.keyframe for s in self._scan_poses], dtype=np.int64)
+        rel = np.array([s.T_kf_robot for s in self._scan_poses], dtype=np.float64)
+        return stamps, compose(kf_poses[idx], rel)
+
+    def occupancy_grid(self) -> OccupancyGrid:
+        """The occupancy grid at the current poses (incremental, or re-rendered if they moved)."""
+        return self._mapper.update(self.keyframes, self.keyframe_poses())
+
+    def point_cloud(self, voxel_m: float = 0.05) -> F64:
+        """Keyframe points (N, 2) in the map frame, one per ``voxel_m`` cell."""
+        return point_cloud(self.keyframes, self.keyframe_poses(), voxel_m)
+
+    @property
+    def loop_stats(self) -> object:
+        return self._loops.stats
