@@ -1,0 +1,166 @@
+"""The simulator's configuration (YAML ← env ← CLI) and the scenarios it can run."""
+
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from schemas.config import BusConfig
+from schemas.tags import CameraMount, TagLayout
+from schemas.types import ID_PATTERN
+from sim.errors import SimError
+
+#: Where the reference scenarios live in a development checkout (``../shared/data``).
+DEFAULT_SCENARIOS = (Path(__file__).resolve().parents[2] / "shared" / "data" / "worlds"
+                     / "thesis" / "scenarios.yaml")
+Pose = tuple[float, float, float]
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LidarConfig(_Model):
+    beams: int = Field(400, ge=1, le=8192)
+    fov_deg: float = Field(360.0, gt=0.0, le=360.0)
+    range_min_m: float = Field(0.05, ge=0.0)
+    range_max_m: float = Field(10.0, gt=0.0, le=65.0)
+    sigma_m: float = Field(0.008, ge=0.0, le=1.0)
+    rate_hz: float = Field(10.0, gt=0.0, le=1000.0)
+    height_m: float = Field(0.2, gt=0.0, le=10.0, description="the horizontal scan plane")
+
+    @model_validator(mode="after")
+    def _limits(self) -> LidarConfig:
+        if self.range_min_m >= self.range_max_m:
+            raise ValueError("range_min_m must be < range_max_m")
+        return self
+
+
+class DriveConfig(_Model):
+    track_width_m: float = Field(0.27, gt=0.0)
+    radius_m: float = Field(0.13, gt=0.0)
+    v_max_mps: float = Field(0.5, gt=0.0, le=5.0)
+    omega_max_rps: float = Field(2.0, gt=0.0, le=20.0)
+    accel_max_mps2: float = Field(1.0, gt=0.0)
+    alpha_max_rps2: float = Field(4.0, gt=0.0)
+
+
+class OdometryConfig(_Model):
+    alpha1: float = Field(4e-4, ge=0.0, description="rotation noise per rotation [rad²/rad]")
+    alpha2: float = Field(1e-4, ge=0.0, description="rotation noise per distance [rad²/m]")
+    alpha3: float = Field(1e-4, ge=0.0, description="distance noise per distance [m²/m]")
+    alpha4: float = Field(1e-5, ge=0.0, description="distance noise per rotation [m²/rad]")
+    scale_sigma: float = Field(0.005, ge=0.0, le=0.5, description="σ of the distance scale")
+    turn_scale_sigma: float = Field(0.01, ge=0.0, le=0.5, description="σ of the turn scale")
+
+
+class CameraConfig(_Model):
+    enabled: bool = True
+    width: int = Field(640, ge=16, le=8192)
+    height: int = Field(480, ge=16, le=8192)
+    hfov_deg: float = Field(60.0, gt=1.0, lt=170.0)
+    rate_hz: float = Field(5.0, gt=0.0)
+    max_range_m: float = Field(7.0, gt=0.0)
+    min_facing_cos: float = Field(0.2, ge=0.0, le=1.0,
+                                  description="cos of the largest viewing angle off the tag normal")
+    blur_sigma_px: float = Field(0.6, ge=0.0, le=10.0)
+    noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="pixel noise [grey levels]")
+
+
+class SimConfig(_Model):
+    world: str | None = Field(None, description="world file (.world/.sdf or nav2 .yaml)")
+    scenario: str | None = Field(None, description="a case of scenarios_file")
+    scenarios_file: str = str(DEFAULT_SCENARIOS)
+    model_path: list[str] = Field(default_factory=list)
+    robots: dict[str, Pose] = Field(default_factory=dict, description="robot id -> spawn pose")
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    lockstep: bool = False
+    real_time_factor: float = Field(1.0, gt=0.0, le=1e4)
+    physics_rate_hz: float = Field(50.0, gt=0.0, le=10000.0)
+    duration_s: float | None = Field(None, gt=0.0, description="stop after this sim time")
+    max_steps: int | None = Field(None, ge=1)
+    out: str | None = Field(None, description="folder for truth.jsonl and summary.json")
+    lidar: LidarConfig = LidarConfig()
+    drive: DriveConfig = DriveConfig()
+    odometry: OdometryConfig = OdometryConfig()
+    camera: CameraConfig = CameraConfig()
+    tags: TagLayout = TagLayout()
+    camera_mount: CameraMount = CameraMount()
+    bus: BusConfig = BusConfig()
+    start_timeout_s: float = Field(60.0, gt=0.0, description="lockstep: wait for agents")
+    ack_timeout_s: float = Field(60.0, gt=0.0, description="lockstep: give up on an ack")
+    resend_after_s: float = Field(1.0, gt=0.0, description="lockstep: re-send a step")
+
+    @model_validator(mode="after")
+    def _ids(self) -> SimConfig:
+        for rid in self.robots:
+            if not re.match(ID_PATTERN, rid):
+                raise ValueError(f"robot id {rid!r} does not match {ID_PATTERN}")
+        return self
+
+
+def parse_robot_spec(spec: str) -> tuple[str, Pose]:
+    """``r1:x,y,yaw`` -> ("r1", (x, y, yaw)); yaw in radians, optional (default 0)."""
+    m = re.match(r"^\s*([^:\s]+)\s*:\s*(.+)$", spec)
+    if m is None:
+        raise SimError(f"--robot {spec!r}: expected ID:X,Y[,YAW]")
+    rid, rest = m.group(1), m.group(2)
+    if not re.match(ID_PATTERN, rid):
+        raise SimError(f"--robot {spec!r}: robot id {rid!r} does not match {ID_PATTERN}")
+    try:
+        v = [float(t) for t in rest.split(",")]
+    except ValueError:
+        raise SimError(f"--robot {spec!r}: X,Y[,YAW] must be numbers") from None
+    if len(v) not in (2, 3) or not all(math.isfinite(x) for x in v):
+        raise SimError(f"--robot {spec!r}: expected 2 or 3 finite numbers")
+    return rid, (v[0], v[1], v[2] if len(v) == 3 else 0.0)
+
+
+def resolve_scene(cfg: SimConfig) -> tuple[Path, dict[str, Pose]]:
+    """The world file and spawn poses: the scenario's, replaced by explicit ones."""
+    world: Path | None = Path(cfg.world) if cfg.world else None
+    robots = dict(cfg.robots)
+    if cfg.scenario:
+        case = load_scenario(Path(cfg.scenarios_file), cfg.scenario)
+        if world is None:
+            world = Path(cfg.scenarios_file).parent / str(case["world"])
+        spawn = case["robots"]
+        if not robots and isinstance(spawn, dict):
+            robots = {str(k): _pose(v, cfg.scenario, str(k)) for k, v in spawn.items()}
+    if world is None:
+        raise SimError("no world: give --world PATH or --scenario NAME")
+    if not robots:
+        raise SimError("no robots: give --robot ID:X,Y,YAW or a --scenario")
+    return world, robots
+
+
+def load_scenario(path: Path, name: str) -> dict[str, object]:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise SimError(f"{path}: cannot read scenarios ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise SimError(f"{path}: not valid YAML ({e})") from None
+    cases = data.get("cases") if isinstance(data, dict) else None
+    if not isinstance(cases, dict):
+        raise SimError(f"{path}: expected a 'cases' mapping")
+    case = cases.get(name)
+    if not isinstance(case, dict) or "world" not in case or not isinstance(
+            case.get("robots"), dict):
+        known = ", ".join(sorted(str(k) for k in cases))
+        raise SimError(f"{path}: no scenario {name!r} with a world and robots (known: {known})")
+    return case
+
+
+def _pose(v: object, scenario: str, rid: str) -> Pose:
+    if not (isinstance(v, list | tuple) and len(v) == 3):
+        raise SimError(f"scenario {scenario}: robot {rid}: pose must be [x, y, yaw]")
+    try:
+        x, y, th = (float(a) for a in v)
+    except (TypeError, ValueError):
+        raise SimError(f"scenario {scenario}: robot {rid}: pose must be numbers") from None
+    return x, y, th

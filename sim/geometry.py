@@ -1,0 +1,77 @@
+"""Small pose helpers: planar poses (x, y, theta) and 4x4 homogeneous transforms."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def wrap_angle(a: float) -> float:
+    """Wrap an angle to (-pi, pi] [rad]."""
+    w = math.remainder(a, 2 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+def compose2(a: tuple[float, float, float], b: tuple[float, float, float]
+             ) -> tuple[float, float, float]:
+    """Planar ``a ⊕ b``: pose ``b`` given in frame ``a``, expressed in ``a``'s parent."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+
+
+def between2(a: tuple[float, float, float], b: tuple[float, float, float]
+             ) -> tuple[float, float, float]:
+    """Planar ``a⁻¹ ⊕ b``: pose ``b`` expressed in frame ``a``."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2]))
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (SDF's fixed-axis roll-pitch-yaw)."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def quat_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    """Rotation of the unit quaternion (x, y, z, w); the quaternion is normalised first."""
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if n == 0.0:
+        raise ValueError("zero quaternion")
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def transform(R: np.ndarray, t: tuple[float, float, float] | np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def planar_transform(pose: tuple[float, float, float]) -> np.ndarray:
+    """4x4 transform of a planar pose (the frame sits on the floor, z = 0)."""
+    return transform(rpy_matrix(0.0, 0.0, pose[2]), (pose[0], pose[1], 0.0))
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return out
+
+
+def planar_of(T: np.ndarray) -> tuple[float, float, float]:
+    """Project a 4x4 transform onto the floor plane: (x, y, yaw of its x axis)."""
+    return (float(T[0, 3]), float(T[1, 3]), math.atan2(T[1, 0], T[0, 0]))

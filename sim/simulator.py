@@ -1,0 +1,228 @@
+"""The simulation itself, free of I/O: robots in a world, stepped at the LIDAR rate.
+
+One step is one LIDAR period. ``sense()`` returns what every robot perceives at the current
+time (scan, wheel odometry, camera frames when another robot's tag is in view) plus the ground
+truth; ``advance()`` applies the latest commands and integrates the physics to the next step in
+``substeps`` equal parts. A robot whose disc would touch a wall or another robot does not move
+on that substep, stops, and has a collision counted (once per contact).
+
+Randomness comes only from numpy Generators seeded from (seed, robot id), one stream each for
+LIDAR noise, odometry and camera noise, so a robot's noise does not depend on which other robots
+exist or on what the camera renders; nothing reads the wall clock.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas.tags import CameraMount, TagLayout
+from sim.camera import PinholeCamera, TagRenderer, TagView, visible_tags
+from sim.errors import SimError
+from sim.geometry import between2
+from sim.odometry import OdometryNoise
+from sim.raycast import RayCaster, line_of_sight
+from sim.robot import DriveLimits, arc_step, collisions, limit_command, point_in_polygons
+from sim.world import World
+
+log = logging.getLogger(__name__)
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class LidarSpec:
+    beams: int = 400
+    fov_rad: float = 2 * math.pi
+    range_min_m: float = 0.05
+    range_max_m: float = 10.0
+    sigma_m: float = 0.008
+
+    @property
+    def angle_min_rad(self) -> float:
+        return -self.fov_rad / 2 if self.fov_rad < 2 * math.pi - 1e-9 else -math.pi
+
+    @property
+    def angle_increment_rad(self) -> float:
+        full = self.fov_rad >= 2 * math.pi - 1e-9
+        return self.fov_rad / (self.beams if full else max(self.beams - 1, 1))
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    camera: PinholeCamera = field(default_factory=PinholeCamera)
+    every_steps: int = 2            # render on steps divisible by this (0: no camera)
+    max_range_m: float = 7.0
+    min_facing_cos: float = 0.2
+    blur_sigma_px: float = 0.6
+    noise_sigma: float = 2.0
+
+
+@dataclass(frozen=True)
+class SimParams:
+    step_ns: int = 100_000_000
+    substeps: int = 5
+    lidar: LidarSpec = field(default_factory=LidarSpec)
+    drive: DriveLimits = field(default_factory=DriveLimits)
+    odometry: OdometryNoise = field(default_factory=OdometryNoise)
+    camera: CameraSpec = field(default_factory=CameraSpec)
+    tags: TagLayout = field(default_factory=TagLayout)
+    mount: CameraMount = field(default_factory=CameraMount)
+
+
+@dataclass
+class RobotState:
+    robot_id: str
+    pose: Pose
+    odom: Pose
+    bias: tuple[float, float]
+    rng_lidar: np.random.Generator
+    rng_odom: np.random.Generator
+    rng_camera: np.random.Generator
+    v: float = 0.0
+    w: float = 0.0
+    cmd: tuple[float, float] = (0.0, 0.0)
+    collisions: int = 0
+    in_contact: bool = False
+    distance_m: float = 0.0
+    image_seq: int = 0
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A rendered camera frame and what it shows."""
+
+    image: np.ndarray                        # (H, W) uint8
+    seq: int
+    views: list[TagView]
+    relatives: list[tuple[str, int, Pose]]   # (observed id, tag id, observed pose in observer)
+
+
+@dataclass(frozen=True)
+class Observation:
+    step: int
+    stamp_ns: int
+    ranges_m: dict[str, np.ndarray]          # inf = no return
+    odometry: dict[str, tuple[Pose, float, float]]  # (pose, v, ω)
+    frames: dict[str, Frame]
+    truth: dict[str, RobotState]
+
+
+def robot_seed(seed: int, robot_id: str) -> np.random.SeedSequence:
+    return np.random.SeedSequence([seed & (2**63 - 1), zlib.crc32(robot_id.encode())])
+
+
+class Simulator:
+    def __init__(self, world: World, spawn: dict[str, Pose], params: SimParams,
+                 seed: int = 0) -> None:
+        self.world = world
+        self.p = params
+        self.step = 0
+        self.caster = RayCaster(world.segments, world.circles)
+        self.renderer = TagRenderer(params.tags, params.camera.camera)
+        self.robots: dict[str, RobotState] = {}
+        for rid, pose in spawn.items():
+            params.tags.tag_id(rid, "front")  # every robot needs tag ids
+            lidar, odom, cam = (np.random.Generator(np.random.PCG64(s))
+                                for s in robot_seed(seed, rid).spawn(3))
+            bias = params.odometry.draw_bias(odom)
+            p = (float(pose[0]), float(pose[1]), math.remainder(float(pose[2]), 2 * math.pi))
+            self.robots[rid] = RobotState(rid, p, p, bias, lidar, odom, cam)
+        self._check_spawn()
+
+    @property
+    def stamp_ns(self) -> int:
+        return self.step * self.p.step_ns
+
+    def _centres(self) -> np.ndarray:
+        return np.array([r.pose[:2] for r in self.robots.values()]).reshape(-1, 2)
+
+    def _check_spawn(self) -> None:
+        c = self._centres()
+        bad = collisions(c, self.p.drive.radius_m, self.world.segments, self.world.circles)
+        bad |= point_in_polygons(c, self.world.polygons)
+        if bad.any():
+            names = [rid for rid, b in zip(self.robots, bad, strict=True) if b]
+            raise SimError(f"robots {', '.join(names)} spawn inside or touching an obstacle "
+                           f"of {self.world.name} (or each other)")
+
+    def set_command(self, robot_id: str, v_mps: float, omega_rps: float) -> None:
+        r = self.robots.get(robot_id)
+        if r is None:
+            raise KeyError(robot_id)
+        r.cmd = (float(v_mps), float(omega_rps))
+
+    # -- sensing ----------------------------------------------------------------------------
+    def sense(self) -> Observation:
+        lid = self.p.lidar
+        ranges, odo, frames = {}, {}, {}
+        discs = {rid: (r.pose[0], r.pose[1], self.p.drive.radius_m)
+                 for rid, r in self.robots.items()}
+        for rid, r in self.robots.items():
+            others = np.array([d for k, d in discs.items() if k != rid]).reshape(-1, 3)
+            true = self.caster.cast(r.pose, lid.beams, lid.angle_min_rad,
+                                    lid.angle_increment_rad, lid.range_max_m + 4 * lid.sigma_m,
+                                    others)
+            noisy = true + lid.sigma_m * r.rng_lidar.standard_normal(lid.beams)
+            noisy[(noisy > lid.range_max_m) | (noisy < lid.range_min_m)] = np.inf
+            ranges[rid] = noisy
+            odo[rid] = (r.odom, r.v, r.w)
+        cam = self.p.camera
+        if cam.every_steps and self.step % cam.every_steps == 0:
+            frames = self._render(discs)
+        return Observation(self.step, self.stamp_ns, ranges, odo, frames, self.robots)
+
+    def _render(self, discs: dict[str, tuple[float, float, float]]) -> dict[str, Frame]:
+        cam = self.p.camera
+        poses = {rid: r.pose for rid, r in self.robots.items()}
+
+        def blocked(p: tuple[float, float], q: tuple[float, float], a: str, b: str) -> bool:
+            third = np.array([d for k, d in discs.items() if k not in (a, b)]).reshape(-1, 3)
+            circles = np.vstack([self.world.circles, third]) if len(third) else self.world.circles
+            return not line_of_sight(p, q, self.world.segments, circles)
+
+        frames = {}
+        for rid, r in self.robots.items():
+            views = visible_tags(rid, poses, self.p.tags, self.p.mount, cam.camera,
+                                 cam.max_range_m, cam.min_facing_cos, blocked)
+            if not views:
+                continue
+            image = self.renderer.render(views, r.rng_camera, cam.blur_sigma_px, cam.noise_sigma)
+            rel = [(v.observed, v.tag_id, between2(r.pose, poses[v.observed])) for v in views]
+            frames[rid] = Frame(image, r.image_seq, views, rel)
+            r.image_seq += 1
+        return frames
+
+    # -- physics ----------------------------------------------------------------------------
+    def advance(self) -> None:
+        """Integrate from this step to the next one."""
+        n = self.p.substeps
+        dt = self.p.step_ns / 1e9 / n
+        robots = list(self.robots.values())
+        for _ in range(n):
+            moved = []
+            for r in robots:
+                r.v, r.w = limit_command(r.cmd[0], r.cmd[1], r.v, r.w, self.p.drive, dt)
+                moved.append(arc_step(r.pose, r.v, r.w, dt))
+            centres = np.array([m[:2] for m in moved]).reshape(-1, 2)
+            hit = collisions(centres, self.p.drive.radius_m, self.world.segments,
+                             self.world.circles)
+            for r, new, h in zip(robots, moved, hit, strict=True):
+                if h:
+                    if not r.in_contact:
+                        r.collisions += 1
+                        log.info("%s collided at (%.2f, %.2f)", r.robot_id, *r.pose[:2])
+                    r.in_contact = True
+                    r.v = r.w = 0.0
+                    ds = dth = 0.0
+                else:
+                    r.in_contact = False
+                    r.pose = new
+                    ds, dth = r.v * dt, r.w * dt
+                    r.distance_m += abs(ds)
+                mds, mdth = self.p.odometry.measure(r.rng_odom, ds, dth, r.bias)
+                r.odom = arc_step(r.odom, float(mds), float(mdth), 1.0)
+        self.step += 1
