@@ -8,7 +8,8 @@ distance D and bearing α = atan2(y_r, x_r). The arc through it has curvature
 
 with v fixed. When |ω| would exceed ω_max, ω is clipped and v lowered to ω_max/|κ| so the robot
 still drives the same arc. When |α| exceeds ``rotate_in_place_above_rad`` (the path lies behind
-or beside the robot) the robot turns on the spot, ω = clip(k·α, ω_max).
+or beside the robot) the robot turns on the spot, ω = clip(k·α, ω_max), until |α| is below
+``resume_below_rad`` (hysteresis, so it does not swing wide when it sets off).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ class PursuitParams:
     omega_max_rps: float = 1.5
     goal_tolerance_m: float = 0.25
     rotate_in_place_above_rad: float = math.pi / 3
+    resume_below_rad: float = 0.15
     rotate_gain: float = 2.0
 
 
@@ -68,9 +70,11 @@ class PurePursuit:
         self._path: NDArray[np.float64] | None = None
         self._cum: NDArray[np.float64] = np.zeros(1)
         self._segment = 0
+        self._rotating = False
 
     def reset(self) -> None:
         self._path = None
+        self._rotating = False
 
     def _load(self, path_xy: ArrayLike) -> NDArray[np.float64]:
         path = np.asarray(path_xy, dtype=np.float64).reshape(-1, 2)
@@ -82,6 +86,7 @@ class PurePursuit:
             seg = np.hypot(*np.diff(path, axis=0).T) if len(path) > 1 else np.zeros(0)
             self._cum = np.concatenate([[0.0], np.cumsum(seg)])
             self._segment = 0
+            self._rotating = False
         return self._path
 
     def reached(self, pose: ArrayLike, path_xy: ArrayLike) -> bool:
@@ -116,7 +121,9 @@ class PurePursuit:
         xr, yr = float(local[0]), float(local[1])
         alpha = math.atan2(yr, xr)
         tgt = (float(target[0]), float(target[1]))
-        if abs(alpha) > p.rotate_in_place_above_rad:
+        limit = p.resume_below_rad if self._rotating else p.rotate_in_place_above_rad
+        self._rotating = abs(alpha) > limit
+        if self._rotating:
             twist = Twist(0.0, clip(p.rotate_gain * alpha, p.omega_max_rps))
             return PursuitStep(twist, False, tgt, alpha, cross)
         d2 = xr * xr + yr * yr

@@ -7,6 +7,7 @@
 """
 
 from server.exploration.analysis import AnalysisParams, MapAnalysis, analyse
+from server.exploration.assignment import assign_optimal, assign_separated
 from server.exploration.candidates import rule1_candidates, rule1_junctions
 from server.exploration.coverage import coverage, coverage_reached, explored_area_m2
 from server.exploration.explorer import (
@@ -16,6 +17,7 @@ from server.exploration.explorer import (
     Finished,
     FrontierExplorer,
     Target,
+    TeamCosts,
     VoronoiExplorer,
     make_explorer,
 )
@@ -34,9 +36,12 @@ __all__ = [
     "MapAnalysis",
     "SkeletonGraph",
     "Target",
+    "TeamCosts",
     "VisitedTargets",
     "VoronoiExplorer",
     "analyse",
+    "assign_optimal",
+    "assign_separated",
     "coverage",
     "coverage_reached",
     "explored_area_m2",

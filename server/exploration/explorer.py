@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,7 @@ from server.exploration.candidates import rule1_candidates
 from server.exploration.coverage import coverage
 from server.exploration.visited import VisitedTargets
 from server.planning.dijkstra import CostField
+from server.planning.errors import StartOccupied
 from server.planning.grid import OccupancyGrid
 from server.planning.path import Path
 
@@ -101,6 +103,21 @@ class _Proposal:
     size_cells: NDArray[np.int64] | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class TeamCosts:
+    targets_xy: NDArray[np.float64]         # (K, 2)
+    cost: NDArray[np.float64]               # (R, K), ∞ = not a choice for that robot
+    kind: str
+    fields: list[CostField | None]
+    smooth: bool
+
+    def path(self, robot: int, target: int) -> Path:
+        f = self.fields[robot]
+        if f is None:
+            raise StartOccupied(f"robot {robot} has no cost field (its start is lethal)")
+        return f.path_to(self.targets_xy[target], smooth=self.smooth)
+
+
 class Explorer(ABC):
     """Shared decision loop; subclasses propose and score targets."""
 
@@ -140,6 +157,45 @@ class Explorer(ABC):
                 path = field_.path_to(best.xy, smooth=p.smooth)
                 return Decision(best.xy, path, proposal.kind, tuple(targets), cov)
         return Finished("no reachable frontier", cov, tuple(targets))
+
+    def team_costs(self, grid: OccupancyGrid, robot_poses: Sequence[ArrayLike],
+                   start_poses: Sequence[ArrayLike], visited: VisitedTargets) -> TeamCosts:
+        """Targets and a cost matrix robots × targets for a team sharing ``grid`` (one frame),
+        for :func:`server.exploration.assignment.assign_optimal` or ``assign_separated``.
+
+        Uses the first group of targets any robot can reach (rule-1 junctions, then frontier
+        clusters); a robot that cannot be planned from (StartOccupied) gets a row of ∞.
+        """
+        p = self.params
+        robots = np.asarray(robot_poses, np.float64).reshape(-1, 3)[:, :2]
+        starts = np.asarray(start_poses, np.float64).reshape(-1, 3)[:, :2]
+        analysis = analyse(grid, p.analysis, include_xy=robots)
+        fields: list[CostField | None] = []
+        for xy in robots:
+            try:
+                fields.append(CostField(analysis.layer, xy, escape_radius_m=p.escape_radius_m))
+            except StartOccupied as e:
+                log.warning("robot at %s left out of the assignment: %s", xy, e)
+                fields.append(None)
+        none = np.zeros((0, 2))
+        for proposal in self._proposals(analysis) if len(analysis.frontiers) else []:
+            rows: list[list[Target]] = []
+            for i, f in enumerate(fields):
+                rows.append([] if f is None else self._score(
+                    analysis, f, proposal, robots[i], starts[i], visited, none))
+            n = max(len(r) for r in rows)
+            if n == 0:
+                continue
+            cost = np.full((len(robots), n), np.inf)
+            targets_xy = np.zeros((n, 2))
+            for i, row in enumerate(rows):
+                for k, t in enumerate(row):
+                    targets_xy[k] = t.xy
+                    if t.status == OK:
+                        cost[i, k] = t.cost
+            if np.isfinite(cost).any():
+                return TeamCosts(targets_xy, cost, proposal.kind, fields, p.smooth)
+        return TeamCosts(none, np.zeros((len(robots), 0)), "", fields, p.smooth)
 
     @abstractmethod
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:

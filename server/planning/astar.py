@@ -61,7 +61,7 @@ def astar_cells(cost: NDArray[np.float64], start: tuple[int, int], goal: tuple[i
             break
         closed[u] = 1
         pops += 1
-        if pops % _TIME_CHECK_EVERY == 0 and time.perf_counter() > deadline:
+        if pops % _TIME_CHECK_EVERY == 1 and time.perf_counter() > deadline:
             raise PlanningTimedOut(f"A* passed {timeout_s:.3f} s after {pops} expansions")
         gu, cu = g[u], c[u]
         for off, step in neighbours:
