@@ -84,27 +84,80 @@ def server(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
 
 
 @app.command()
-def agent(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+def agent(
+    config: ConfigOpt = None,
+    robot_id: Annotated[str | None, typer.Option("--robot-id", help="robot id, e.g. r1")] = None,
+    connect: Annotated[list[str] | None, typer.Option(
+        help="router endpoint, e.g. tcp/127.0.0.1:7447 (repeatable)")] = None,
+    verbose: VerboseOpt = 0,
+) -> None:
     """Run the robot agent (hardware drivers or the simulator backend)."""
     setup_logging(verbose)
+    overrides: dict[str, Any] = {}
+    if robot_id is not None:
+        overrides["robot_id"] = robot_id
+    if connect:
+        overrides["bus"] = {"connect": list(connect)}
 
     def body() -> Any:
         from robot_agent.runtime import run
 
-        return run(config)
+        return run(config, overrides)
 
     call("agent", body)
 
 
 @app.command()
-def sim(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+def sim(
+    config: ConfigOpt = None,
+    scenario: Annotated[str | None, typer.Option(help="scenario, e.g. thesis-case-2")] = None,
+    world: Annotated[Path | None, typer.Option(help="world file (.world/.sdf/nav2 .yaml)")] = None,
+    robot: Annotated[list[str] | None, typer.Option(
+        help="robot spawn ID:X,Y,YAW (repeatable); replaces the scenario's robots")] = None,
+    seed: Annotated[int | None, typer.Option(help="random seed")] = None,
+    lockstep: Annotated[bool | None, typer.Option(
+        "--lockstep/--real-time", help="wait for every agent each step, or run in real time")
+    ] = None,
+    rtf: Annotated[float | None, typer.Option(help="real-time factor, e.g. 5")] = None,
+    duration: Annotated[float | None, typer.Option(help="stop after this simulated time [s]")
+                        ] = None,
+    out: Annotated[Path | None, typer.Option(help="folder for truth.jsonl and summary.json")
+                   ] = None,
+    connect: Annotated[list[str] | None, typer.Option(
+        help="router endpoint to connect to (repeatable)")] = None,
+    listen: Annotated[list[str] | None, typer.Option(
+        help="run standalone: open a router listening here, e.g. tcp/127.0.0.1:7447")] = None,
+    verbose: VerboseOpt = 0,
+) -> None:
     """Run the 2D multi-robot simulator as its own process."""
     setup_logging(verbose)
 
     def body() -> Any:
+        from sim.config import parse_robot_spec
         from sim.process import run
 
-        return run(config)
+        overrides: dict[str, Any] = {}
+        for key, value in (("scenario", scenario), ("seed", seed), ("lockstep", lockstep),
+                           ("real_time_factor", rtf), ("duration_s", duration)):
+            if value is not None:
+                overrides[key] = value
+        if world is not None:
+            overrides["world"] = str(world)
+        if out is not None:
+            overrides["out"] = str(out)
+        if robot:
+            overrides["robots"] = dict(parse_robot_spec(spec) for spec in robot)
+        bus: dict[str, Any] = {}
+        if listen:
+            bus.update(mode="router", listen=list(listen), connect=list(connect or []))
+        elif connect:
+            bus["connect"] = list(connect)
+        if bus:
+            overrides["bus"] = bus
+        summary = run(config, overrides)
+        typer.echo(f"simulated {summary['sim_time_s']:.1f} s in {summary['steps']} steps "
+                   f"({summary['wall_s']:.1f} s wall)", err=True)
+        return summary
 
     call("sim", body)
 
@@ -170,7 +223,11 @@ def world_map(
     def body() -> Any:
         from sim.world_map import run
 
-        return run(world, resolution, out)
+        fig = run(world, resolution, out)
+        typer.echo(f"free area {fig['free_area_m2']:.2f} m² (largest region "
+                   f"{fig['largest_region_m2']:.2f} m², bounding box {fig['bbox_m2']:.2f} m²) "
+                   f"-> {fig['map']}")
+        return fig
 
     call("world-map", body)
 

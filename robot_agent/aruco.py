@@ -98,6 +98,9 @@ class TagDetector:
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         params.cornerRefinementWinSize = 4
         params.cornerRefinementMinAccuracy = 0.01
+        # Two faces of one mast are often seen side by side; OpenCV's default (0.125) merges
+        # such neighbours and drops one of them.
+        params.minMarkerDistanceRate = 0.05
         self.detector = cv2.aruco.ArucoDetector(dictionary, params)
         self.object_points = layout.marker_corners_tag().astype(np.float64)
         self.cells = int(dictionary.markerSize) + 2  # bits plus the black border

@@ -1,9 +1,262 @@
-"""The robot agent (not built yet)."""
+"""The agent on each robot: sweeps and tags out, velocity commands in, a watchdog in between.
+
+The backend's sensor callbacks only queue events; one thread handles them in arrival order:
+
+- a sweep becomes a ``Scan`` with the wheel-odometry pose at its time; in lockstep the step is
+  then acknowledged (after the server's command for it, when a server is alive and
+  ``lockstep.wait_for_command`` is set; bounded by ``command_timeout_s`` of wall time);
+- a camera frame goes through the ArUco detector and becomes ``TagDetections``.
+
+Commands (``VelocityCommand`` on ``mrslam/robot/<id>/cmd_vel``) go straight to the base. The
+watchdog stops the base when a command's time-to-live runs out on the robot's clock or when the
+server's liveliness token disappears. Liveliness ``mrslam/robot/<id>/alive`` and a
+``RobotStatus`` every ``status_period_s`` tell the world the agent is there.
+"""
 
 from __future__ import annotations
 
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections import Counter
+from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
+from mrslam.config import load_config
+from robot_agent.aruco import SigmaModel, TagDetector
+from robot_agent.backend import Backend, Frame, Sweep
+from robot_agent.config import AgentConfig
+from robot_agent.watchdog import Watchdog
+from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
+from schemas.bus import Bus
+from schemas.messages import RobotState
 
-def run(*args: Any, **kwargs: Any) -> Any:
-    raise NotImplementedError("robot agent")
+log = logging.getLogger(__name__)
+
+
+class Agent:
+    def __init__(self, cfg: AgentConfig, bus: Bus, backend: Backend) -> None:
+        self.cfg, self.bus, self.backend = cfg, bus, backend
+        self.rid = cfg.robot_id
+        d = cfg.detector
+        self.detector = TagDetector(cfg.tags, cfg.camera_mount, SigmaModel(
+            d.range_a_m, d.range_b_per_m, d.bearing_a_rad, d.bearing_b_rad_per_m, d.yaw_a_rad,
+            d.yaw_b_rad_per_m2, d.ambiguous_ratio, d.ambiguous_sigma_yaw_rad),
+            d.max_reprojection_px) if d.enabled else None
+        self.events: queue.Queue[Sweep | Frame] = queue.Queue()
+        self.cond = threading.Condition()
+        self.watchdog = Watchdog()
+        self.command: tuple[float, float] = (0.0, 0.0)
+        self.last_command_stamp_ns = -1
+        self.server_alive = False
+        self.counters: Counter[str] = Counter()
+        self.seq: Counter[str] = Counter()
+        self.last_sweep_wall = 0.0
+        self._status_cpu = (time.monotonic(), time.process_time())
+
+    def start(self) -> None:
+        self.bus.subscribe(keys.robot_cmd_vel(self.rid), VelocityCommand, self._on_command)
+        self.bus.watch_alive(keys.SERVER_ALIVE, self._on_server)
+        self.backend.lidar.start(self.events.put)
+        if self.backend.camera is not None:
+            self.backend.camera.start(self._queue_frame)
+        self.bus.declare_alive(keys.robot_alive(self.rid))   # last: we are ready for step 0
+        log.info("agent %s up", self.rid)
+
+    # -- the loop ---------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        next_status = time.monotonic()
+        while not stop.is_set():
+            try:
+                event = self.events.get(timeout=0.05)
+            except queue.Empty:
+                event = None
+            if isinstance(event, Sweep):
+                self.handle_sweep(event)
+            elif isinstance(event, Frame):
+                self.handle_frame(event)
+            self.check_watchdog(self.backend.now_ns())
+            if time.monotonic() >= next_status:
+                self.publish_status()
+                next_status = time.monotonic() + self.cfg.status_period_s
+        self.set_velocity(0.0, 0.0)
+
+    def handle_sweep(self, sweep: Sweep) -> None:
+        self.check_watchdog(sweep.stamp_ns)
+        odom = self.backend.base.odometry_at(sweep.stamp_ns)
+        if odom is None:
+            self.counters["sweeps_without_odometry"] += 1
+        else:
+            self.publish(keys.robot_scan(self.rid), Scan(
+                robot_id=self.rid, seq=self._next("scan"), stamp_ns=sweep.stamp_ns,
+                odom_pose=odom.pose, angle_min_rad=sweep.angle_min_rad,
+                angle_increment_rad=sweep.angle_increment_rad, range_min_mm=sweep.range_min_mm,
+                range_max_mm=sweep.range_max_mm, ranges_mm=sweep.ranges_mm))
+            self.counters["scans_sent"] += 1
+        self.last_sweep_wall = time.monotonic()
+        sync = self.backend.sync
+        if sweep.step is not None and sync is not None and sync.lockstep():
+            self._wait_for_command(sweep.stamp_ns)
+            with self.cond:
+                command = self.command
+            sync.ack(sweep.step, command)
+
+    def _wait_for_command(self, stamp_ns: int) -> None:
+        """Lockstep with a server: hold the ack until the command answering this scan."""
+        if not self.cfg.lockstep.wait_for_command:
+            return
+        deadline = time.monotonic() + self.cfg.lockstep.command_timeout_s
+        with self.cond:
+            while self.server_alive and self.last_command_stamp_ns < stamp_ns:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    self.counters["command_timeouts"] += 1
+                    log.warning("no command for the scan at %d ns within %g s; acking anyway",
+                                stamp_ns, self.cfg.lockstep.command_timeout_s)
+                    return
+                self.cond.wait(left)
+
+    def handle_frame(self, frame: Frame) -> None:
+        if self.detector is None:
+            return
+        try:
+            found = self.detector.detect(frame.image, frame.K, self.rid, frame.dist)
+        except Exception as e:  # a broken frame must not stop the agent
+            self.counters["detector_errors"] += 1
+            log.warning("tag detection failed: %s: %s", type(e).__name__, e)
+            return
+        self.counters["tags_rejected"] += len(found.rejected)
+        if not found.sightings:
+            return
+        dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
+                             bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
+                             sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
+                             sigma_yaw_rad=s.sigma_yaw_rad,
+                             reprojection_error_px=s.reprojection_error_px)
+                for s in found.sightings[:64]]
+        self.publish(keys.robot_tags(self.rid), TagDetections(
+            robot_id=self.rid, seq=self._next("tags"), stamp_ns=frame.stamp_ns, detections=dets))
+        self.counters["tag_detections"] += len(dets)
+
+    def _queue_frame(self, frame: Frame) -> None:
+        if self.events.qsize() > self.cfg.max_queued_frames and not self._lockstep():
+            self.counters["frames_dropped"] += 1  # busy: a late frame is worth little
+            return
+        self.events.put(frame)
+
+    def _lockstep(self) -> bool:
+        return self.backend.sync is not None and self.backend.sync.lockstep()
+
+    # -- commands and the watchdog ----------------------------------------------------------
+    def _on_command(self, key: str, msg: VelocityCommand) -> None:
+        if msg.robot_id != self.rid:
+            self.counters["foreign_commands"] += 1
+            log.warning("ignoring a command for %s on %s", msg.robot_id, key)
+            return
+        v = min(max(msg.v_mps, -self.cfg.v_max_mps), self.cfg.v_max_mps)
+        w = min(max(msg.omega_rps, -self.cfg.omega_max_rps), self.cfg.omega_max_rps)
+        with self.cond:
+            self.watchdog.feed(self.backend.now_ns(), msg.ttl_s)
+            self.counters["commands_received"] += 1
+            self.last_command_stamp_ns = max(self.last_command_stamp_ns, msg.stamp_ns)
+            self.set_velocity(v, w)
+            self.cond.notify_all()
+
+    def _on_server(self, key: str, alive: bool) -> None:
+        with self.cond:
+            was = self.server_alive
+            self.server_alive = alive
+            if was and not alive and self.cfg.stop_on_server_loss:
+                log.warning("server liveliness lost: stopping")
+                self.watchdog.server_lost()
+                self.set_velocity(0.0, 0.0)
+            self.cond.notify_all()
+
+    def check_watchdog(self, now_ns: int) -> None:
+        with self.cond:
+            if self.watchdog.expired(now_ns):
+                log.info("commands stopped arriving: stopping")
+                self.set_velocity(0.0, 0.0)
+
+    def set_velocity(self, v: float, w: float) -> None:
+        with self.cond:
+            self.command = (v, w)
+        self.backend.base.set_velocity(v, w)
+
+    # -- output -----------------------------------------------------------------------------
+    def _next(self, name: str) -> int:
+        n = self.seq[name]
+        self.seq[name] += 1
+        return n
+
+    def publish(self, key: str, msg: Any) -> None:
+        self.bus.publish(key, msg, block=self._lockstep())
+
+    def errors(self) -> int:
+        s = self.bus.stats
+        return (sum(s.rejected.values()) + sum(s.callback_errors.values())
+                + self.counters["detector_errors"] + self.counters["foreign_commands"]
+                + sum(self.backend.counters().values()))
+
+    def publish_status(self) -> None:
+        t, cpu = time.monotonic(), time.process_time()
+        t0, cpu0 = self._status_cpu
+        self._status_cpu = (t, cpu)
+        fresh = self.last_sweep_wall and t - self.last_sweep_wall < 3.0
+        state: RobotState = ("ok" if fresh else "starting" if not self.last_sweep_wall
+                             else "degraded")
+        message = "" if fresh else "no LIDAR sweeps"
+        self.bus.publish(keys.robot_status(self.rid), RobotStatus(
+            robot_id=self.rid, seq=self._next("status"), stamp_ns=self.backend.now_ns(),
+            state=state, message=message,
+            cpu_percent=min(max(100.0 * (cpu - cpu0) / max(t - t0, 1e-6), 0.0), 10000.0),
+            rss_mb=_rss_mb(), scans_sent=self.counters["scans_sent"],
+            commands_received=self.counters["commands_received"], errors=self.errors()))
+
+    def summary(self) -> dict[str, Any]:
+        return {"robot_id": self.rid, **dict(self.counters),
+                "watchdog_timeouts": self.watchdog.timeouts,
+                "server_losses": self.watchdog.server_losses,
+                "backend": self.backend.counters(), "bus": self.bus.stats.as_dict()}
+
+
+def _rss_mb() -> float:
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def make_backend(cfg: AgentConfig, bus: Bus) -> Backend:
+    if cfg.backend == "sim":
+        from robot_agent.sim_backend import sim_backend
+
+        return sim_backend(bus, cfg.robot_id)
+    raise NotImplementedError(f"backend {cfg.backend}")
+
+
+def run(config: str | Path | None = None, overrides: Mapping[str, Any] | None = None,
+        stop: threading.Event | None = None) -> dict[str, Any]:
+    """Run the agent until ``stop`` is set (or Ctrl-C); returns its counters."""
+    cfg = load_config(AgentConfig, config, overrides)
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    with Bus.open(cfg.bus.mode, cfg.bus.listen, cfg.bus.connect, cfg.bus.zenoh_config,
+                  cfg.bus.connect_timeout_ms) as bus:
+        backend = make_backend(cfg, bus)
+        agent = Agent(cfg, bus, backend)
+        agent.start()
+        try:
+            agent.run(stop)
+        except KeyboardInterrupt:
+            log.info("interrupted")
+            agent.set_velocity(0.0, 0.0)
+        finally:
+            backend.close()
+        return agent.summary()

@@ -3,6 +3,14 @@
 These stand in for hardware: a raw LIDAR sweep, wheel odometry, a camera frame, and a motor
 command. The simulator also publishes its clock and the ground truth; in lockstep mode it waits
 for a ``SimStepAck`` from every agent before advancing.
+
+One simulation step is one LIDAR period. For step ``k`` the simulator publishes, in this order,
+``SimClock`` (``step = k``), then per robot any ``SimImage`` frames, ``SimOdometry`` and
+``SimLidar`` (both with ``seq = k`` and ``stamp_ns`` = the simulation time of step ``k``), then
+``SimGroundTruth`` (``seq = k``). All stamps are simulation time [ns] from 0 at step 0.
+In lockstep mode the world moves from step ``k`` to ``k + 1`` only after every robot's agent
+has sent ``SimStepAck(step = k)``, and the motor command carried by that ack (if any) is the
+one applied; ``SimMotorCommand`` drives the robots in real-time mode.
 """
 
 from __future__ import annotations
@@ -38,7 +46,8 @@ class SimOdometry(Message, kw_only=True):
 
 
 class SimImage(Message, kw_only=True):
-    """A grayscale camera frame with the pinhole intrinsics it was rendered with."""
+    """A grayscale camera frame with the pinhole intrinsics it was rendered with (no lens
+    distortion). ``seq`` counts this robot's frames (``TrueRelative.image_seq`` refers to it)."""
 
     robot_id: RobotId
     width: Annotated[int, msgspec.Meta(ge=1, le=8192)]
@@ -63,10 +72,16 @@ class SimMotorCommand(Message, kw_only=True):
 
 
 class SimStepAck(Message, kw_only=True):
-    """An agent has handled every sensor message of ``step`` (lockstep mode)."""
+    """An agent has handled every sensor message of ``step`` (lockstep mode).
+
+    ``v_mps``/``omega_rps`` is the motor command to hold from this step on (None: keep the
+    previous one), so that the command a lockstep run applies never depends on timing.
+    """
 
     robot_id: RobotId
     step: Seq
+    v_mps: Annotated[float, msgspec.Meta(ge=-5.0, le=5.0)] | None = None
+    omega_rps: Annotated[float, msgspec.Meta(ge=-20.0, le=20.0)] | None = None
 
 
 class TruePose(msgspec.Struct, kw_only=True):

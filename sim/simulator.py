@@ -4,7 +4,8 @@ One step is one LIDAR period. ``sense()`` returns what every robot perceives at 
 time (scan, wheel odometry, camera frames when another robot's tag is in view) plus the ground
 truth; ``advance()`` applies the latest commands and integrates the physics to the next step in
 ``substeps`` equal parts. A robot whose disc would touch a wall or another robot does not move
-on that substep, stops, and has a collision counted (once per contact).
+on that substep, stops, and has a collision counted (once per contact: pushing on against the
+wall is the same collision until the robot has backed off by ``CONTACT_MARGIN_M``).
 
 Randomness comes only from numpy Generators seeded from (seed, robot id), one stream each for
 LIDAR noise, odometry and camera noise, so a robot's noise does not depend on which other robots
@@ -31,6 +32,8 @@ from sim.world import World
 
 log = logging.getLogger(__name__)
 Pose = tuple[float, float, float]
+#: A robot in contact counts a new collision only after getting this far from the obstacle.
+CONTACT_MARGIN_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -210,7 +213,11 @@ class Simulator:
             centres = np.array([m[:2] for m in moved]).reshape(-1, 2)
             hit = collisions(centres, self.p.drive.radius_m, self.world.segments,
                              self.world.circles)
-            for r, new, h in zip(robots, moved, hit, strict=True):
+            near = hit
+            if any(r.in_contact for r in robots):  # contact ends only clear of the obstacle
+                near = collisions(centres, self.p.drive.radius_m + CONTACT_MARGIN_M,
+                                  self.world.segments, self.world.circles)
+            for r, new, h, c in zip(robots, moved, hit, near, strict=True):
                 if h:
                     if not r.in_contact:
                         r.collisions += 1
@@ -219,7 +226,7 @@ class Simulator:
                     r.v = r.w = 0.0
                     ds = dth = 0.0
                 else:
-                    r.in_contact = False
+                    r.in_contact = r.in_contact and bool(c)
                     r.pose = new
                     ds, dth = r.v * dt, r.w * dt
                     r.distance_m += abs(ds)

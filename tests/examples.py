@@ -78,7 +78,8 @@ def all_examples() -> dict[str, Message]:
                              fy=500.0, cx=4.0, cy=3.0, data=bytes(range(48))),
         "SimMotorCommand": SimMotorCommand(robot_id="r1", seq=11, stamp_ns=STAMP, v_mps=0.2,
                                            omega_rps=0.0),
-        "SimStepAck": SimStepAck(robot_id="r1", seq=12, stamp_ns=STAMP, step=12),
+        "SimStepAck": SimStepAck(robot_id="r1", seq=12, stamp_ns=STAMP, step=12, v_mps=0.25,
+                                 omega_rps=-0.4),
         "SimGroundTruth": SimGroundTruth(seq=13, stamp_ns=STAMP, poses=[
             TruePose(robot_id="r1", pose=(1.0, 1.0, 0.0), collisions=0, distance_m=3.0)],
             relatives=[TrueRelative(observer_id="r1", observed_id="r2", tag_id=4,
