@@ -1,9 +1,11 @@
 """The simulator backend: the robot's LIDAR, base and camera are messages on ``mrslam/sim/...``.
 
-The simulator publishes, per step, the clock, then this robot's frames, odometry and sweep (see
-``schemas.sim``); all arrive on one Zenoh link in that order. The robot's clock is the latest
-simulation time seen. A sweep the simulator re-sends (its ack was late or lost) is not handed to
-the agent again; the step's ack is re-sent instead.
+The simulator publishes, per step and robot, any camera frames, then the odometry, then the
+sweep (see ``schemas.sim``). One subscriber on ``mrslam/sim/robot/<id>/*`` receives them on one
+thread in that order, so a sweep always finds its odometry and follows its step's frames. The
+robot's clock is the latest simulation time seen. A sweep the simulator re-sends (its ack was
+late or lost) is not handed to the agent again; the step's ack is re-sent instead. Payloads that
+do not decode are counted and logged, never passed on.
 """
 
 from __future__ import annotations
@@ -12,11 +14,21 @@ import logging
 import threading
 from collections import Counter, deque
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from robot_agent.backend import Backend, Frame, Odometry, Sweep
-from schemas import SimClock, SimImage, SimLidar, SimMotorCommand, SimOdometry, SimStepAck, keys
+from schemas import (
+    SchemaError,
+    SimImage,
+    SimLidar,
+    SimMotorCommand,
+    SimOdometry,
+    SimStepAck,
+    decode,
+    keys,
+)
 from schemas.bus import Bus
 
 log = logging.getLogger(__name__)
@@ -40,10 +52,39 @@ class SimBackend:
         self._on_sweep: Callable[[Sweep], None] | None = None
         self._on_frame: Callable[[Frame], None] | None = None
         self.counters: Counter[str] = Counter()
-        bus.subscribe(keys.SIM_CLOCK, SimClock, self._clock)
-        bus.subscribe(keys.sim_odom(robot_id), SimOdometry, self._odometry)
-        bus.subscribe(keys.sim_image(robot_id), SimImage, self._image)
-        bus.subscribe(keys.sim_lidar(robot_id), SimLidar, self._lidar)
+        prefix = keys.sim_lidar(robot_id).rsplit("/", 1)[0]
+        self._handlers: dict[str, tuple[type[Any], Callable[[Any], None]]] = {
+            "odom": (SimOdometry, self._odometry), "image": (SimImage, self._image),
+            "lidar": (SimLidar, self._lidar)}
+        self._sub = bus.session.declare_subscriber(f"{prefix}/*", self._on_sample)
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception as e:  # the session may be gone already
+            log.debug("undeclaring the sim subscriber: %s", e)
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        handler = self._handlers.get(key.rsplit("/", 1)[-1])
+        if handler is None:
+            return  # our own motor commands and acks
+        cls, fn = handler
+        try:
+            msg = decode(sample.payload.to_bytes(), cls)
+        except SchemaError as e:
+            self.counters["rejected"] += 1
+            if self.counters["rejected"] <= 10:
+                log.warning("rejected message on %s: %s", key, e)
+            return
+        if msg.robot_id != self.robot_id:
+            self.counters["foreign_messages"] += 1
+            return
+        try:
+            fn(msg)
+        except Exception:  # never raise into Zenoh's thread
+            self.counters["handler_errors"] += 1
+            log.exception("handling %s failed", key)
 
     # -- interfaces -------------------------------------------------------------------------
     def start(self, on_sweep: Callable[[Sweep], None]) -> None:  # LidarSource
@@ -80,28 +121,22 @@ class SimBackend:
             self._last_ack = msg
         self.bus.publish(keys.sim_ack(self.robot_id), msg, block=True)
 
-    # -- bus callbacks ----------------------------------------------------------------------
-    def _mine(self, robot_id: str) -> bool:
-        if robot_id != self.robot_id:
-            self.counters["foreign_messages"] += 1
-            return False
-        return True
-
-    def _clock(self, key: str, msg: SimClock) -> None:
+    # -- messages, in the order the simulator sent them ---------------------------------------
+    def _odometry(self, msg: SimOdometry) -> None:
         with self._lock:
+            if self._odom and msg.stamp_ns < self._odom[-1].stamp_ns:
+                log.warning("simulation time went back to %d ns: a new simulation", msg.stamp_ns)
+                self._odom.clear()
+                self._last_sweep_seq = self._last_frame_stamp = -1
+                self._last_ack = None
+                self._now_ns = msg.stamp_ns
             self._now_ns = max(self._now_ns, msg.stamp_ns)
-            self._lockstep = msg.lockstep
+            if not self._odom or msg.stamp_ns > self._odom[-1].stamp_ns:
+                self._odom.append(Odometry(msg.stamp_ns, msg.pose, msg.v_mps, msg.omega_rps))
 
-    def _odometry(self, key: str, msg: SimOdometry) -> None:
-        if self._mine(msg.robot_id):
-            with self._lock:
-                if not self._odom or msg.stamp_ns > self._odom[-1].stamp_ns:
-                    self._odom.append(Odometry(msg.stamp_ns, msg.pose, msg.v_mps,
-                                               msg.omega_rps))
-
-    def _image(self, key: str, msg: SimImage) -> None:
-        if not self._mine(msg.robot_id) or msg.stamp_ns <= self._last_frame_stamp:
-            return
+    def _image(self, msg: SimImage) -> None:
+        if msg.stamp_ns == self._last_frame_stamp:
+            return  # re-sent with its step
         if msg.encoding != "mono8":
             self.counters["unsupported_images"] += 1
             return
@@ -111,12 +146,11 @@ class SimBackend:
         if self._on_frame is not None:
             self._on_frame(Frame(msg.stamp_ns, image, K))
 
-    def _lidar(self, key: str, msg: SimLidar) -> None:
-        if not self._mine(msg.robot_id):
-            return
+    def _lidar(self, msg: SimLidar) -> None:
         with self._lock:
             self._now_ns = max(self._now_ns, msg.stamp_ns)
-            repeat = msg.seq <= self._last_sweep_seq
+            self._lockstep = msg.lockstep
+            repeat = msg.seq == self._last_sweep_seq
             if not repeat:
                 self._last_sweep_seq = msg.seq
             last_ack = self._last_ack
@@ -128,7 +162,7 @@ class SimBackend:
         if self._on_sweep is not None:
             self._on_sweep(Sweep(msg.stamp_ns, msg.angle_min_rad, msg.angle_increment_rad,
                                  msg.range_min_mm, msg.range_max_mm, msg.ranges_mm,
-                                 step=msg.seq if self._lockstep else None))
+                                 step=msg.seq if msg.lockstep else None))
 
 
 class _SimCamera:
@@ -143,4 +177,4 @@ def sim_backend(bus: Bus, robot_id: str) -> Backend:
     """The Backend of ``robot_id`` in a running simulator reachable on ``bus``."""
     b = SimBackend(bus, robot_id)
     return Backend(lidar=b, base=b, camera=_SimCamera(b), now_ns=b.now_ns, sync=b,
-                   counters=lambda: dict(b.counters))
+                   close=b.close, counters=lambda: dict(b.counters))

@@ -8,6 +8,9 @@ One simulation step is one LIDAR period. For step ``k`` the simulator publishes,
 ``SimClock`` (``step = k``), then per robot any ``SimImage`` frames, ``SimOdometry`` and
 ``SimLidar`` (both with ``seq = k`` and ``stamp_ns`` = the simulation time of step ``k``), then
 ``SimGroundTruth`` (``seq = k``). All stamps are simulation time [ns] from 0 at step 0.
+Zenoh keeps the order of one session's messages, but a receiver with one subscriber per key
+sees them on different threads; a backend that needs a robot's messages in order subscribes to
+``mrslam/sim/robot/<id>/*`` once.
 In lockstep mode the world moves from step ``k`` to ``k + 1`` only after every robot's agent
 has sent ``SimStepAck(step = k)``, and the motor command carried by that ack (if any) is the
 one applied; ``SimMotorCommand`` drives the robots in real-time mode.
@@ -33,7 +36,13 @@ class SimClock(Message, kw_only=True):
 
 
 class SimLidar(LidarSweep, kw_only=True):
-    """A raw simulated LIDAR sweep, before the agent pairs it with odometry."""
+    """A raw simulated LIDAR sweep, before the agent pairs it with odometry.
+
+    ``seq`` is the simulation step; with ``lockstep`` the simulator waits for a
+    ``SimStepAck(step=seq)`` from this robot's agent before it advances.
+    """
+
+    lockstep: bool = False
 
 
 class SimOdometry(Message, kw_only=True):

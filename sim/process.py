@@ -97,7 +97,8 @@ def step_messages(sim: Simulator, obs: Observation, world_name: str, lockstep: b
             robot_id=rid, seq=obs.step, stamp_ns=obs.stamp_ns, angle_min_rad=lid.angle_min_rad,
             angle_increment_rad=lid.angle_increment_rad,
             range_min_mm=round(lid.range_min_m * 1000), range_max_mm=round(lid.range_max_m * 1000),
-            ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lid.range_min_m, lid.range_max_m))))
+            ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lid.range_min_m, lid.range_max_m),
+            lockstep=lockstep)))
     truth = SimGroundTruth(seq=obs.step, stamp_ns=obs.stamp_ns, world=world_name, poses=[
         TruePose(robot_id=r.robot_id, pose=r.pose, collisions=r.collisions,
                  distance_m=r.distance_m) for r in obs.truth.values()], relatives=relatives)

@@ -71,7 +71,7 @@ def all_examples() -> dict[str, Message]:
         "SimLidar": SimLidar(robot_id="r1", seq=8, stamp_ns=STAMP,
                              angle_min_rad=lidar.angle_min_rad,
                              angle_increment_rad=lidar.angle_increment_rad, range_min_mm=50,
-                             range_max_mm=10000, ranges_mm=lidar.ranges_mm),
+                             range_max_mm=10000, ranges_mm=lidar.ranges_mm, lockstep=True),
         "SimOdometry": SimOdometry(robot_id="r1", seq=9, stamp_ns=STAMP, pose=(0.1, 0.2, 0.3),
                                    v_mps=0.3, omega_rps=0.1),
         "SimImage": SimImage(robot_id="r1", seq=10, stamp_ns=STAMP, width=8, height=6, fx=500.0,

@@ -1,0 +1,152 @@
+"""End to end on loopback: router + simulator + agent sessions, the test playing the server."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+from robot_agent import runtime
+from schemas import RobotStatus, Scan, SimGroundTruth, VelocityCommand, keys
+from schemas.bus import Bus
+from sim import process
+from tests.conftest import DATA
+
+SMALL = DATA / "worlds" / "thesis" / "house_small.world"
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+@contextlib.contextmanager
+def running(endpoint: str, robots: dict[str, tuple[float, float, float]],
+            sim_overrides: dict[str, Any] | None = None,
+            agent_overrides: dict[str, Any] | None = None) -> Iterator[dict[str, Any]]:
+    """The simulator and one agent per robot, each with its own client session, in threads.
+    Yields a dict that holds their summaries once the block has exited."""
+    stop = threading.Event()
+    results: dict[str, Any] = {}
+    bus = {"connect": [endpoint]}
+
+    def guarded(name: str, fn: Callable[[], Any]) -> None:
+        try:
+            results[name] = fn()
+        except Exception as e:  # surfaced by the assertions below
+            results[name] = e
+            stop.set()
+
+    threads = [threading.Thread(target=guarded, args=("sim", lambda: process.run(
+        None, {"world": str(SMALL), "robots": robots, "bus": bus, **(sim_overrides or {})},
+        stop)))]
+    for rid in robots:
+        threads.append(threading.Thread(target=guarded, args=(rid, lambda rid=rid: runtime.run(
+            None, {"robot_id": rid, "bus": bus, **(agent_overrides or {})}, stop))))
+    for t in threads:
+        t.start()
+    try:
+        yield results
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=20)
+    for name, r in results.items():
+        assert not isinstance(r, Exception), f"{name} failed: {r!r}"
+
+
+class Truth:
+    """Latest ground truth from the bus."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.latest: SimGroundTruth | None = None
+        bus.subscribe(keys.SIM_TRUTH, SimGroundTruth, self._on)
+
+    def _on(self, key: str, msg: SimGroundTruth) -> None:
+        self.latest = msg
+
+    def pose(self, rid: str) -> tuple[float, float, float]:
+        assert self.latest is not None
+        return next(p.pose for p in self.latest.poses if p.robot_id == rid)
+
+
+def test_scans_flow_commands_move_the_robot_and_it_stops_when_they_stop(
+        router: Bus, endpoint: str) -> None:
+    scans: list[Scan] = []
+    statuses: list[RobotStatus] = []
+    alive: set[str] = set()
+    truth = Truth(router)
+    router.subscribe(keys.robot_scan("r1"), Scan, lambda k, m: scans.append(m))
+    router.subscribe(keys.robot_status("r1"), RobotStatus, lambda k, m: statuses.append(m))
+    router.watch_alive(keys.ALL_ALIVE, lambda k, a: alive.add(k) if a else alive.discard(k))
+    with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0},
+                 {"status_period_s": 0.2}) as results:
+        assert wait_for(lambda: len(scans) >= 5 and truth.latest is not None)
+        s = scans[-1]
+        assert s.robot_id == "r1" and s.n_beams == 400 and s.odom_pose == (-8.0, 9.0, 0.0)
+        assert keys.robot_alive("r1") in alive
+        start = truth.pose("r1")
+        # garbage and a command for another robot on r1's key are counted, not obeyed
+        router.session.put(keys.robot_cmd_vel("r1"), b"\x92garbage")
+        router.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+            robot_id="r7", v_mps=0.3, omega_rps=0.0))
+        for _ in range(12):  # 1.2 s of wall time = 2.4 s simulated, ttl 0.5 s simulated
+            router.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+                robot_id="r1", v_mps=0.3, omega_rps=0.0, ttl_s=0.5))
+            time.sleep(0.1)
+        assert truth.pose("r1")[0] > start[0] + 0.3
+        time.sleep(1.0)                          # the watchdog stops the robot ...
+        p1 = truth.pose("r1")
+        time.sleep(0.5)
+        assert truth.pose("r1") == p1            # ... and it stays stopped
+        assert any(m.state == "ok" and m.scans_sent > 0 for m in statuses)
+        assert statuses[-1].errors >= 2 and statuses[-1].commands_received >= 12
+    agent = results["r1"]
+    assert agent["watchdog_timeouts"] >= 1 and agent["foreign_commands"] == 1
+    assert agent["bus"]["rejected"] == {"VelocityCommand": 1}
+    assert results["sim"]["robots"]["r1"]["collisions"] == 0
+
+
+def test_the_robot_stops_when_the_server_disappears(router: Bus, endpoint: str) -> None:
+    truth = Truth(router)
+    with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0}) as results:
+        server = Bus.open("client", connect=[endpoint])
+        try:
+            server.declare_alive(keys.SERVER_ALIVE)
+            assert wait_for(lambda: truth.latest is not None)
+            start = truth.pose("r1")
+            server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+                robot_id="r1", v_mps=0.2, omega_rps=0.0, ttl_s=10.0), block=True)
+            assert wait_for(lambda: truth.pose("r1")[0] > start[0] + 0.1)
+        finally:
+            server.close()                       # liveliness gone, command still valid
+        time.sleep(0.5)
+        p1 = truth.pose("r1")
+        time.sleep(0.5)
+        assert truth.pose("r1") == p1 and p1[0] < start[0] + 1.0
+    assert results["r1"]["server_losses"] == 1 and results["r1"]["watchdog_timeouts"] == 0
+
+
+def test_agent_config_file_and_bad_config(tmp_path: Path) -> None:
+    from mrslam.config import ConfigError, load_config
+    from robot_agent.config import AgentConfig
+
+    f = tmp_path / "agent.yaml"
+    f.write_text("robot_id: r4\nbus:\n  connect: [tcp/127.0.0.1:7999]\nlockstep:\n"
+                 "  command_timeout_s: 2\n")
+    cfg = load_config(AgentConfig, f, environ={})
+    assert cfg.robot_id == "r4" and cfg.lockstep.command_timeout_s == 2.0
+    f.write_text("robot_id: 'r/1'\n")
+    try:
+        load_config(AgentConfig, f, environ={})
+    except ConfigError as e:
+        assert "robot_id" in str(e)
+    else:
+        raise AssertionError("a robot id with '/' must be rejected")
