@@ -32,6 +32,12 @@ class MatcherConfig(_Model):
     min_inlier_fraction: float = Field(0.35, ge=0, le=1)
     degenerate_eigen_ratio: float = Field(0.02, gt=0,
                                           description="λmin/λmax of the translation information")
+    point_sigma_m: float = Field(0.03, gt=0, description="point-to-line noise, weighs the prior")
+    use_odometry_prior: bool = True
+    prior_sigma_m: float = Field(0.02, gt=0, description="odometry prediction, per scan")
+    prior_sigma_per_m: float = Field(0.1, ge=0)
+    prior_sigma_deg: float = Field(1.0, gt=0)
+    prior_sigma_per_rad: float = Field(0.1, ge=0)
     fallback_window_m: float = Field(1.0, gt=0)
     fallback_window_deg: float = Field(90.0, gt=0)
     odometry_jump_m: float = Field(0.5, gt=0, description="larger step per scan: distrust odometry")
@@ -46,7 +52,7 @@ class KeyframeConfig(_Model):
 
 class LocalMapConfig(_Model):
     keyframes: int = Field(40, ge=1, description="recent keyframes matched against")
-    max_points: int = Field(20000, ge=100)
+    voxel_m: float = Field(0.05, ge=0, description="points and normals averaged per cell")
 
 
 class GraphConfig(_Model):

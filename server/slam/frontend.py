@@ -48,7 +48,8 @@ def icp_params(cfg: MatcherConfig) -> IcpParams:
                      max_correspondence_m=cfg.max_correspondence_m,
                      min_correspondence_m=cfg.min_correspondence_m, kernel_m=cfg.kernel_m,
                      min_normal_cos=cfg.min_normal_cos,
-                     degenerate_eigen_ratio=cfg.degenerate_eigen_ratio)
+                     degenerate_eigen_ratio=cfg.degenerate_eigen_ratio,
+                     point_sigma_m=cfg.point_sigma_m)
 
 
 def odometry_step_suspicious(step: F64, cfg: MatcherConfig) -> bool:
@@ -66,20 +67,32 @@ def along_odometry(res: MatchResult, T_pred: F64) -> F64:
     return T
 
 
+def odometry_prior(step: F64, cfg: MatcherConfig) -> F64:
+    """Information (3×3) of the odometry prediction of one scan step: σ grows with the step."""
+    d, a = pose_distance(step)
+    s_xy = cfg.prior_sigma_m + cfg.prior_sigma_per_m * d
+    s_th = math.radians(cfg.prior_sigma_deg) + cfg.prior_sigma_per_rad * a
+    return np.diag([s_xy ** -2, s_xy ** -2, s_th ** -2])
+
+
 def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
                T_step_velocity: F64, odometry_suspicious: bool, cfg: MatcherConfig,
-               params: IcpParams) -> FrontendMatch:
-    """Pose of ``scan`` in the frame of ``target``; see the module docstring."""
+               params: IcpParams, prior_info: F64 | None = None) -> FrontendMatch:
+    """Pose of ``scan`` in the frame of ``target``; see the module docstring. ``prior_info``
+    weighs the odometry prediction in the match (ignored when the odometry step is
+    suspicious)."""
     pts = scan.points
     nrm = scan.normals
     if len(pts) < cfg.min_points:
         return FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0)
     guesses = [T_pred]
+    prior: F64 | None = prior_info
     if odometry_suspicious:
         guesses += [compose(T_last, T_step_velocity), T_last]
+        prior = None
     best: MatchResult | None = None
     for g in guesses:
-        res = icp(pts, nrm, target, g, params)
+        res = icp(pts, nrm, target, g, params, prior)
         if best is None or res.inlier_fraction > best.inlier_fraction:
             best = res
     assert best is not None

@@ -9,13 +9,12 @@ Cauchy weights w_i = 1 / (1 + (r_i / c)²).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
-
-from server.slam.geometry import wrap_angle
 
 F64 = NDArray[np.float64]
 
@@ -29,6 +28,9 @@ class IcpParams:
     min_normal_cos: float = 0.6
     inlier_m: float = 0.1
     degenerate_eigen_ratio: float = 0.02
+    converged_m: float = 5e-4
+    point_sigma_m: float = 0.03
+    converged_rad: float = 5e-4
 
 
 class PointMap:
@@ -65,13 +67,6 @@ class MatchResult:
         return self.degenerate_dir is not None
 
 
-def _apply(T: F64, pts: F64) -> tuple[F64, F64]:
-    c, s = np.cos(T[2]), np.sin(T[2])
-    rx = c * pts[:, 0] - s * pts[:, 1]
-    ry = s * pts[:, 0] + c * pts[:, 1]
-    return rx, ry
-
-
 def translation_degeneracy(information: F64, ratio: float) -> F64 | None:
     """Unit direction of weakest translation information if λ_min/λ_max < ``ratio``, else None.
 
@@ -86,59 +81,114 @@ def translation_degeneracy(information: F64, ratio: float) -> F64 | None:
     return None
 
 
-def icp(scan_points: F64, scan_normals: F64, target: PointMap, T_init: F64,
-        p: IcpParams) -> MatchResult:
-    """Align ``scan_points`` (sensor frame) to ``target`` starting from ``T_init``."""
-    T = np.array(T_init, dtype=np.float64)
+def _solve3(H: F64, g: F64) -> tuple[float, float, float] | None:
+    """Solve the 3×3 system H δ = g (symmetric positive semi-definite) by Cramer's rule."""
+    a, b, c = float(H[0, 0]), float(H[0, 1]), float(H[0, 2])
+    e, f, i = float(H[1, 1]), float(H[1, 2]), float(H[2, 2])
+    damp = 1e-9 * (a + e + i) + 1e-12  # keeps unobservable directions at the guess
+    a, e, i = a + damp, e + damp, i + damp
+    A, B, C = e * i - f * f, c * f - b * i, b * f - c * e
+    det = a * A + b * B + c * C
+    if not det > 0.0:
+        return None
+    g0, g1, g2 = float(g[0]), float(g[1]), float(g[2])
+    E, F, I_ = a * i - c * c, b * c - a * f, a * e - b * b
+    return ((A * g0 + B * g1 + C * g2) / det, (B * g0 + E * g1 + F * g2) / det,
+            (C * g0 + F * g1 + I_ * g2) / det)
+
+
+def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F64,
+        p: IcpParams, prior_info: F64 | None = None) -> MatchResult:
+    """Align ``scan_points`` (sensor frame) to ``target`` starting from ``T_init``.
+
+    Correspondences are searched within a radius shrinking from ``max_correspondence_m`` to
+    ``min_correspondence_m``; a scan point whose own normal (where known) disagrees with the
+    map normal by more than acos(``min_normal_cos``) is not paired.
+
+    With ``prior_info`` Λ (3×3), the pose minimises Σ w_i r_i² / σ_p² + (x − x₀)ᵀ Λ (x − x₀)
+    with x₀ = ``T_init`` and σ_p = ``point_sigma_m``: directions the scan does not constrain
+    (a corridor's axis) stay with the prediction instead of drifting.
+    """
+    prior_T = np.asarray(T_init, dtype=np.float64)
+    inv_var = 1.0 / p.point_sigma_m ** 2
+    tx, ty, th = (float(v) for v in T_init)
     pts = scan_points
     n_pts = len(pts)
-    use_normals = scan_normals is not None and np.isfinite(scan_normals).all()
+    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
+    have_n = scan_normals is not None
+    if scan_normals is not None:
+        snx = np.nan_to_num(scan_normals[:, 0], nan=0.0)
+        sny = np.nan_to_num(scan_normals[:, 1], nan=0.0)
+        no_normal = ~np.isfinite(scan_normals[:, 0])
+    mp, mn = target.points, target.normals
+    last = len(target) - 1
+    q = np.empty((n_pts, 2))
     H = np.zeros((3, 3))
     converged = False
     it = 0
     r = np.zeros(0)
     w = np.zeros(0)
+    d_max = p.max_correspondence_m
+    prev = (0.0, 0.0, 0.0)
     for it in range(1, p.max_iterations + 1):
-        d_max = max(p.min_correspondence_m, p.max_correspondence_m * 0.6 ** (it - 1))
-        rx, ry = _apply(T, pts)
-        qx, qy = rx + T[0], ry + T[1]
-        dist, idx = target.tree.query(np.column_stack([qx, qy]), k=1, distance_upper_bound=d_max)
-        ok = np.isfinite(dist)
-        if use_normals:
-            n_scan = _apply(np.array([0.0, 0.0, T[2]]), scan_normals)
-            idx_c = np.minimum(idx, len(target) - 1)
-            cosang = n_scan[0] * target.normals[idx_c, 0] + n_scan[1] * target.normals[idx_c, 1]
-            ok &= cosang >= p.min_normal_cos
-        if ok.sum() < 6:
+        c, s = math.cos(th), math.sin(th)
+        rx = c * px - s * py
+        ry = s * px + c * py
+        q[:, 0] = rx + tx
+        q[:, 1] = ry + ty
+        dist, idx = target.tree.query(q, k=1, distance_upper_bound=d_max)
+        ok = dist < d_max
+        idx = np.minimum(idx, last)
+        nx, ny = mn[idx, 0], mn[idx, 1]
+        if have_n:
+            cosang = (c * snx - s * sny) * nx + (s * snx + c * sny) * ny
+            ok &= (cosang >= p.min_normal_cos) | no_normal
+        if np.count_nonzero(ok) < 6:
             break
+        nx, ny = nx[ok], ny[ok]
         i = idx[ok]
-        nx, ny = target.normals[i, 0], target.normals[i, 1]
-        ex, ey = qx[ok] - target.points[i, 0], qy[ok] - target.points[i, 1]
-        r = nx * ex + ny * ey
-        jt = -nx * ry[ok] + ny * rx[ok]  # n · (R(θ+π/2) p)
-        w = 1.0 / (1.0 + (r / p.kernel_m) ** 2)
-        J = np.stack([nx, ny, jt], axis=1)
-        Jw = J * w[:, None]
-        H = Jw.T @ J
-        g = Jw.T @ r
-        damp = 1e-9 * np.trace(H) + 1e-12
-        try:
-            delta = -np.linalg.solve(H + damp * np.eye(3), g)
-        except np.linalg.LinAlgError:
+        r = nx * (q[ok, 0] - mp[i, 0]) + ny * (q[ok, 1] - mp[i, 1])
+        jt = ny * rx[ok] - nx * ry[ok]  # n · (R(θ + π/2) p)
+        w = 1.0 / (1.0 + (r * (1.0 / p.kernel_m)) ** 2)
+        J = np.stack([nx, ny, jt])
+        Jw = J * w
+        H = Jw @ J.T
+        g = Jw @ r
+        if prior_info is not None:
+            # MAP step: (H/σ² + Λ) δ = g/σ² + Λ (x − x_prior)
+            e = np.array([tx - prior_T[0], ty - prior_T[1],
+                          math.remainder(th - prior_T[2], 2.0 * math.pi)])
+            delta = _solve3(H * inv_var + prior_info, g * inv_var + prior_info @ e)
+        else:
+            delta = _solve3(H, g)
+        if delta is None:
             break
-        T[0] += delta[0]
-        T[1] += delta[1]
-        T[2] = float(wrap_angle(T[2] + delta[2]))
-        if abs(delta[0]) + abs(delta[1]) < 1e-5 and abs(delta[2]) < 1e-5 and \
-                d_max <= p.min_correspondence_m:
-            converged = True
-            break
+        tx -= delta[0]
+        ty -= delta[1]
+        th = math.remainder(th - delta[2], 2.0 * math.pi)
+        if d_max <= p.min_correspondence_m:
+            tol_m, tol_rad = p.converged_m, p.converged_rad
+            small = abs(delta[0]) + abs(delta[1]) < tol_m and abs(delta[2]) < tol_rad
+            # correspondences flipping between two sets make the steps alternate: stop midway
+            flip = (abs(delta[0] + prev[0]) + abs(delta[1] + prev[1]) < 0.2 * tol_m
+                    and abs(delta[2] + prev[2]) < 0.2 * tol_rad)
+            if flip:
+                tx += 0.5 * delta[0]
+                ty += 0.5 * delta[1]
+                th = math.remainder(th + 0.5 * delta[2], 2.0 * math.pi)
+            if small or flip:
+                converged = True
+                break
+        prev = delta
+        d_max = max(p.min_correspondence_m, 0.5 * d_max)
+    T = np.array([tx, ty, th])
     if len(r) == 0:
         return MatchResult(T, np.zeros((3, 3)), float("inf"), 0.0, it, False, None)
-    dof = max(float(w.sum()) - 3.0, 1.0)
-    sigma2 = max(float((w * r * r).sum()) / dof, 1e-6)
+    wr2 = float(w @ (r * r))
+    sw = float(w.sum())
+    sigma2 = max(wr2 / max(sw - 3.0, 1.0), 1e-6)
     info = H / sigma2
-    inliers = int((np.abs(r) < p.inlier_m).sum())
-    rms = float(np.sqrt((w * r * r).sum() / max(w.sum(), 1e-9)))
+    inliers = int(np.count_nonzero(np.abs(r) < p.inlier_m))
+    rms = math.sqrt(wr2 / max(sw, 1e-9))
     degenerate = translation_degeneracy(H, p.degenerate_eigen_ratio)
     return MatchResult(T, info, rms, inliers / max(n_pts, 1), it, converged, degenerate)

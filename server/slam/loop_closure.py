@@ -125,7 +125,7 @@ class LoopCloser:
         if f is None:
             sm = self.submaps[sm_index]
             f = LikelihoodField(sm.points, self.cfg.resolution_m, sigma_m=self.cfg.resolution_m,
-                                margin_m=self.cfg.radius_max_m, levels=7)
+                                margin_m=4 * self.cfg.resolution_m, levels=7)
             self._fields[sm_index] = f
             if len(self._fields) > FIELD_CACHE:
                 self._fields.popitem(last=False)

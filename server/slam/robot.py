@@ -26,6 +26,7 @@ from server.slam.frontend import (
     MatchKind,
     icp_params,
     match_scan,
+    odometry_prior,
     odometry_step_suspicious,
 )
 from server.slam.geometry import between, compose, pose_distance
@@ -142,7 +143,7 @@ class RobotSlam:
         g = self.cfg.graph
         prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
         start_trajectory(self.graph, self.trajectory, self._T_map_start, prior)
-        self.keyframes.append(Keyframe(0, stamp_ns, scan, odom))
+        self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom))
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         self._T_kf_map_cache = self._T_map_start.copy()
         self._scan_poses.append(ScanPose(stamp_ns, 0, IDENTITY.copy()))
@@ -152,9 +153,10 @@ class RobotSlam:
 
     def _match(self, scan: ScanPoints, T_pred: F64, T_last: F64, step: F64) -> FrontendMatch:
         assert self._local_map is not None
+        mc = self.cfg.matcher
+        prior = odometry_prior(step, mc) if mc.use_odometry_prior else None
         m = match_scan(scan, self._local_map, T_pred, T_last, self._velocity,
-                       odometry_step_suspicious(step, self.cfg.matcher), self.cfg.matcher,
-                       self._icp)
+                       odometry_step_suspicious(step, mc), mc, self._icp, prior)
         self.stats.matches[m.kind.value] += 1
         return m
 
@@ -189,7 +191,7 @@ class RobotSlam:
                                    self._relative_information(match, T_rel), scale, floor)
         kind = "odometry" if match.kind == MatchKind.ODOMETRY else "match"
         extend_trajectory(self.graph, tr, factor, kind, match.T_map_robot)
-        self.keyframes.append(Keyframe(k, stamp_ns, scan, odom))
+        self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom))
         self.stats.keyframes = len(self.keyframes)
         self._loops.add_edge(k - 1, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
         self._T_kf_robot = IDENTITY.copy()
@@ -230,7 +232,7 @@ class RobotSlam:
         kfs = self.keyframes[-n:]
         keys = [self.trajectory.key(kf.index) for kf in kfs]
         self._local_map = local_point_map(kfs, self.graph.poses(keys),
-                                          self.cfg.local_map.max_points)
+                                          self.cfg.local_map.voxel_m)
 
     # -- accessors -----------------------------------------------------------------------
     @property
