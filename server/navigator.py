@@ -1,0 +1,145 @@
+"""Where one robot goes and how: exploration target, path, pure pursuit, VFH, recovery.
+
+``Navigator.step`` is called once per scan with the robot's SLAM pose and returns the velocity
+command. It decides a new target when it has none, when the last one was reached, when a
+replanning period has passed (the map has grown since), or after a recovery manoeuvre.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from server.control import (
+    STOP,
+    PurePursuit,
+    PursuitParams,
+    Recovery,
+    StuckDetector,
+    Twist,
+    Vfh,
+    VfhParams,
+)
+from server.exploration import Decision, Explorer, Finished, VisitedTargets
+from server.planning import OccupancyGrid, PlanningError
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+WAITING, EXPLORING, RECOVERING, DONE = "waiting", "exploring", "stuck", "done"
+
+
+@dataclass
+class NavStats:
+    decisions: int = 0
+    decision_failures: int = 0
+    targets_reached: int = 0
+    recoveries: int = 0
+    decision_ms: list[float] = field(default_factory=list)
+
+
+class Navigator:
+    """Target selection and motion control of one robot (no I/O)."""
+
+    def __init__(self, explorer: Explorer, pursuit: PursuitParams, vfh: VfhParams | None,
+                 stuck: StuckDetector, replan_period_s: float) -> None:
+        self.explorer = explorer
+        self.pursuit = PurePursuit(pursuit)
+        self.vfh = Vfh(vfh) if vfh is not None else None
+        self.stuck = stuck
+        self.recovery = Recovery()
+        self.replan_period_s = replan_period_s
+        self.mode = WAITING
+        self.target_xy: tuple[float, float] | None = None
+        self.path_xy: F64 | None = None
+        self.finished_reason = ""
+        self.stats = NavStats()
+        self._last_decision_s = -np.inf
+
+    def step(self, now_s: float, pose: F64, start_pose: F64, points_robot_xy: F64,
+             grid: Callable[[], OccupancyGrid], visited: VisitedTargets,
+             others_robot_xy: F64 | None = None, reserved_xy: F64 | None = None) -> Twist:
+        """The command for this scan. ``grid`` is called only when a decision is due."""
+        if self.mode == DONE:
+            return STOP
+        if self.recovery.active:
+            twist = self.recovery.command(now_s)
+            if twist is not None:
+                return twist
+            self.stuck.reset()
+            self._last_decision_s = -np.inf  # decide afresh after the manoeuvre
+        if self.path_xy is not None and self.stuck.update(now_s, pose):
+            log.info("stuck near %s; recovering and dropping the target", pose[:2].round(2))
+            self._give_up_target(visited)
+            self.stats.recoveries += 1
+            self.recovery.start(now_s, points_robot_xy)
+            self.mode = RECOVERING
+            return self.recovery.command(now_s) or STOP
+        if self.path_xy is None or now_s - self._last_decision_s >= self.replan_period_s:
+            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
+            if self.mode == DONE or self.path_xy is None:
+                return STOP
+        assert self.path_xy is not None
+        follow = self.pursuit.step(pose, self.path_xy)
+        if follow.reached:
+            self.stats.targets_reached += 1
+            if self.target_xy is not None:
+                visited.add(self.target_xy)
+            self.path_xy, self.target_xy = None, None
+            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
+            if self.path_xy is None:
+                return STOP
+            follow = self.pursuit.step(pose, self.path_xy)
+        twist = follow.twist
+        if self.vfh is not None:
+            others = others_robot_xy if others_robot_xy is not None else np.zeros((0, 2))
+            twist = self.vfh.adjust(twist, follow.heading_error_rad, points_robot_xy, others)
+        return twist
+
+    def _decide(self, now_s: float, pose: F64, start_pose: F64, grid: OccupancyGrid,
+                visited: VisitedTargets, reserved_xy: F64 | None) -> None:
+        import time
+
+        self._last_decision_s = now_s
+        t0 = time.perf_counter()
+        try:
+            outcome = self.explorer.decide(grid, pose, start_pose, visited,
+                                           reserved_xy=() if reserved_xy is None else reserved_xy)
+        except PlanningError as e:
+            # e.g. the robot stands inside the inflated zone of a wall: back off, retry
+            log.info("no decision from %s: %s", pose[:2].round(2), e)
+            self.stats.decision_failures += 1
+            self.path_xy = None
+            self.recovery.start(now_s, np.zeros((0, 2)))
+            self.mode = RECOVERING
+            return
+        finally:
+            self.stats.decision_ms.append((time.perf_counter() - t0) * 1e3)
+        self.stats.decisions += 1
+        if isinstance(outcome, Finished):
+            self.mode, self.finished_reason = DONE, outcome.reason
+            self.path_xy = self.target_xy = None
+            log.info("exploration finished: %s", outcome.reason)
+            return
+        assert isinstance(outcome, Decision)
+        if outcome.target_xy != self.target_xy:
+            self.pursuit.reset()
+            self.stuck.reset()
+        self.mode = EXPLORING
+        self.target_xy = outcome.target_xy
+        self.path_xy = outcome.path.xy_m
+
+    def _give_up_target(self, visited: VisitedTargets) -> None:
+        if self.target_xy is not None:
+            visited.add(self.target_xy)  # do not pick the same unreachable target again
+        self.path_xy, self.target_xy = None, None
+        self.pursuit.reset()
+
+    def finish(self, reason: str) -> None:
+        self.mode, self.finished_reason = DONE, reason
+        self.path_xy = self.target_xy = None

@@ -1,0 +1,81 @@
+"""What a server run leaves behind: team maps (nav2 + PLY), trajectories and a summary."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from server.core import ServerCore
+from server.planning import OccupancyGrid as PlanningGrid
+from server.slam.export import FREE_PIXEL, OCCUPIED_PIXEL, UNKNOWN_PIXEL, write_ply, write_png_gray
+
+
+def write_nav2_grid(grid: PlanningGrid, out_dir: Path, name: str = "map") -> Path:
+    """nav2 map_server files (trinary PNG, +y up, and YAML) of an int8 nav2 grid."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    d = grid.data
+    img = np.full(d.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    img[(d >= 0) & (d < 40)] = FREE_PIXEL
+    img[d > 70] = OCCUPIED_PIXEL
+    write_png_gray(out_dir / f"{name}.png", img[::-1])
+    meta = {"image": f"{name}.png", "mode": "trinary", "resolution": grid.resolution_m,
+            "origin": [grid.origin_xy[0], grid.origin_xy[1], 0.0], "negate": 0,
+            "occupied_thresh": 0.65, "free_thresh": 0.25}
+    path = out_dir / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(meta, sort_keys=False))
+    return path
+
+
+def write_trajectory(path: Path, stamps_ns: Any, poses: Any) -> None:
+    rows = np.column_stack([np.asarray(stamps_ns, np.int64).astype(object),
+                            np.asarray(poses, np.float64).reshape(-1, 3)])
+    with path.open("w") as f:
+        f.write("stamp_ns,x_m,y_m,theta_rad\n")
+        for s, x, y, t in rows:
+            f.write(f"{int(s)},{x:.5f},{y:.5f},{t:.6f}\n")
+
+
+def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None = None) -> Path:
+    """Write everything under ``out_dir``; returns the summary's path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "trajectories").mkdir(exist_ok=True)
+    for team in core.teams.values():
+        tdir = out_dir / "maps" / team.team_id
+        write_nav2_grid(core.planning_grid(team.team_id), tdir)
+        pts = np.concatenate([core.robots[r].slam.point_cloud() for r in team.robot_ids])
+        write_ply(tdir / "points.ply", pts)
+    robots: dict[str, Any] = {}
+    for rid, r in core.robots.items():
+        online = np.array(r.online, dtype=np.float64).reshape(-1, 4)
+        write_trajectory(out_dir / "trajectories" / f"{rid}_online.csv",
+                         [s for s, *_ in r.online], online[:, 1:])
+        stamps, poses = r.slam.scan_poses()
+        write_trajectory(out_dir / "trajectories" / f"{rid}_final.csv", stamps, poses)
+        ms = r.nav.stats.decision_ms
+        robots[rid] = {
+            "team_id": r.team_id, "scans": r.scans, "keyframes": len(r.slam.keyframes),
+            "loop_closures": r.slam.stats.loop_closures, "distance_m": r.distance_m,
+            "mode": r.nav.mode, "finished_reason": r.nav.finished_reason,
+            "decisions": r.nav.stats.decisions, "targets_reached": r.nav.stats.targets_reached,
+            "recoveries": r.nav.stats.recoveries,
+            "decision_ms_median": float(np.median(ms)) if ms else None,
+            "matches": dict(r.slam.stats.matches),
+        }
+    summary = {
+        "robots": robots,
+        "teams": {t.team_id: {"robot_ids": t.robot_ids, "coverage": t.coverage,
+                              "explored_m2": t.explored_m2, "finished": t.finished,
+                              "finished_stamp_ns": t.finished_stamp_ns,
+                              "coverage_history": t.history}
+                  for t in core.teams.values()},
+        "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": e.robot_ids,
+                    "team_id": e.team_id, "message": e.message} for e in core.event_log],
+        **(extra or {}),
+    }
+    path = out_dir / "summary.json"
+    path.write_text(json.dumps(summary, indent=2))
+    return path
