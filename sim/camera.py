@@ -80,14 +80,26 @@ def visible_tags(observer: str, poses: dict[str, tuple[float, float, float]],
     T_world_cam = planar_transform(poses[observer]) @ mount.T_robot_camera()
     T_cam_world = inverse(T_world_cam)
     cam_xy = (float(T_world_cam[0, 3]), float(T_world_cam[1, 3]))
+    axis = math.atan2(T_world_cam[1, 2], T_world_cam[0, 2])   # optical axis in the plane
+    half_fov = math.atan2(camera.width / 2, camera.fx)
+    frames = _tag_frames(layout)
+    reach = layout.mast_half_width_m + layout.plate_size_m
     plate = np.hstack([layout.plate_corners_tag(), np.ones((4, 1))])
     views = []
     for rid, pose in poses.items():
         if rid == observer:
             continue
+        # cheap tests on the robot's centre first: in range, and inside the field of view
+        d = math.hypot(pose[0] - cam_xy[0], pose[1] - cam_xy[1])
+        if d > max_range_m + reach:
+            continue
+        off = abs(math.remainder(math.atan2(pose[1] - cam_xy[1], pose[0] - cam_xy[0]) - axis,
+                                 2 * math.pi))
+        if d > reach and off > half_fov + math.asin(min(1.0, reach / d)):
+            continue
         T_world_robot = planar_transform(pose)
         for side in SIDES:
-            T_world_tag = T_world_robot @ layout.T_robot_tag(side)
+            T_world_tag = T_world_robot @ frames[side]
             centre = T_world_tag[:3, 3]
             to_cam = np.array([cam_xy[0], cam_xy[1], T_world_cam[2, 3]]) - centre
             dist = float(np.linalg.norm(to_cam))
@@ -112,6 +124,18 @@ def visible_tags(observer: str, poses: dict[str, tuple[float, float, float]],
             views.append(TagView(observer, rid, side, layout.tag_id(rid, side), px, T_cam_tag,
                                  dist))
     return sorted(views, key=lambda v: v.distance_m)
+
+
+_FRAMES: dict[tuple[float, float], dict[Side, np.ndarray]] = {}
+
+
+def _tag_frames(layout: TagLayout) -> dict[Side, np.ndarray]:
+    """``T_robot_tag`` of every side, computed once per mounting."""
+    key = (layout.mast_half_width_m, layout.centre_height_m)
+    frames = _FRAMES.get(key)
+    if frames is None:
+        frames = _FRAMES[key] = {side: layout.T_robot_tag(side) for side in SIDES}
+    return frames
 
 
 class TagRenderer:

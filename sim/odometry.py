@@ -21,6 +21,7 @@ mid-heading):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,14 @@ class OdometryNoise:
         var_th = self.alpha1 * np.abs(dth) + self.alpha2 * np.abs(ds)
         return ((1.0 + bias[0]) * ds + np.sqrt(var_s) * n[0],
                 (1.0 + bias[1]) * dth + np.sqrt(var_th) * n[1])
+
+    def increment(self, ds_m: float, dtheta_rad: float, bias: tuple[float, float],
+                  z: np.ndarray) -> tuple[float, float]:
+        """``measure`` for one step with the two standard normals ``z`` drawn beforehand."""
+        var_s = self.alpha3 * abs(ds_m) + self.alpha4 * abs(dtheta_rad)
+        var_th = self.alpha1 * abs(dtheta_rad) + self.alpha2 * abs(ds_m)
+        return ((1.0 + bias[0]) * ds_m + math.sqrt(var_s) * float(z[0]),
+                (1.0 + bias[1]) * dtheta_rad + math.sqrt(var_th) * float(z[1]))
 
     def covariance(self, ds_m: float, dtheta_rad: float) -> np.ndarray:
         """2x2 covariance of (n_s, n_θ) for one step."""

@@ -118,6 +118,7 @@ class SimNode:
         self.acked: dict[str, int] = dict.fromkeys(sim.robots, -1)
         self.ack_cmd: dict[str, tuple[float, float]] = {}
         self.alive: set[str] = set()
+        self.started: float | None = None   # monotonic time of the first step
         self.counters = {"ack_timeouts": 0, "resends": 0, "images": 0, "foreign_messages": 0,
                          "late_steps": 0}
         bus.subscribe(keys.SIM_ALL_MOTOR, SimMotorCommand, self._on_motor)
@@ -167,7 +168,7 @@ class SimNode:
         if cfg.lockstep:
             self._wait_for_agents(stop)
         period_s = sim.p.step_ns / 1e9 / cfg.real_time_factor
-        t0 = time.monotonic()
+        t0 = self.started = time.monotonic()
         k0 = sim.step
         while not stop.is_set() and not self._finished():
             obs = sim.sense()
@@ -247,9 +248,11 @@ class SimNode:
     def summary(self, wall_s: float) -> dict[str, Any]:
         sim = self.sim
         sim_s = sim.stamp_ns / 1e9
+        stepping = time.monotonic() - self.started if self.started is not None else 0.0
         return {
             "world": self.world_name, "steps": sim.step, "sim_time_s": sim_s, "wall_s": wall_s,
-            "real_time_factor": sim_s / wall_s if wall_s > 0 else None,
+            "stepping_wall_s": stepping,
+            "real_time_factor": sim_s / stepping if stepping > 0 else None,
             "lockstep": self.cfg.lockstep, "seed": self.cfg.seed,
             "robots": {rid: {"pose": list(r.pose), "collisions": r.collisions,
                              "distance_m": r.distance_m, "images": r.image_seq}

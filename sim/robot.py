@@ -52,17 +52,6 @@ def arc_step(pose: tuple[float, float, float], v: float, w: float, dt_s: float
             math.pi if th2 == -math.pi else th2)
 
 
-def segment_distances(points: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """(P, S) distances [m] from points (P, 2) to segments (S, 4)."""
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
-    a, b = segments[None, :, 0:2], segments[None, :, 2:4]
-    e = b - a
-    ee = np.maximum(np.einsum("...i,...i->...", e, e), 1e-18)
-    t = np.clip(np.einsum("...i,...i->...", p - a, e) / ee, 0.0, 1.0)
-    d = p - (a + t[..., None] * e)
-    return np.sqrt(np.einsum("...i,...i->...", d, d))
-
-
 def point_in_polygons(points: np.ndarray, polygons: tuple[np.ndarray, ...]) -> np.ndarray:
     """(P,) True where a point lies inside any convex CCW polygon."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -75,19 +64,57 @@ def point_in_polygons(points: np.ndarray, polygons: tuple[np.ndarray, ...]) -> n
     return inside
 
 
+class Obstacles:
+    """Static segments and circles, prepared for repeated disc-contact tests."""
+
+    def __init__(self, segments: np.ndarray, circles: np.ndarray | None = None) -> None:
+        seg = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
+        self.a = seg[:, 0:2]
+        self.e = seg[:, 2:4] - self.a
+        self.ee = np.maximum((self.e ** 2).sum(axis=1), 1e-18)
+        self.lo = np.minimum(seg[:, 0:2], seg[:, 2:4])
+        self.hi = np.maximum(seg[:, 0:2], seg[:, 2:4])
+        self.circles = np.zeros((0, 3)) if circles is None else np.asarray(
+            circles, dtype=np.float64).reshape(-1, 3)
+
+    def near(self, centres: np.ndarray, reach_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """(disc index, segment index) pairs whose bounding boxes come within ``reach_m``."""
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        x, y = c[:, 0:1], c[:, 1:2]
+        near = ((x > self.lo[:, 0] - reach_m) & (x < self.hi[:, 0] + reach_m)
+                & (y > self.lo[:, 1] - reach_m) & (y < self.hi[:, 1] + reach_m))
+        ri, si = np.nonzero(near)
+        return ri, si
+
+    def touching(self, centres: np.ndarray, radius_m: float,
+                 pairs: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """(R,) True where a disc of ``radius_m`` at a centre touches a segment, a circle or
+        another of the discs. ``pairs`` (from ``near`` with a reach >= the radius plus any
+        motion since) limits the segments tested."""
+        c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+        hit = np.zeros(len(c), bool)
+        if len(self.a):
+            r = radius_m
+            ri, si = pairs if pairs is not None else self.near(c, r)
+            if len(ri):
+                p = c[ri] - self.a[si]
+                e = self.e[si]
+                t = np.clip((p * e).sum(axis=1) / self.ee[si], 0.0, 1.0)
+                d = p - t[:, None] * e
+                hit[ri[(d * d).sum(axis=1) < r * r]] = True
+        if len(self.circles):
+            cc = self.circles
+            d = np.hypot(c[:, None, 0] - cc[None, :, 0], c[:, None, 1] - cc[None, :, 1])
+            hit |= (d < radius_m + cc[None, :, 2]).any(axis=1)
+        if len(c) > 1:
+            d = np.hypot(c[:, None, 0] - c[None, :, 0], c[:, None, 1] - c[None, :, 1])
+            np.fill_diagonal(d, np.inf)
+            hit |= (d < 2 * radius_m).any(axis=1)
+        return hit
+
+
 def collisions(centres: np.ndarray, radius_m: float, segments: np.ndarray,
                circles: np.ndarray) -> np.ndarray:
     """(R,) True where a robot disc of ``radius_m`` touches a segment, a static circle or
     another robot's disc."""
-    c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
-    hit = np.zeros(len(c), bool)
-    if len(segments):
-        hit |= segment_distances(c, segments).min(axis=1) < radius_m
-    if len(circles):
-        d = np.hypot(c[:, None, 0] - circles[None, :, 0], c[:, None, 1] - circles[None, :, 1])
-        hit |= (d < radius_m + circles[None, :, 2]).any(axis=1)
-    if len(c) > 1:
-        d = np.hypot(c[:, None, 0] - c[None, :, 0], c[:, None, 1] - c[None, :, 1])
-        np.fill_diagonal(d, np.inf)
-        hit |= (d < 2 * radius_m).any(axis=1)
-    return hit
+    return Obstacles(segments, circles).touching(centres, radius_m)

@@ -27,7 +27,14 @@ from sim.errors import SimError
 from sim.geometry import between2
 from sim.odometry import OdometryNoise
 from sim.raycast import RayCaster, line_of_sight
-from sim.robot import DriveLimits, arc_step, collisions, limit_command, point_in_polygons
+from sim.robot import (
+    DriveLimits,
+    Obstacles,
+    arc_step,
+    collisions,
+    limit_command,
+    point_in_polygons,
+)
 from sim.world import World
 
 log = logging.getLogger(__name__)
@@ -125,6 +132,7 @@ class Simulator:
         self.p = params
         self.step = 0
         self.caster = RayCaster(world.segments, world.circles)
+        self.obstacles = Obstacles(world.segments, world.circles)
         self.renderer = TagRenderer(params.tags, params.camera.camera)
         self.robots: dict[str, RobotState] = {}
         for rid, pose in spawn.items():
@@ -205,19 +213,22 @@ class Simulator:
         n = self.p.substeps
         dt = self.p.step_ns / 1e9 / n
         robots = list(self.robots.values())
-        for _ in range(n):
+        lim = self.p.drive
+        # segments any robot could touch during this step (it moves at most v_max * step)
+        reach = lim.radius_m + CONTACT_MARGIN_M + lim.v_max_mps * dt * n + 0.01
+        pairs = self.obstacles.near(self._centres(), reach)
+        noise = [r.rng_odom.standard_normal((n, 2)) for r in robots]
+        for i in range(n):
             moved = []
             for r in robots:
-                r.v, r.w = limit_command(r.cmd[0], r.cmd[1], r.v, r.w, self.p.drive, dt)
+                r.v, r.w = limit_command(r.cmd[0], r.cmd[1], r.v, r.w, lim, dt)
                 moved.append(arc_step(r.pose, r.v, r.w, dt))
             centres = np.array([m[:2] for m in moved]).reshape(-1, 2)
-            hit = collisions(centres, self.p.drive.radius_m, self.world.segments,
-                             self.world.circles)
+            hit = self.obstacles.touching(centres, lim.radius_m, pairs)
             near = hit
             if any(r.in_contact for r in robots):  # contact ends only clear of the obstacle
-                near = collisions(centres, self.p.drive.radius_m + CONTACT_MARGIN_M,
-                                  self.world.segments, self.world.circles)
-            for r, new, h, c in zip(robots, moved, hit, near, strict=True):
+                near = self.obstacles.touching(centres, lim.radius_m + CONTACT_MARGIN_M, pairs)
+            for r, new, h, c, z in zip(robots, moved, hit, near, noise, strict=True):
                 if h:
                     if not r.in_contact:
                         r.collisions += 1
@@ -230,6 +241,6 @@ class Simulator:
                     r.pose = new
                     ds, dth = r.v * dt, r.w * dt
                     r.distance_m += abs(ds)
-                mds, mdth = self.p.odometry.measure(r.rng_odom, ds, dth, r.bias)
-                r.odom = arc_step(r.odom, float(mds), float(mdth), 1.0)
+                mds, mdth = self.p.odometry.increment(ds, dth, r.bias, z[i])
+                r.odom = arc_step(r.odom, mds, mdth, 1.0)
         self.step += 1
