@@ -1,0 +1,64 @@
+"""``mrslam sim`` as a real process, and its expected failures."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import msgspec
+import pytest
+from typer.testing import CliRunner
+
+from mrslam.cli import app
+from schemas import SimGroundTruth
+from sim.config import SimConfig, parse_robot_spec, resolve_scene
+from sim.errors import SimError
+from tests.conftest import DATA, ROOT
+
+THESIS = DATA / "worlds" / "thesis"
+
+
+def test_sim_process_runs_a_scenario_standalone_and_writes_truth(tmp_path: Path,
+                                                                 endpoint: str) -> None:
+    out = tmp_path / "run"
+    res = subprocess.run(
+        [sys.executable, "-m", "mrslam.cli", "sim", "--scenario", "thesis-case-2", "--listen",
+         endpoint, "--rtf", "50", "--duration", "1.0", "--seed", "3", "--out", str(out)],
+        cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    lines = (out / "truth.jsonl").read_bytes().splitlines()
+    assert len(lines) == 10
+    first = msgspec.json.decode(lines[0], type=SimGroundTruth)
+    assert {p.robot_id: p.pose for p in first.poses} == {
+        "r1": (-8.0, 9.0, 0.0), "r2": (-3.0, 9.0, pytest.approx(4.7124 - 2 * 3.141592653589793)),
+        "r3": (4.0, -9.0, pytest.approx(3.1416 - 2 * 3.141592653589793))}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 10 and summary["seed"] == 3 and not summary["lockstep"]
+    assert (out / "config.yaml").exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--robot", "r1:1,2,x"], "must be numbers"),
+    (["--robot", "r/1:1,2"], "does not match"),
+    (["--scenario", "no-such-case"], "no scenario 'no-such-case'"),
+    (["--world", "/nonexistent.world", "--robot", "r1:0,0"], "no such world file"),
+    (["--scenario", "thesis-case-1", "--robot", "r1:0,9.9,0"], "spawn inside or touching"),
+])
+def test_sim_expected_failures_exit_2_with_one_line(args: list[str], message: str) -> None:
+    res = CliRunner().invoke(app, ["sim", *args])
+    assert res.exit_code == 2, res.output
+    assert message in res.output and len(res.output.strip().splitlines()) == 1
+
+
+def test_robot_specs_and_scenes() -> None:
+    assert parse_robot_spec("r2:1.5,-2") == ("r2", (1.5, -2.0, 0.0))
+    with pytest.raises(SimError):
+        parse_robot_spec("r2")
+    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4"))
+    assert world.name == "house_large.world" and len(robots) == 5
+    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4",
+                                            robots={"r9": (0.0, 0.0, 0.0)}))
+    assert list(robots) == ["r9"]
+    assert (THESIS / "scenarios.yaml").exists()
