@@ -9,8 +9,9 @@ sdformat, an ``<include>``'s ``<pose>`` replaces the included model's own top-le
 Collision geometry is cut by the horizontal plane ``z = lidar_height_m``: ``box`` (any
 orientation) gives a convex polygon, upright ``cylinder`` and ``sphere`` give circles, and
 geometry the plane misses is skipped. ``plane`` geometry is accepted when horizontal (floors).
-Anything else (mesh, heightmap, polyline, tilted cylinder...), an unknown model, or an included
-model without any collision element raises WorldError naming the file and element.
+Anything else (mesh, heightmap, polyline, tilted cylinder...), an unknown model, or a model
+without any collision element raises WorldError naming the file and element. Every model is a
+static obstacle (Gazebo's dynamics, e.g. of a non-static door, are not simulated).
 Gazebo's stock ``sun`` and ``ground_plane`` models need no files: they have nothing in the plane.
 """
 
@@ -179,7 +180,7 @@ class _Loader:
             self._depth -= 1
         if n == 0:
             raise WorldError(f"{model_file}: {_where(models[0])} (included as {uri}) has no "
-                             "<collision> geometry")
+                             "links with <collision> geometry")
         return n
 
     def _find(self, name: str) -> Path | None:
@@ -208,6 +209,8 @@ class _Loader:
                 where = f"{_where(el)} {_where(link)} {_where(col)}"
                 self.geometry(col.find("geometry"), T_col, file, where)
                 n += 1
+        if n == 0 and el.findall("link"):
+            raise WorldError(f"{file}: {_where(el)} has links but no <collision> geometry")
         return n
 
     # -- geometry ---------------------------------------------------------------------------

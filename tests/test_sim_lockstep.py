@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import msgspec
@@ -29,14 +30,16 @@ def steer(scan: Scan) -> tuple[float, float]:
 Run = tuple[bytes, list[tuple[str, int, tuple[float, float, float], bytes]], list[bytes]]
 
 
-def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int) -> Run:
-    """(truth.jsonl, scans, tag detections) of one lockstep run with a server in the loop."""
+def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int, delay_s: float = 0.0) -> Run:
+    """(truth.jsonl, scans, tag detections) of one lockstep run with a server in the loop that
+    answers each scan after ``delay_s`` of wall time."""
     scans: list[tuple[str, int, tuple[float, float, float], bytes]] = []
     tags: list[bytes] = []
 
     def server(key: str, scan: Scan) -> None:  # answers every scan at once, stamped with it
         scans.append((scan.robot_id, scan.stamp_ns, scan.odom_pose, scan.ranges_mm))
         v, w = steer(scan)
+        time.sleep(delay_s)
         router.publish(keys.robot_cmd_vel(scan.robot_id), VelocityCommand(
             robot_id=scan.robot_id, stamp_ns=scan.stamp_ns, v_mps=v, omega_rps=w, ttl_s=0.5))
 
@@ -60,7 +63,9 @@ def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int) -> Run:
 def test_two_lockstep_runs_with_one_seed_are_identical(router: Bus, endpoint: str,
                                                        tmp_path: Path) -> None:
     truth_a, scans_a, tags_a = lockstep_run(endpoint, router, tmp_path / "a", seed=7)
-    truth_b, scans_b, tags_b = lockstep_run(endpoint, router, tmp_path / "b", seed=7)
+    # a slow server changes nothing: every step waits for its command
+    truth_b, scans_b, tags_b = lockstep_run(endpoint, router, tmp_path / "b", seed=7,
+                                            delay_s=0.01)
     assert truth_a == truth_b
     assert len(scans_a) == len(ROBOTS) * STEPS and scans_a == scans_b
     assert tags_a and tags_a == tags_b  # the same images, so the same detections

@@ -96,7 +96,7 @@ def test_lidar_plane_cuts_boxes_cylinders_and_skips_what_it_misses(tmp_path: Pat
 @pytest.mark.parametrize("case, expected", [
     ("mesh", r"model://mesh_model.*|<mesh> geometry is not supported"),
     ("unknown", r"unknown model"),
-    ("nocollision", r"has no <collision> geometry"),
+    ("nocollision", r"no <collision> geometry"),
     ("badpose", r"<pose>1 2 x</pose>"),
     ("xml", r"not valid XML"),
 ])
