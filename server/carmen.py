@@ -19,6 +19,7 @@ otherwise a 180° field of view. Lines that are truncated or corrupt are skipped
 from __future__ import annotations
 
 import bz2
+import functools
 import gzip
 import io
 import logging
@@ -95,8 +96,10 @@ class ReadStats:
             self.examples.append(f"line {line_no}: {detail}")
 
 
+@functools.lru_cache(maxsize=16)
 def guess_beam_angles(n_beams: int) -> F64:
-    """Beam angles [rad] of an old-format scan of ``n_beams`` beams (CARMEN's convention)."""
+    """Beam angles [rad] of an old-format scan of ``n_beams`` beams (CARMEN's convention).
+    The array is shared between scans: read-only."""
     if n_beams in (180, 181):
         step = math.pi / 180.0
     elif n_beams in (360, 361):
@@ -105,7 +108,9 @@ def guess_beam_angles(n_beams: int) -> F64:
         step = math.pi / 720.0
     else:
         step = math.pi / max(n_beams - 1, 1)
-    return -math.pi / 2.0 + step * np.arange(n_beams, dtype=np.float64)
+    angles = -math.pi / 2.0 + step * np.arange(n_beams, dtype=np.float64)
+    angles.flags.writeable = False
+    return angles
 
 
 def open_text(path: Path) -> IO[str]:
@@ -158,9 +163,20 @@ def _tail(words: list[str], i: int, line_no: int) -> tuple[str, float]:
 
 
 def _pose(values: F64) -> F64:
-    if not np.all(np.isfinite(values)):
+    if not np.isfinite(values).all():
         raise LineError("non-finite pose")
     return values
+
+
+def _pose_words(words: list[str], start: int) -> F64:
+    """Three finite numbers from ``words[start:start + 3]``."""
+    try:
+        x, y, t = float(words[start]), float(words[start + 1]), float(words[start + 2])
+    except (ValueError, IndexError):
+        raise LineError("bad pose fields") from None
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(t)):
+        raise LineError("non-finite pose")
+    return np.array([x, y, t])
 
 
 def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | None:
@@ -175,16 +191,15 @@ def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | 
     if kind == "ODOM":
         if len(words) != 10:
             raise LineError(f"ODOM: expected 10 fields, got {len(words)}")
-        pose = _pose(_floats(words, 1, 4))
+        pose = _pose_words(words, 1)
         text, stamp = _tail(words, 7, line_no)
         return OdometryRecord(text, stamp, pose, line_no)
     if kind in ("FLASER", "RLASER"):
         n = _count(words, 1)
         ranges = _floats(words, 2, 2 + n)
-        poses = _floats(words, 2 + n, 8 + n)
         text, stamp = _tail(words, 8 + n, line_no)
         return LaserRecord(kind, text, stamp, ranges, guess_beam_angles(n), None,
-                           _pose(poses[:3]), _pose(poses[3:]), line_no)
+                           _pose_words(words, 2 + n), _pose_words(words, 5 + n), line_no)
     if kind.startswith(("ROBOTLASER", "RAWLASER")):
         head = _floats(words, 1, 7)  # type start fov resolution max_range accuracy (remission)
         n = _count(words, 8)
@@ -299,36 +314,64 @@ def select_stream(log_: CarmenLog, laser: str = "front") -> list[LaserRecord]:
     raise CarmenError(f"no {laser} laser scans in the log (found: {dict(present)})")
 
 
+def _interpolate(stamps: F64, poses: F64, t: float) -> F64:
+    """Odometry pose at time t: linear in x, y and along the shortest arc in θ; clamped to the
+    first/last pose outside the recorded span."""
+    j = int(np.searchsorted(stamps, t))
+    if j <= 0 or j >= len(stamps):
+        return poses[min(max(j, 0), len(stamps) - 1)]
+    t0, t1 = stamps[j - 1], stamps[j]
+    a = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
+    p0, p1 = poses[j - 1], poses[j]
+    d_theta = math.remainder(p1[2] - p0[2], 2 * math.pi)
+    return np.array([p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]),
+                     math.remainder(p0[2] + a * d_theta, 2 * math.pi)])
+
+
+def laser_poses_are_stale(scans: list[LaserRecord], stamps: F64, poses: F64) -> bool:
+    """True if most laser lines carry a verbatim copy of the last ODOM pose before them.
+
+    Some loggers write the latest odometry into the laser line instead of the odometry at the
+    scan's time; at walking speed that pose lags by up to one odometry period (several cm).
+    """
+    with_pose = [r for r in scans if r.robot_pose is not None]
+    if not with_pose or len(stamps) == 0:
+        return False
+    copies = 0
+    for r in with_pose:
+        j = int(np.searchsorted(stamps, r.stamp_s, side="right")) - 1
+        if j >= 0 and r.robot_pose is not None and np.array_equal(poses[j], r.robot_pose):
+            copies += 1
+    return copies > 0.5 * len(with_pose)
+
+
 def attach_odometry(scans: list[LaserRecord], odometry: list[OdometryRecord],
-                    laser_offset_x_m: float = 0.0) -> list[OdometryScan]:
+                    laser_offset_x_m: float = 0.0, source: str = "auto") -> list[OdometryScan]:
     """Odometry pose of the laser for each scan.
 
-    Laser lines with a pose carry it directly. Otherwise the ``ODOM`` poses are interpolated
-    linearly at the scan stamp (angles along the shortest arc) and the laser is placed
-    ``laser_offset_x_m`` ahead of the robot. Scans outside the odometry's time span take the
-    nearest odometry pose; scans with neither are dropped by the caller's check.
+    ``source="laser"`` takes the laser pose written in the laser line; ``"odom"`` interpolates
+    the ``ODOM`` poses at the scan stamp and places the laser ``laser_offset_x_m`` ahead of the
+    robot; ``"auto"`` takes the laser line's pose unless it is missing or a stale copy of the
+    last ``ODOM`` line (see ``laser_poses_are_stale``).
     """
-    out: list[OdometryScan] = []
     stamps = np.array([o.stamp_s for o in odometry], dtype=np.float64)
     poses = np.array([o.pose for o in odometry], dtype=np.float64).reshape(-1, 3)
     order = np.argsort(stamps, kind="stable")
     stamps, poses = stamps[order], poses[order]
+    if source == "auto":
+        use_odom = len(stamps) > 0 and laser_poses_are_stale(scans, stamps, poses)
+    elif source in ("laser", "odom"):
+        use_odom = source == "odom"
+    else:
+        raise ValueError(f"unknown odometry source {source!r}")
+    out: list[OdometryScan] = []
     for rec in scans:
-        if rec.laser_pose is not None:
+        if rec.laser_pose is not None and not use_odom:
             out.append(OdometryScan(rec, rec.laser_pose))
             continue
         if len(stamps) == 0:
             raise CarmenError("laser lines carry no pose and the log has no ODOM lines")
-        j = int(np.searchsorted(stamps, rec.stamp_s))
-        if j <= 0 or j >= len(stamps):
-            robot = poses[min(max(j, 0), len(stamps) - 1)]
-        else:
-            t0, t1 = stamps[j - 1], stamps[j]
-            a = 0.0 if t1 <= t0 else (rec.stamp_s - t0) / (t1 - t0)
-            d_theta = math.remainder(poses[j, 2] - poses[j - 1, 2], 2 * math.pi)
-            robot = np.array([poses[j - 1, 0] + a * (poses[j, 0] - poses[j - 1, 0]),
-                              poses[j - 1, 1] + a * (poses[j, 1] - poses[j - 1, 1]),
-                              math.remainder(poses[j - 1, 2] + a * d_theta, 2 * math.pi)])
+        robot = _interpolate(stamps, poses, rec.stamp_s)
         c, s = math.cos(robot[2]), math.sin(robot[2])
         laser = np.array([robot[0] + c * laser_offset_x_m, robot[1] + s * laser_offset_x_m,
                           robot[2]])

@@ -30,6 +30,7 @@ class SlamLogConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     laser: Literal["front", "rear"] = "front"
+    odometry: Literal["auto", "laser", "odom"] = "auto"
     write_maps: bool = True
     slam: SlamConfig = SlamConfig()
 
@@ -74,7 +75,7 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     cfg = load_config(SlamLogConfig, config)
     clog = read_log(log_file)
     scans = attach_odometry(select_stream(clog, cfg.laser), clog.odometry,
-                            _laser_offset(clog, cfg.laser))
+                            _laser_offset(clog, cfg.laser), cfg.odometry)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)

@@ -15,7 +15,7 @@ class ScanConfig(_Model):
 
     min_range_m: float = Field(0.05, gt=0)
     max_range_m: float = Field(40.0, gt=0, description="readings at or beyond: no return")
-    min_point_spacing_m: float = Field(0.03, ge=0, description="thin points closer than this")
+    min_point_spacing_m: float = Field(0.05, ge=0, description="thin points closer than this")
     normal_window: int = Field(2, ge=1, description="beams each side used for a normal")
     normal_max_gap_m: float = Field(0.3, gt=0, description="max neighbour distance for normals")
 
@@ -83,6 +83,7 @@ class LoopClosureConfig(_Model):
     angle_max_deg: float = Field(30.0, gt=0)
     max_candidates: int = Field(3, ge=1)
     resolution_m: float = Field(0.05, gt=0)
+    search_voxel_m: float = Field(0.1, gt=0, description="query thinning for the search")
     submap_range_m: float = Field(20.0, gt=0, description="submap points beyond: dropped")
     min_score: float = Field(0.55, gt=0, le=1)
     min_inlier_fraction: float = Field(0.5, gt=0, le=1)

@@ -6,6 +6,8 @@ All functions accept a single pose of shape (3,) or a stack of shape (N, 3).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -19,10 +21,20 @@ def wrap_angle(theta: ArrayLike) -> F64:
     return np.where(w == -np.pi, np.pi, w)
 
 
+def _wrap1(t: float) -> float:
+    w = math.remainder(t, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
 def compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> F64:
     """``T_a_c = T_a_b ⊕ T_b_c``: t_ac = t_ab + R(θ_ab) t_bc, θ_ac = θ_ab + θ_bc."""
     a = np.asarray(T_a_b, dtype=np.float64)
     b = np.asarray(T_b_c, dtype=np.float64)
+    if a.shape == (3,) and b.shape == (3,):  # one pose: plain floats are ~10× faster
+        ax, ay, at = a.tolist()
+        bx, by, bt = b.tolist()
+        c, s = math.cos(at), math.sin(at)
+        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap1(at + bt)])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
@@ -32,6 +44,10 @@ def compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> F64:
 def inverse(T_a_b: ArrayLike) -> F64:
     """``T_b_a = T_a_b⁻¹``: t_ba = −R(θ)ᵀ t_ab, θ_ba = −θ_ab."""
     a = np.asarray(T_a_b, dtype=np.float64)
+    if a.shape == (3,):
+        ax, ay, at = a.tolist()
+        c1, s1 = math.cos(at), math.sin(at)
+        return np.array([-(c1 * ax + s1 * ay), s1 * ax - c1 * ay, _wrap1(-at)])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -(c * a[..., 0] + s * a[..., 1])
     y = -(-s * a[..., 0] + c * a[..., 1])
@@ -66,5 +82,5 @@ def rotate_vectors(theta: float, vectors: ArrayLike) -> F64:
 
 def pose_distance(T_a_b: ArrayLike) -> tuple[float, float]:
     """Translation [m] and absolute rotation [rad] of a relative pose."""
-    T = np.asarray(T_a_b, dtype=np.float64)
-    return float(np.hypot(T[0], T[1])), float(abs(wrap_angle(T[2])))
+    x, y, t = np.asarray(T_a_b, dtype=np.float64).tolist()
+    return math.hypot(x, y), abs(_wrap1(t))

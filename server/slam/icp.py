@@ -34,12 +34,18 @@ class IcpParams:
 
 
 class PointMap:
-    """Map points (N, 2) with unit normals (N, 2) in one frame, indexed for nearest neighbours."""
+    """Map points (N, 2) with unit normals (N, 2) in one frame, indexed for nearest neighbours.
+
+    Also kept as complex numbers x + iy (rotation is one multiplication), with a sentinel row
+    at index N: the KD-tree reports N for "no neighbour within the radius".
+    """
 
     def __init__(self, points: F64, normals: F64) -> None:
-        self.points = np.ascontiguousarray(points, dtype=np.float64)
-        self.normals = np.ascontiguousarray(normals, dtype=np.float64)
+        self.points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+        self.normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 2)
         self.tree = cKDTree(self.points, leafsize=16, balanced_tree=False, compact_nodes=False)
+        self.points_c = np.append(self.points[:, 0] + 1j * self.points[:, 1], 0.0)
+        self.normals_c = np.append(self.normals[:, 0] + 1j * self.normals[:, 1], 0.0)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -112,17 +118,14 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     prior_T = np.asarray(T_init, dtype=np.float64)
     inv_var = 1.0 / p.point_sigma_m ** 2
     tx, ty, th = (float(v) for v in T_init)
-    pts = scan_points
-    n_pts = len(pts)
-    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
+    n_pts = len(scan_points)
+    # complex arithmetic: R(θ)p = p·e^{iθ}; n·v = Re(v·conj(n)); n·(R(θ+π/2)p) = −Im(Rp·conj(n))
+    P = scan_points[:, 0] + 1j * scan_points[:, 1]
     have_n = scan_normals is not None
     if scan_normals is not None:
-        snx = np.nan_to_num(scan_normals[:, 0], nan=0.0)
-        sny = np.nan_to_num(scan_normals[:, 1], nan=0.0)
+        Ns = np.nan_to_num(scan_normals[:, 0]) + 1j * np.nan_to_num(scan_normals[:, 1])
         no_normal = ~np.isfinite(scan_normals[:, 0])
-    mp, mn = target.points, target.normals
-    last = len(target) - 1
-    q = np.empty((n_pts, 2))
+    M, MN = target.points_c, target.normals_c
     H = np.zeros((3, 3))
     converged = False
     it = 0
@@ -130,27 +133,28 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     w = np.zeros(0)
     d_max = p.max_correspondence_m
     prev = (0.0, 0.0, 0.0)
-    for it in range(1, p.max_iterations + 1):
-        c, s = math.cos(th), math.sin(th)
-        rx = c * px - s * py
-        ry = s * px + c * py
-        q[:, 0] = rx + tx
-        q[:, 1] = ry + ty
-        dist, idx = target.tree.query(q, k=1, distance_upper_bound=d_max)
+    inv_kernel = 1.0 / p.kernel_m
+    for step in range(1, p.max_iterations + 1):
+        it = step
+        rot = complex(math.cos(th), math.sin(th))
+        RP = P * rot
+        Q = RP + complex(tx, ty)
+        dist, idx = target.tree.query(Q.view(np.float64).reshape(-1, 2), k=1,
+                                      distance_upper_bound=d_max)
         ok = dist < d_max
-        idx = np.minimum(idx, last)
-        nx, ny = mn[idx, 0], mn[idx, 1]
+        nc = MN[idx].conj()
         if have_n:
-            cosang = (c * snx - s * sny) * nx + (s * snx + c * sny) * ny
-            ok &= (cosang >= p.min_normal_cos) | no_normal
-        if np.count_nonzero(ok) < 6:
+            ok &= ((Ns * rot * nc).real >= p.min_normal_cos) | no_normal
+        sel = np.flatnonzero(ok)
+        if len(sel) < 6:
             break
-        nx, ny = nx[ok], ny[ok]
-        i = idx[ok]
-        r = nx * (q[ok, 0] - mp[i, 0]) + ny * (q[ok, 1] - mp[i, 1])
-        jt = ny * rx[ok] - nx * ry[ok]  # n · (R(θ + π/2) p)
-        w = 1.0 / (1.0 + (r * (1.0 / p.kernel_m)) ** 2)
-        J = np.stack([nx, ny, jt])
+        nc = nc[sel]
+        r = ((Q[sel] - M[idx[sel]]) * nc).real
+        J = np.empty((3, len(sel)))
+        J[0] = nc.real
+        J[1] = -nc.imag
+        J[2] = -(RP[sel] * nc).imag
+        w = 1.0 / (1.0 + (r * inv_kernel) ** 2)
         Jw = J * w
         H = Jw @ J.T
         g = Jw @ r

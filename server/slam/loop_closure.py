@@ -29,7 +29,7 @@ from server.slam.config import LoopClosureConfig
 from server.slam.correlative import LikelihoodField, search
 from server.slam.geometry import between, compose, inverse, pose_distance
 from server.slam.icp import IcpParams, MatchResult, PointMap, icp
-from server.slam.keyframes import Keyframe, points_in_frame
+from server.slam.keyframes import Keyframe, points_in_frame, voxel_thin
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +182,8 @@ class LoopCloser:
                 angle: float) -> LoopClosure | None:
         c = self.cfg
         sm = self.submaps[si]
-        coarse = search(self._field(si), q_pts, T_center, radius, angle, c.min_score)
+        (coarse_pts,) = voxel_thin(q_pts, c.search_voxel_m)
+        coarse = search(self._field(si), coarse_pts, T_center, radius, angle, c.min_score)
         if coarse is None:
             self.stats.rejected_score += 1
             return None

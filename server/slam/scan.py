@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
@@ -55,54 +54,62 @@ def valid_returns(ranges_m: F64, angles_rad: F64, min_range_m: float,
     return r[ok], a[ok]
 
 
-def line_normals(points: F64, window: int, max_gap_m: F64 | float) -> F64:
-    """Unit normals (N, 2) of ordered points from a line fit over ±``window`` neighbours.
+def line_normals(points: F64, window: int, max_gap_m: F64 | float,
+                 centers: NDArray[np.int64] | None = None) -> F64:
+    """Unit normals (M, 2) at ``centers`` (default: all N points) of ordered points, from a
+    line fit over up to ±``window`` neighbours.
 
-    For neighbours q_j within ``max_gap_m`` (scalar or per point) of p_i, chained along the
-    scan, the normal is
-    the eigenvector of the smallest eigenvalue of C = Σ (q_j − q̄)(q_j − q̄)ᵀ. NaN where fewer
-    than 3 points are usable or the fit is not line-like (λ_min > 0.2 λ_max).
+    Neighbours are taken outwards from the centre while each stays within ``max_gap_m``
+    (scalar or per point) of it, so a range jump ends the run. The normal is the eigenvector of
+    the smallest eigenvalue of C = Σ (q_j − q̄)(q_j − q̄)ᵀ, facing the sensor (n · p < 0). NaN
+    where fewer than 3 points are usable or the fit is not line-like (λ_min > 0.2 λ_max).
     """
     n = len(points)
-    out = np.full((n, 2), np.nan)
-    if n < 3:
+    idx = np.arange(n) if centers is None else np.asarray(centers, dtype=np.int64)
+    m = len(idx)
+    out = np.full((m, 2), np.nan)
+    if n < 3 or m == 0:
         return out
-    w = window
-    pad = np.full((w, 2), np.nan)
-    padded = np.concatenate([pad, points, pad])
-    win = sliding_window_view(padded, (2 * w + 1, 2))[:, 0]  # (N, 2w+1, 2)
-    d = np.linalg.norm(win - points[:, None, :], axis=2)
-    ok = d <= np.broadcast_to(np.asarray(max_gap_m, dtype=np.float64), (n,))[:, None]
-    # a gap breaks the chain: points beyond a break on either side are excluded
-    centre = w
-    for k in range(1, w + 1):
-        ok[:, centre + k] &= ok[:, centre + k - 1]
-        ok[:, centre - k] &= ok[:, centre - k + 1]
-    cnt = ok.sum(axis=1)
-    wx = np.where(ok, win[..., 0], 0.0)
-    wy = np.where(ok, win[..., 1], 0.0)
-    safe = np.maximum(cnt, 1)
-    mx, my = wx.sum(1) / safe, wy.sum(1) / safe
-    dx = np.where(ok, win[..., 0] - mx[:, None], 0.0)
-    dy = np.where(ok, win[..., 1] - my[:, None], 0.0)
-    sxx, syy, sxy = (dx * dx).sum(1), (dy * dy).sum(1), (dx * dy).sum(1)
-    # smallest eigenvalue/vector of [[sxx, sxy], [sxy, syy]] in closed form
-    tr, det = sxx + syy, sxx * syy - sxy * sxy
+    gap = np.broadcast_to(np.asarray(max_gap_m, dtype=np.float64), (n,))[idx]
+    gap2 = gap * gap
+    px, py = points[:, 0], points[:, 1]
+    cx, cy = px[idx], py[idx]
+    cnt = np.ones(m)
+    sx, sy = cx.copy(), cy.copy()
+    sxx, syy, sxy = cx * cx, cy * cy, cx * cy
+    for sign in (1, -1):
+        alive = np.ones(m, dtype=bool)
+        for k in range(1, window + 1):
+            j = idx + sign * k
+            jc = np.clip(j, 0, n - 1)
+            qx, qy = px[jc], py[jc]
+            alive &= (j == jc) & ((qx - cx) ** 2 + (qy - cy) ** 2 <= gap2)
+            a = alive.astype(np.float64)
+            cnt += a
+            qx, qy = qx * a, qy * a
+            sx += qx
+            sy += qy
+            sxx += qx * qx
+            syy += qy * qy
+            sxy += qx * qy
+    mx, my = sx / cnt, sy / cnt
+    cxx, cyy, cxy = sxx / cnt - mx * mx, syy / cnt - my * my, sxy / cnt - mx * my
+    # eigen-decomposition of [[cxx, cxy], [cxy, cyy]] in closed form
+    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
     disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
     lmin, lmax = tr / 2 - disc, tr / 2 + disc
-    # principal (line) direction = eigenvector of lmax; the normal is perpendicular to it
-    ux, uy = sxy, lmax - sxx
+    # the line direction is the eigenvector of lmax; the normal is perpendicular to it
+    ux, uy = cxy, lmax - cxx
     alt = np.abs(ux) + np.abs(uy) < 1e-12
-    ux = np.where(alt, lmax - syy, ux)
-    uy = np.where(alt, sxy, uy)
+    ux = np.where(alt, lmax - cyy, ux)
+    uy = np.where(alt, cxy, uy)
     norm = np.hypot(ux, uy)
     good = (cnt >= 3) & (norm > 1e-12) & (lmin <= 0.2 * lmax)
-    nx, ny = -uy / np.where(norm > 0, norm, 1.0), ux / np.where(norm > 0, norm, 1.0)
-    # face the sensor: n · p < 0
-    flip = nx * points[:, 0] + ny * points[:, 1] > 0
-    nx, ny = np.where(flip, -nx, nx), np.where(flip, -ny, ny)
-    out[good, 0] = nx[good]
-    out[good, 1] = ny[good]
+    safe = np.where(norm > 0, norm, 1.0)
+    nx, ny = -uy / safe, ux / safe
+    flip = nx * cx + ny * cy > 0
+    out[good, 0] = np.where(flip, -nx, nx)[good]
+    out[good, 1] = np.where(flip, -ny, ny)[good]
     return out
 
 
@@ -133,6 +140,6 @@ def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range
     # the gap allowed between neighbours grows with range, as the beams spread apart
     beam_step = float(np.median(np.abs(np.diff(a)))) if len(a) > 1 else 0.0
     gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
-    normals = line_normals(pts, normal_window, gap)
-    keep = thin_by_spacing(pts, min_spacing_m)
-    return ScanPoints(pts[keep], normals[keep], r[keep])
+    keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
+    normals = line_normals(pts, normal_window, gap, keep)
+    return ScanPoints(pts[keep], normals, r[keep])
