@@ -201,13 +201,17 @@ def slam_log(
 def eval_relations(
     poses: Annotated[Path, typer.Argument(help="poses.txt: timestamp x y theta per line")],
     relations: Annotated[Path, typer.Argument(help="relations file: t1 t2 x y z roll pitch yaw")],
+    tolerance: Annotated[float, typer.Option(help="max stamp difference when matching [s]")
+                         ] = 0.005,
+    json_out: Annotated[bool, typer.Option("--json", help="print one JSON line")] = False,
 ) -> None:
-    """Score poses against reference relations (Kümmerle et al. 2009)."""
+    """Score poses against reference relations (Kümmerle et al. 2009): mean ± std of the
+    translational [m] and rotational [deg] relation errors."""
 
     def body() -> Any:
         from server.evaluation import run
 
-        return run(poses, relations)
+        return run(poses, relations, tolerance_s=tolerance, as_json=json_out)
 
     call("eval-relations", body)
 

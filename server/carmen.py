@@ -218,6 +218,8 @@ def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | 
                                _pose(poses[:3]), _pose(poses[3:]), line_no)
         text, stamp = _tail(words, i, line_no)
         return LaserRecord(kind, text, stamp, ranges, angles, max_r, None, None, line_no)
+    if not (kind.isascii() and kind.replace("_", "").replace("-", "").isalnum()):
+        raise LineError(f"unreadable message name {kind[:20]!r}")
     if kind in ("LASER1", "LASER2", "LASER3", "LASER4"):
         n = _count(words, 1)
         ranges = _floats(words, 2, 2 + n)

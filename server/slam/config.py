@@ -23,6 +23,8 @@ class ScanConfig(_Model):
 class MatcherConfig(_Model):
     """Point-to-line ICP against the local map, with a correlative search as fallback."""
 
+    enabled: bool = Field(True, description="False: odometry only (loop closure still runs)")
+
     max_iterations: int = Field(25, ge=1)
     max_correspondence_m: float = Field(0.5, gt=0, description="first iterations")
     min_correspondence_m: float = Field(0.15, gt=0, description="last iterations")
@@ -100,8 +102,8 @@ class GridConfig(_Model):
     """Log-odds occupancy grid (probabilities, not log-odds, here)."""
 
     resolution_m: float = Field(0.05, gt=0)
-    p_hit: float = Field(0.7, gt=0.5, lt=1)
-    p_miss: float = Field(0.4, gt=0, lt=0.5)
+    p_hit: float = Field(0.75, gt=0.5, lt=1)
+    p_miss: float = Field(0.35, gt=0, lt=0.5)
     p_min: float = Field(0.12, gt=0, lt=0.5)
     p_max: float = Field(0.97, gt=0.5, lt=1)
     free_below: float = Field(0.4, gt=0, lt=1)

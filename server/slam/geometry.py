@@ -33,8 +33,8 @@ def compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> F64:
     if a.shape == (3,) and b.shape == (3,):  # one pose: plain floats are ~10× faster
         ax, ay, at = a.tolist()
         bx, by, bt = b.tolist()
-        c, s = math.cos(at), math.sin(at)
-        return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap1(at + bt)])
+        c1, s1 = math.cos(at), math.sin(at)
+        return np.array([ax + c1 * bx - s1 * by, ay + s1 * bx + c1 * by, _wrap1(at + bt)])
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]

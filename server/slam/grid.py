@@ -25,8 +25,8 @@ def logit(p: float) -> float:
 @dataclass(frozen=True)
 class GridParams:
     resolution_m: float = 0.05
-    p_hit: float = 0.7
-    p_miss: float = 0.4
+    p_hit: float = 0.75
+    p_miss: float = 0.35
     p_min: float = 0.12
     p_max: float = 0.97
     free_below: float = 0.4
@@ -39,7 +39,7 @@ class OccupancyGrid:
     """A growable log-odds grid. ``log_odds`` (H, W) float32, ``observed`` (H, W) bool."""
 
     def __init__(self, params: GridParams, origin_xy: tuple[float, float] = (0.0, 0.0),
-                 shape_hw: tuple[int, int] = (1, 1)) -> None:
+                 shape_hw: tuple[int, int] = (0, 0)) -> None:
         self.params = params
         self.resolution_m = params.resolution_m
         self.origin = np.array(origin_xy, dtype=np.float64)
@@ -72,10 +72,14 @@ class OccupancyGrid:
         """Grow (keeping content) so that the box [lo, hi] lies inside the grid."""
         res = self.resolution_m
         h, w = self.shape
+        pad = self.params.padding_m
+        if h * w == 0:
+            fresh = OccupancyGrid.covering(self.params, np.asarray(lo_xy), np.asarray(hi_xy))
+            self.log_odds, self.observed, self.origin = fresh.log_odds, fresh.observed, fresh.origin
+            return
         hi_grid = self.origin + np.array([w, h]) * res
         if np.all(lo_xy >= self.origin) and np.all(hi_xy < hi_grid):
             return
-        pad = self.params.padding_m
         new_lo = np.minimum(self.origin, np.floor((np.asarray(lo_xy) - pad) / res) * res)
         new_hi = np.maximum(hi_grid, np.asarray(hi_xy) + pad)
         nw, nh = (np.ceil((new_hi - new_lo) / res).astype(int) + 1).tolist()

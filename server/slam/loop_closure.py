@@ -81,13 +81,16 @@ class _Graph:
     edges: list[tuple[int, int, float]] = field(default_factory=list)
 
     def distances_from(self, source: int, n: int) -> F64:
+        """Path lengths from ``source`` to keyframes 0..n-1 (inf where not connected)."""
+        n_out = n
         if not self.edges:
             return np.full(n, np.inf)
         e = np.asarray(self.edges, dtype=np.float64)
         i, j, w = e[:, 0].astype(np.int64), e[:, 1].astype(np.int64), np.maximum(e[:, 2], 1e-6)
+        n = max(n, int(max(i.max(), j.max())) + 1)
         m = csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
                        shape=(n, n))
-        return np.asarray(dijkstra(m, directed=False, indices=source), dtype=np.float64)
+        return np.asarray(dijkstra(m, directed=False, indices=source), dtype=np.float64)[:n_out]
 
 
 class LoopCloser:
@@ -107,9 +110,11 @@ class LoopCloser:
     def maybe_close_submap(self, keyframes: list[Keyframe], poses: F64) -> None:
         """Freeze the next block of keyframes into a submap once it is complete."""
         b = self.cfg.block_keyframes
-        start = len(self.submaps) * b
-        if len(keyframes) < start + b:
-            return
+        while len(keyframes) >= (len(self.submaps) + 1) * b:
+            self._close_block(len(self.submaps) * b, keyframes, poses)
+
+    def _close_block(self, start: int, keyframes: list[Keyframe], poses: F64) -> None:
+        b = self.cfg.block_keyframes
         members = list(range(start, start + b))
         anchor = start + b // 2
         pts, nrm = points_in_frame([keyframes[i] for i in members], poses[members],
@@ -145,8 +150,8 @@ class LoopCloser:
             d_graph = float(dist[sm.anchor])
             if k in sm.members or d_graph < c.min_graph_distance_m:
                 continue
-            if not math.isfinite(d_graph):
-                continue
+            if not math.isfinite(d_graph):  # not connected: nothing bounds the drift
+                d_graph = 1e9
             radius = min(c.radius_max_m, c.radius_base_m + c.radius_per_m * d_graph)
             angle = min(c.angle_max_deg, c.angle_base_deg + c.angle_per_m_deg * d_graph)
             gap = float(np.min(np.hypot(*(poses[sm.members, :2] - poses[k, :2]).T)))

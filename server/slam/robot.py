@@ -33,7 +33,7 @@ from server.slam.geometry import between, compose, pose_distance
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, local_point_map
-from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser
+from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure
 from server.slam.mapping import GridMapper, point_cloud
 from server.slam.scan import ScanPoints, scan_to_points
 
@@ -202,30 +202,43 @@ class RobotSlam:
         poses = self.keyframe_poses()
         self._loops.maybe_close_submap(self.keyframes, poses)
         closures = self._loops.search(k, self.keyframes, poses)
-        if not closures:
-            return
+        if closures:
+            self.apply_loop_closures(closures)
+
+    def apply_loop_closures(self, closures: list[LoopClosure]) -> int:
+        """Add verified closures under a robust kernel, optimise, and take out again any whose
+        error is still implausible (χ² > ``max_chi2``) once the graph has settled. Returns how
+        many were kept."""
         c, g = self.cfg.loop, self.cfg.graph
+        tr = self.trajectory
         floor = np.array([g.match_sigma_floor_m, g.match_sigma_floor_m,
                           math.radians(g.match_sigma_floor_deg)])
-        added: list[FactorRecord] = []
+        added: list[tuple[LoopClosure, FactorRecord]] = []
         for lc in closures:
-            tr = self.trajectory
             f = loop_closure_factor(tr.key(lc.anchor), tr.key(lc.keyframe), lc.T_anchor_kf,
                                     lc.information, c.sigma_scale ** 2, floor, "huber", c.huber_k)
-            added.append(add_constraint(self.graph, self.trajectory, f, "loop"))
-            self._loops.add_edge(lc.anchor, lc.keyframe, LOOP_EDGE_LENGTH_M)
+            added.append((lc, add_constraint(self.graph, tr, f, "loop")))
         self.graph.iterate(g.extra_iterations_after_loop)
         est = self.graph.estimate()
-        for rec in added:
+        kept = 0
+        removed = False
+        for lc, rec in added:
             chi2 = whitened_chi2(rec.factor, est)
             if chi2 > c.max_chi2:
-                log.info("loop closure removed: χ² %.1f after optimisation", chi2)
-                drop_constraint(self.graph, self.trajectory, rec)
+                log.info("loop closure %d-%d removed: χ² %.1f after optimisation",
+                         lc.anchor, lc.keyframe, chi2)
+                drop_constraint(self.graph, tr, rec)
                 self._loops.stats.removed_inconsistent += 1
                 self.stats.loop_closures_removed += 1
+                removed = True
             else:
+                self._loops.add_edge(lc.anchor, lc.keyframe, LOOP_EDGE_LENGTH_M)
                 self.stats.loop_closures += 1
-        self._T_kf_map_cache = self.graph.pose(self.trajectory.key(k))
+                kept += 1
+        if removed:
+            self.graph.iterate(g.extra_iterations_after_loop)
+        self._T_kf_map_cache = self.graph.pose(tr.key(len(self.keyframes) - 1))
+        return kept
 
     def _refresh_local_map(self) -> None:
         n = self.cfg.local_map.keyframes

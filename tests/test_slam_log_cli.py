@@ -1,0 +1,128 @@
+"""``mrslam slam-log`` and ``mrslam eval-relations`` end to end, on a slice of a real log."""
+
+from __future__ import annotations
+
+import bz2
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from mrslam.cli import app
+from server.evaluation import evaluate, match_stamps, relation_errors
+from tests.conftest import DATA
+
+CARMEN = DATA / "carmen"
+N_SCANS = 300
+
+
+@pytest.fixture(scope="module")
+def fr079_slice(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The first 300 scans of FR079 (with their ODOM lines), plus two broken lines."""
+    out = tmp_path_factory.mktemp("fr079") / "fr079_head.clf"
+    lines: list[str] = []
+    n = 0
+    with bz2.open(CARMEN / "fr079.clf.bz2", "rt") as f:
+        for line in f:
+            lines.append(line)
+            if line.startswith("FLASER"):
+                n += 1
+                if n == 150:
+                    lines.append("FLASER 360 1.0 2.0 truncated\n")
+                    lines.append("ODOM 1 2 x 4 5 6 7 h 8\n")
+                if n == N_SCANS:
+                    break
+    out.write_text("".join(lines))
+    return out
+
+
+@pytest.fixture(scope="module")
+def slam_out(fr079_slice: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("out")
+    res = CliRunner().invoke(app, ["slam-log", str(fr079_slice), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_slam_log_writes_a_pose_per_scan_maps_and_summary(slam_out: Path,
+                                                           fr079_slice: Path) -> None:
+    stamps_in_log = [line.split()[-3] for line in fr079_slice.read_text().splitlines()
+                     if line.startswith("FLASER") and len(line.split()) > 300]
+    poses = [line.split() for line in (slam_out / "poses.txt").read_text().splitlines()]
+    assert [p[0] for p in poses] == stamps_in_log  # every scan, stamp exactly as written
+    assert all(len(p) == 4 for p in poses)
+    summary = json.loads((slam_out / "summary.json").read_text())
+    assert summary["scans"] == N_SCANS
+    assert summary["lines_skipped"] == 2
+    assert summary["keyframes"] > 20 and summary["wall_time_s"] > 0
+    meta = yaml.safe_load((slam_out / "map.yaml").read_text())
+    assert (slam_out / meta["image"]).stat().st_size > 100
+    assert (slam_out / "cloud.ply").read_bytes().startswith(b"ply\n")
+    assert (slam_out / "config.yaml").exists()
+
+
+def test_slam_log_slice_is_accurate(slam_out: Path) -> None:
+    res = evaluate(slam_out / "poses.txt", CARMEN / "fr079.relations")
+    assert res.matched >= 50
+    assert res.unmatched == res.relations - res.matched
+    assert res.trans_mean_m < 0.04
+    assert res.rot_mean_deg < 0.5
+
+
+def test_eval_relations_cli(slam_out: Path) -> None:
+    res = CliRunner().invoke(app, ["eval-relations", str(slam_out / "poses.txt"),
+                                   str(CARMEN / "fr079.relations"), "--json"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(res.output.strip().splitlines()[-1])
+    assert data["matched"] >= 50 and data["trans_mean_m"] < 0.04
+    table = CliRunner().invoke(app, ["eval-relations", str(slam_out / "poses.txt"),
+                                     str(CARMEN / "fr079.relations")])
+    assert table.exit_code == 0 and "translational" in table.output and "±" in table.output
+
+
+def test_missing_or_unreadable_inputs_exit_2(tmp_path: Path) -> None:
+    runner = CliRunner()
+    res = runner.invoke(app, ["slam-log", str(tmp_path / "nope.clf"), "--out", str(tmp_path)])
+    assert res.exit_code == 2
+    assert "no such file" in res.output and "Traceback" not in res.output
+    (tmp_path / "junk.clf").write_text("not a log\n")
+    res = runner.invoke(app, ["slam-log", str(tmp_path / "junk.clf"), "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "no laser scans" in res.output
+    res = runner.invoke(app, ["eval-relations", str(tmp_path / "nope.txt"),
+                              str(CARMEN / "aces.relations")])
+    assert res.exit_code == 2 and "no such poses file" in res.output
+
+
+def test_relation_error_known_answer(tmp_path: Path) -> None:
+    # poses on a line; the reference says the second step is 0.1 m longer and turned by 2°
+    (tmp_path / "poses.txt").write_text("1.000 0 0 0\n2.000 1 0 0\n3.0004 2 0 0\nbad line\n")
+    (tmp_path / "rel.txt").write_text("1.0 2.0 1 0 0 0 0 0\n"
+                                      "2.0 3.0 1.1 0 0 0 0 0.0349066\n"
+                                      "3.0 9.0 1 0 0 0 0 0\n")
+    res = evaluate(tmp_path / "poses.txt", tmp_path / "rel.txt", tolerance_s=0.001)
+    assert res.matched == 2 and res.unmatched == 1 and res.skipped_lines == 1
+    assert res.trans_mean_m == pytest.approx(0.05, abs=1e-6)
+    assert res.rot_mean_deg == pytest.approx(1.0, abs=1e-4)
+
+
+def test_relation_error_is_frame_invariant() -> None:
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(20, 3)), rng.normal(size=(20, 3))
+    d = rng.normal(size=(20, 3)) * 0.3
+    t1, r1 = relation_errors(a, b, d)
+    shift = np.array([5.0, -2.0, 1.0])
+    from server.slam.geometry import compose
+
+    S = np.broadcast_to(shift, a.shape)
+    t2, r2 = relation_errors(compose(S, a), compose(S, b), d)
+    np.testing.assert_allclose(t1, t2, atol=1e-9)
+    np.testing.assert_allclose(r1, r2, atol=1e-9)
+
+
+def test_match_stamps_nearest_within_tolerance() -> None:
+    stamps = np.array([1.0, 2.0, 3.0])
+    idx = match_stamps(stamps, np.array([0.9999, 2.0004, 2.5, 3.01, 5.0]), 0.001)
+    np.testing.assert_array_equal(idx, [0, 1, -1, -1, -1])
