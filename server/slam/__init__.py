@@ -3,6 +3,7 @@
 The entry point is ``RobotSlam``; ``SlamConfig`` holds its settings."""
 
 from server.slam.config import SlamConfig
-from server.slam.robot import RobotSlam, SlamInputError
+from server.slam.errors import SlamInputError
+from server.slam.robot import RobotSlam
 
 __all__ = ["RobotSlam", "SlamConfig", "SlamInputError"]

@@ -52,7 +52,7 @@ class RobotTrajectory:
     def key(self, k: int) -> int:
         return int(gtsam.symbol(self.robot_char, k))
 
-    def keys(self) -> list[int]:
+    def all_keys(self) -> list[int]:
         return [self.key(k) for k in range(self.n_keys)]
 
     def records(self, kind: str | None = None) -> list[FactorRecord]:

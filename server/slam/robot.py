@@ -21,6 +21,7 @@ from server.slam.backend import (
     start_trajectory,
 )
 from server.slam.config import SlamConfig
+from server.slam.errors import SlamInputError
 from server.slam.frontend import (
     FrontendMatch,
     MatchKind,
@@ -41,12 +42,6 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 IDENTITY = np.zeros(3)
-
-
-class SlamInputError(ValueError):
-    """A scan or odometry pose that cannot be used (non-finite, out of order...)."""
-
-    user_error = True
 
 
 @dataclass
@@ -259,7 +254,7 @@ class RobotSlam:
 
     def keyframe_poses(self) -> F64:
         """Optimised poses (K, 3) of all keyframes, in keyframe order."""
-        return self.graph.poses(self.trajectory.keys())
+        return self.graph.poses(self.trajectory.all_keys())
 
     def scan_poses(self) -> tuple[NDArray[np.int64], F64]:
         """Stamps [ns] and optimised map-frame poses (N, 3) of every scan added so far."""

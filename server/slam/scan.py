@@ -13,13 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from server.slam.errors import SlamInputError
+
 F64 = NDArray[np.float64]
 
 
-class ScanError(ValueError):
-    """A scan cannot be used (shapes differ, no finite beams...)."""
-
-    user_error = True
+class ScanError(SlamInputError):
+    """A scan cannot be used (ranges and angles differ in shape...)."""
 
 
 @dataclass(frozen=True, slots=True)
