@@ -164,17 +164,46 @@ def sim(
 
 @app.command()
 def demo(
-    scenario: Annotated[str, typer.Option(help="scenario name")] = "thesis-case-2",
+    scenario: Annotated[str | None, typer.Option(
+        help="scenario of scenarios.yaml (default thesis-case-2 unless --world is given)")] = None,
+    world: Annotated[Path | None, typer.Option(help="world file instead of a scenario")] = None,
+    robot: Annotated[list[str] | None, typer.Option(
+        help="robot spawn ID:X,Y,YAW (repeatable)")] = None,
+    area: Annotated[float | None, typer.Option(help="free area to cover [m²]")] = None,
+    coverage: Annotated[float | None, typer.Option(help="coverage threshold (0..1]")] = None,
+    seed: Annotated[int, typer.Option(help="random seed")] = 0,
+    lockstep: Annotated[bool, typer.Option(
+        "--lockstep/--real-time", help="deterministic lockstep, or real time × --rtf")] = True,
+    rtf: Annotated[float, typer.Option(help="real-time factor with --real-time")] = 5.0,
+    explorer: Annotated[str, typer.Option(help="voronoi or frontier")] = "voronoi",
+    max_sim_time: Annotated[float, typer.Option(help="give up after this sim time [s]")
+                            ] = 3600.0,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
-    """Start server, simulator and agents on loopback and explore a scenario."""
+    """Start server, simulator and agents on loopback and explore a scenario or world."""
     setup_logging(verbose)
 
     def body() -> Any:
         from mrslam.demo import run
+        from sim.config import parse_robot_spec
 
-        return run(scenario=scenario, out=out)
+        opts: dict[str, Any] = {"seed": seed, "lockstep": lockstep, "rtf": rtf,
+                                "explorer": explorer, "max_sim_time_s": max_sim_time}
+        if world is not None:
+            opts.update(world=str(world), scenario=scenario)
+        elif scenario is not None:
+            opts["scenario"] = scenario
+        if robot:
+            opts["robots"] = dict(parse_robot_spec(spec) for spec in robot)
+        for k, v in (("area_m2", area), ("coverage", coverage),
+                     ("out", str(out) if out else None)):
+            if v is not None:
+                opts[k] = v
+        report = run(opts)
+        if not report["reached"]:
+            raise typer.Exit(1)
+        return report
 
     call("demo", body)
 

@@ -1,9 +1,9 @@
-"""``mrslam demo``: the main job.
+"""``mrslam demo``: explore a simulated world with the real processes on loopback.
 
-The exploration demo (server + simulator + agents on loopback) is not built yet. Until it is,
-the demo runs the most complete thing that exists: the bus check, in which a router session and
-three robot client sessions on loopback exchange scans, commands and the map at 10 Hz, and the
-figures are written to a run folder.
+The server (Zenoh router, SLAM, exploration, control), the simulator and one agent per robot run
+as separate processes, exactly as they would on a robot team; this module only starts them,
+watches the bus for progress, stops them, and scores the run against the simulator's ground
+truth into a run folder (resolved config, ``report.json``, maps, trajectories, figures).
 """
 
 from __future__ import annotations
@@ -12,91 +12,148 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-import numpy as np
-from pydantic import BaseModel
-from rich.console import Console
-from rich.table import Table
+import yaml
+from pydantic import BaseModel, ConfigDict, Field
 
 from mrslam.config import write_resolved
+from mrslam.launch import ProcessGroup
 
 log = logging.getLogger(__name__)
 
-
-class BusCheckConfig(BaseModel):
-    scenario: str = "thesis-case-2"
-    robots: list[str] = ["r1", "r2", "r3"]
-    duration_s: float = 3.0
-    rate_hz: float = 10.0
-    beams: int = 400
+Pose = tuple[float, float, float]
 
 
-def run(scenario: str = "thesis-case-2", out: Path | None = None) -> dict[str, Any]:
+class DemoConfig(BaseModel):
+    """Everything a demo run is made of; saved as ``demo_config.yaml`` in the run folder."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    scenario: str | None = "thesis-case-2"
+    world: str | None = None
+    robots: dict[str, Pose] = Field(default_factory=dict)
+    area_m2: float | None = Field(
+        None, gt=0, description="free area to cover; default: the world's, from its geometry")
+    coverage: float | None = Field(None, gt=0, le=1, description="default: the scenario's")
+    seed: int = 0
+    lockstep: bool = True
+    rtf: float = Field(5.0, gt=0, description="real-time factor when not in lockstep")
+    explorer: Literal["voronoi", "frontier"] = "voronoi"
+    cells_per_m: float | None = Field(None, gt=0, description="default: the scenario's, else 15")
+    lam: float | None = None
+    v_mps: float | None = None
+    omega_max_rps: float | None = None
+    lookahead_m: float | None = None
+    max_sim_time_s: float = Field(3600.0, gt=0)
+    wall_timeout_s: float = Field(1800.0, gt=0)
+    out: str = ""
+
+
+def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
+    """Run one demo; returns the report (also written to ``<out>/report.json``)."""
+    from rich.console import Console
+
+    cfg = DemoConfig.model_validate(overrides or {})
+    if not cfg.out:
+        name = cfg.scenario or Path(cfg.world or "world").stem
+        cfg.out = str(Path("runs") / time.strftime(f"{name}-%Y%m%d-%H%M%S"))
+    out = Path(cfg.out)
     console = Console(stderr=True)
-    console.print("[bold]mrslam demo[/]: the exploration demo is not built yet; "
-                  "running the bus check (router + 3 robot clients on loopback).")
-    cfg = BusCheckConfig(scenario=scenario)
-    run_dir = out or Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
-    write_resolved(cfg, run_dir)
-    report = bus_check(cfg)
-    (run_dir / "report.json").write_text(json.dumps(report, indent=2))
-    table = Table(title="bus check")
-    for col in ("robot", "scans sent", "scans received", "commands received"):
-        table.add_column(col)
-    for rid, row in report["robots"].items():
-        table.add_row(rid, str(row["scans_sent"]), str(row["scans_received"]),
-                      str(row["commands_received"]))
-    console.print(table)
-    console.print(f"map query answered: {report['map_query_ok']}; run folder: {run_dir}")
+    plan = plan_run(cfg)
+    write_resolved(cfg, out, "demo_config.yaml")
+    console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} robot(s), "
+                  f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
+                  f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; run folder {out}")
+    t0 = time.monotonic()
+    watch = _execute(cfg, plan, out, console, progress)
+    from mrslam.report import build_report
+
+    report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
+    (out / "report.json").write_text(json.dumps(report, indent=2))
+    from mrslam.report import print_summary
+
+    print_summary(report, console)
     return report
 
 
-def bus_check(cfg: BusCheckConfig) -> dict[str, Any]:
-    from schemas import MapUpdate, Scan, VelocityCommand, keys, quantise_ranges_mm
-    from schemas.bus import Bus, free_local_endpoint
+def plan_run(cfg: DemoConfig) -> dict[str, Any]:
+    """Resolve the scenario: world, robots, settings, and the world's true map."""
+    from sim.config import SimConfig, load_scenario, resolve_scene
+    from sim.world_map import world_map
+
+    scfg = SimConfig(scenario=cfg.scenario, world=cfg.world, robots=cfg.robots)
+    world, robots = resolve_scene(scfg)
+    case: dict[str, Any] = (load_scenario(Path(scfg.scenarios_file), cfg.scenario)
+                            if cfg.scenario else {})
+    cells = cfg.cells_per_m or float(case.get("grid_cells_per_m", 15))
+    truth_grid, figures = world_map(world, 1.0 / cells)
+    area = cfg.area_m2 or float(figures["free_area_m2"])
+    return {
+        "title": cfg.scenario or str(world),
+        "world": str(world),
+        "robots": {rid: list(p) for rid, p in robots.items()},
+        "resolution_m": 1.0 / cells,
+        "area_m2": area,
+        "nominal_area_m2": case.get("total_area_m2"),
+        "world_figures": figures,
+        "truth_grid": truth_grid,
+        "threshold": cfg.coverage or float(case.get("coverage_threshold", 0.95)),
+        "lam": cfg.lam if cfg.lam is not None else float(case.get("lambda", 1.0)),
+        "v_mps": cfg.v_mps or float(case.get("v_mps", 0.3)),
+        "omega_max_rps": cfg.omega_max_rps or float(case.get("omega_max_rps", 1.5)),
+        "lookahead_m": cfg.lookahead_m or float(case.get("lookahead_m", 1.0)),
+        "reported": case.get("reported", {}),
+    }
+
+
+def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) -> None:
+    server = {
+        "bus": {"mode": "router", "listen": [endpoint], "connect": []},
+        "robots": sorted(plan["robots"]),
+        "slam": {"grid": {"resolution_m": plan["resolution_m"], "p_hit": 0.75, "p_miss": 0.35}},
+        "explore": {"explorer": cfg.explorer, "lam": plan["lam"], "total_area_m2": plan["area_m2"],
+                    "coverage_threshold": plan["threshold"]},
+        "control": {"v_mps": plan["v_mps"], "omega_max_rps": plan["omega_max_rps"],
+                    "lookahead_m": plan["lookahead_m"]},
+        "out": str(out / "server"),
+        "exit_when_done": True,
+    }
+    (out / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
+    for rid in plan["robots"]:
+        agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000}}
+        (out / f"agent_{rid}.yaml").write_text(yaml.safe_dump(agent, sort_keys=False))
+
+
+def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
+             progress: bool) -> dict[str, Any]:
+    from mrslam.monitor import Monitor
+    from schemas.bus import free_local_endpoint
 
     endpoint = free_local_endpoint()
-    rng = np.random.default_rng(0)
-    scans: dict[str, int] = dict.fromkeys(cfg.robots, 0)
-    cmds: dict[str, int] = dict.fromkeys(cfg.robots, 0)
-    with Bus.open("router", listen=[endpoint]) as server:
-        clients = {r: Bus.open("client", connect=[endpoint]) for r in cfg.robots}
-        try:
-            def on_scan(key: str, msg: Scan) -> None:
-                scans[msg.robot_id] += 1
-                server.publish(keys.robot_cmd_vel(msg.robot_id),
-                               VelocityCommand(robot_id=msg.robot_id, v_mps=0.3, omega_rps=0.0,
-                                               seq=msg.seq, stamp_ns=time.time_ns()))
-
-            server.subscribe(keys.ALL_SCANS, Scan, on_scan)
-            grid = np.full((300, 300), -1, np.int8)
-            server.serve(keys.SERVER_MAP, lambda: [MapUpdate.from_grid(
-                grid, team_id="t1", robot_ids=cfg.robots, resolution_m=0.05,
-                origin=(-7.5, -7.5, 0.0))])
-            for rid, bus in clients.items():
-                def on_cmd(key: str, msg: VelocityCommand, rid: str = rid) -> None:
-                    cmds[rid] += 1
-                bus.subscribe(keys.robot_cmd_vel(rid), VelocityCommand, on_cmd)
-            time.sleep(0.3)
-            n = int(cfg.duration_s * cfg.rate_hz)
-            for i in range(n):
-                for rid, bus in clients.items():
-                    ranges = rng.uniform(0.5, 9.0, cfg.beams)
-                    bus.publish(keys.robot_scan(rid), Scan(
-                        robot_id=rid, seq=i, stamp_ns=time.time_ns(), odom_pose=(0.0, 0.0, 0.0),
-                        angle_min_rad=-np.pi, angle_increment_rad=2 * np.pi / cfg.beams,
-                        range_min_mm=50, range_max_mm=10000,
-                        ranges_mm=quantise_ranges_mm(ranges, 0.05, 10.0)))
-                time.sleep(1.0 / cfg.rate_hz)
-            time.sleep(0.3)
-            maps = clients[cfg.robots[0]].get(keys.SERVER_MAP, MapUpdate)
-        finally:
-            for bus in clients.values():
-                bus.close()
-    return {
-        "mode": "bus-check",
-        "robots": {r: {"scans_sent": n, "scans_received": scans[r], "commands_received": cmds[r]}
-                   for r in cfg.robots},
-        "map_query_ok": len(maps) == 1 and maps[0].grid().shape == (300, 300),
-    }
+    _configs(cfg, plan, out, endpoint)
+    with ProcessGroup(out / "logs") as procs:
+        server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v")
+        with Monitor(endpoint, list(plan["robots"])) as mon:
+            if not mon.wait_for_server(30.0, server.alive):
+                raise RuntimeError(f"the server did not come up:\n{server.tail()}")
+            for rid in plan["robots"]:
+                procs.start(f"agent_{rid}", "agent", "-c", str(out / f"agent_{rid}.yaml"))
+            sim_args = ["sim", "--world", plan["world"], "--seed", str(cfg.seed),
+                        "--connect", endpoint, "--out", str(out / "sim"),
+                        "--duration", str(cfg.max_sim_time_s)]
+            for rid, p in plan["robots"].items():
+                sim_args += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}"]
+            sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
+            sim = procs.start("sim", *sim_args)
+            why = mon.follow(server, sim, cfg.wall_timeout_s, plan["threshold"], console,
+                             progress)
+            procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
+            procs.stop(["server"], timeout_s=60.0)
+            watch = mon.results()
+        watch["end"] = why
+        watch["exit_codes"] = {p.name: p.popen.returncode for p in procs.procs}
+        failed = [p for p in procs.procs if p.popen.returncode not in (0, -15, None)]
+        for p in failed:
+            console.print(f"[red]{p.name} exited with {p.popen.returncode}[/]:\n{p.tail()}")
+    return watch

@@ -131,6 +131,20 @@ class Bus:
         self._handles.append(sub)
         return sub
 
+    def subscribe_raw(self, key: str, callback: Callable[[str, bytes], None]) -> Any:
+        """Call ``callback(key, payload)`` with undecoded payloads (recorders, byte counters)."""
+
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:
+                self.stats.callback_errors["raw"] += 1
+                log.exception("raw handler for %s failed", sample.key_expr)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._handles.append(sub)
+        return sub
+
     def _reject(self, name: str, key: str, err: SchemaError) -> None:
         self.stats.rejected[name] += 1
         self.stats.last_error = f"{key}: {err}"

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.config import DEFAULT_PORT, BusConfig
-from server.slam.config import SlamConfig
+from server.slam.config import GridConfig, SlamConfig
 
 
 class _Model(BaseModel):
@@ -45,7 +45,9 @@ class ServerConfig(_Model):
     bus: BusConfig = Field(default_factory=_router)
     robots: list[str] | None = Field(
         None, description="robots allowed to join; None accepts any robot that appears")
-    slam: SlamConfig = SlamConfig()
+    # one observation decides a cell for exploration: a beam through it makes it free
+    # (p 0.35 < 0.4), an endpoint in it makes it occupied (p 0.75 > 0.7)
+    slam: SlamConfig = SlamConfig(grid=GridConfig(p_hit=0.75, p_miss=0.35))
     explore: ExploreConfig = ExploreConfig()
     control: ControlConfig = ControlConfig()
     map_period_s: float = Field(

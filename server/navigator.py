@@ -60,6 +60,8 @@ class Navigator:
         self.finished_reason = ""
         self.stats = NavStats()
         self._last_decision_s = -np.inf
+        self._looked_around = False
+        self._spin_until_s = -np.inf
 
     def step(self, now_s: float, pose: F64, start_pose: F64, points_robot_xy: F64,
              grid: Callable[[], OccupancyGrid], visited: VisitedTargets,
@@ -67,6 +69,8 @@ class Navigator:
         """The command for this scan. ``grid`` is called only when a decision is due."""
         if self.mode == DONE:
             return STOP
+        if now_s < self._spin_until_s:
+            return Twist(0.0, self.pursuit.params.omega_max_rps)
         if self.recovery.active:
             twist = self.recovery.command(now_s)
             if twist is not None:
@@ -122,10 +126,19 @@ class Navigator:
             self.stats.decision_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.decisions += 1
         if isinstance(outcome, Finished):
-            self.mode, self.finished_reason = DONE, outcome.reason
             self.path_xy = self.target_xy = None
+            p = self.explorer.params
+            reached = outcome.coverage is not None and outcome.coverage >= p.coverage_threshold
+            if not reached and not self._looked_around:
+                # nothing left in view: turn once on the spot before believing it
+                self._looked_around = True
+                self._spin_until_s = now_s + 2 * np.pi / self.pursuit.params.omega_max_rps
+                self.mode = RECOVERING
+                return
+            self.mode, self.finished_reason = DONE, outcome.reason
             log.info("exploration finished: %s", outcome.reason)
             return
+        self._looked_around = False
         assert isinstance(outcome, Decision)
         if outcome.target_xy != self.target_xy:
             self.pursuit.reset()

@@ -24,7 +24,7 @@ def write_nav2_grid(grid: PlanningGrid, out_dir: Path, name: str = "map") -> Pat
     write_png_gray(out_dir / f"{name}.png", img[::-1])
     meta = {"image": f"{name}.png", "mode": "trinary", "resolution": grid.resolution_m,
             "origin": [grid.origin_xy[0], grid.origin_xy[1], 0.0], "negate": 0,
-            "occupied_thresh": 0.65, "free_thresh": 0.25}
+            "occupied_thresh": 0.65, "free_thresh": 0.196}
     path = out_dir / f"{name}.yaml"
     path.write_text(yaml.safe_dump(meta, sort_keys=False))
     return path

@@ -50,7 +50,7 @@ def write_nav2(grid: OccupancyGrid, out_dir: Path, name: str = "map") -> Path:
         "origin": [float(grid.origin[0]), float(grid.origin[1]), 0.0],
         "negate": 0,
         "occupied_thresh": 0.65,
-        "free_thresh": 0.25,
+        "free_thresh": 0.196,  # 205 (unknown) reads as p 0.19608: neither free nor occupied
     }
     path = out_dir / f"{name}.yaml"
     path.write_text(yaml.safe_dump(meta, sort_keys=False))

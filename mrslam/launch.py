@@ -1,0 +1,77 @@
+"""Start and stop mrslam's processes for a local run (the demo, benchmarks, end-to-end tests)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Proc:
+    name: str
+    popen: subprocess.Popen[bytes]
+    log_path: Path
+
+    def alive(self) -> bool:
+        return self.popen.poll() is None
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+@dataclass
+class ProcessGroup:
+    """Child processes whose output goes to ``<log_dir>/<name>.log``."""
+
+    log_dir: Path
+    procs: list[Proc] = field(default_factory=list)
+
+    def start(self, name: str, *args: str) -> Proc:
+        """Run ``python -m mrslam ARGS`` (the same interpreter, so the same install)."""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        path = self.log_dir / f"{name}.log"
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with path.open("wb") as out:
+            popen = subprocess.Popen([sys.executable, "-m", "mrslam", *args], stdout=out,
+                                     stderr=subprocess.STDOUT, env=env,
+                                     start_new_session=True)
+        p = Proc(name, popen, path)
+        self.procs.append(p)
+        log.info("started %s (pid %d)", name, popen.pid)
+        return p
+
+    def stop(self, names: list[str] | None = None, timeout_s: float = 15.0) -> None:
+        """SIGTERM, then SIGKILL whatever has not exited after ``timeout_s``."""
+        chosen = [p for p in self.procs if names is None or p.name in names]
+        for p in chosen:
+            if p.alive():
+                with contextlib.suppress(ProcessLookupError):
+                    p.popen.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for p in chosen:
+            left = max(0.1, deadline - time.monotonic())
+            try:
+                p.popen.wait(timeout=left)
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop within %.0f s; killing it", p.name, timeout_s)
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.popen.pid, signal.SIGKILL)
+                p.popen.wait(timeout=5)
+
+    def __enter__(self) -> ProcessGroup:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -1,0 +1,111 @@
+"""Watching a run from the outside, as any Zenoh client can: progress, events, wire bytes."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+from typing import Any
+
+from mrslam.launch import Proc
+from schemas import Event, RobotStates, SimClock, keys
+from schemas.bus import Bus
+
+
+class Monitor:
+    def __init__(self, endpoint: str, robots: list[str]) -> None:
+        self.bus = Bus.open("client", connect=[endpoint], connect_timeout_ms=10000)
+        self.robots = robots
+        self.sim_time_s = 0.0
+        self.states: RobotStates | None = None
+        self.events: list[Event] = []
+        self.bytes_sent: Counter[str] = Counter()
+        self.messages_sent: Counter[str] = Counter()
+        self._server_up = threading.Event()
+        self._lock = threading.Lock()
+        self.bus.watch_alive(keys.SERVER_ALIVE, self._on_server)
+        self.bus.subscribe(keys.SIM_CLOCK, SimClock, self._on_clock)
+        self.bus.subscribe(keys.SERVER_ROBOTS, RobotStates, self._on_states)
+        self.bus.subscribe(keys.SERVER_EVENTS, Event, self._on_event)
+        self.bus.subscribe_raw(f"{keys.ROOT}/robot/*/*", self._on_robot_bytes)
+
+    def _on_server(self, key: str, alive: bool) -> None:
+        if alive:
+            self._server_up.set()
+
+    def _on_clock(self, key: str, msg: SimClock) -> None:
+        self.sim_time_s = msg.stamp_ns * 1e-9
+
+    def _on_states(self, key: str, msg: RobotStates) -> None:
+        self.states = msg
+
+    def _on_event(self, key: str, msg: Event) -> None:
+        with self._lock:
+            self.events.append(msg)
+
+    def _on_robot_bytes(self, key: str, payload: bytes) -> None:
+        rid = keys.robot_id_of(key)
+        if rid is not None and not key.endswith("/cmd_vel"):  # what the robot sends
+            with self._lock:
+                self.bytes_sent[rid] += len(payload)
+                self.messages_sent[rid] += 1
+
+    def wait_for_server(self, timeout_s: float, alive: Any) -> bool:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < timeout_s:
+            if self._server_up.wait(0.2):
+                return True
+            if not alive():
+                return False
+        return False
+
+    def coverage(self) -> float:
+        s = self.states
+        return max((t.coverage for t in s.teams), default=0.0) if s else 0.0
+
+    def follow(self, server: Proc, sim: Proc, wall_timeout_s: float, threshold: float,
+               console: Any, progress: bool) -> str:
+        """Block until the run ends; returns why: finished, sim-ended, server-died, timeout."""
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        columns = [TextColumn("[bold]coverage"), BarColumn(), TextColumn("{task.fields[cov]}"),
+                   TextColumn("sim {task.fields[sim]}"), TextColumn("{task.fields[robots]}"),
+                   TimeElapsedColumn()]
+        t0 = time.monotonic()
+        with Progress(*columns, console=console, disable=not progress, transient=False) as bar:
+            task = bar.add_task("run", total=threshold, cov="0.0%", sim="0 s", robots="")
+            while True:
+                cov = self.coverage()
+                bar.update(task, completed=min(cov, threshold), cov=f"{cov:.1%}",
+                           sim=f"{self.sim_time_s:.0f} s", robots=self._robot_line())
+                if not server.alive():
+                    return "finished" if server.popen.returncode == 0 else "server-died"
+                if not sim.alive():
+                    return "sim-ended"
+                if time.monotonic() - t0 > wall_timeout_s:
+                    return "timeout"
+                time.sleep(0.25)
+
+    def _robot_line(self) -> str:
+        s = self.states
+        if s is None:
+            return "waiting for robots"
+        return " ".join(f"{r.robot_id}:{r.mode}" for r in s.robots)
+
+    def results(self) -> dict[str, Any]:
+        with self._lock:
+            return {"bytes_sent": dict(self.bytes_sent),
+                    "messages_sent": dict(self.messages_sent),
+                    "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": e.robot_ids,
+                                "message": e.message} for e in self.events],
+                    "sim_time_s": self.sim_time_s,
+                    "bus": self.bus.stats.as_dict()}
+
+    def close(self) -> None:
+        self.bus.close()
+
+    def __enter__(self) -> Monitor:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,160 @@
+"""``report.json`` of a demo run: the server's outputs scored against the simulator's truth."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mrslam.evaluate import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
+
+log = logging.getLogger(__name__)
+
+
+def read_truth(path: Path) -> dict[str, dict[str, Any]]:
+    """Per robot: stamps_ns, poses (N, 3), and the last collisions / distance counters."""
+    rows: dict[str, dict[str, list[Any]]] = {}
+    last: dict[str, dict[str, Any]] = {}
+    with path.open() as f:
+        for line in f:
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut short when the simulator was stopped
+            for p in rec.get("poses", []):
+                r = rows.setdefault(p["robot_id"], {"stamps": [], "poses": []})
+                r["stamps"].append(rec["stamp_ns"])
+                r["poses"].append(p["pose"])
+                last[p["robot_id"]] = p
+    return {rid: {"stamps_ns": np.asarray(r["stamps"], np.int64),
+                  "poses": np.asarray(r["poses"], np.float64).reshape(-1, 3),
+                  "collisions": int(last[rid].get("collisions", 0)),
+                  "distance_m": float(last[rid].get("distance_m", 0.0))}
+            for rid, r in rows.items()}
+
+
+def read_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    if data.size == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    return data[:, 0].astype(np.int64), data[:, 1:4]
+
+
+def _finite(x: float) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), 4)
+
+
+def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any],
+                 wall_time_s: float) -> dict[str, Any]:
+    from sim.grid import read_nav2
+
+    server_dir = out / "server"
+    summary = json.loads((server_dir / "summary.json").read_text())
+    truth = read_truth(out / "sim" / "truth.jsonl")
+    threshold = plan["threshold"]
+    robots: dict[str, Any] = {}
+    teams: dict[str, Any] = {}
+    traj_world: dict[str, np.ndarray] = {}
+    for team_id, team in summary["teams"].items():
+        anchor = team["robot_ids"][0]
+        a_stamps, a_online = read_trajectory(server_dir / "trajectories" / f"{anchor}_online.csv")
+        idx, a_true = match_truth(a_stamps[:1], truth[anchor]["stamps_ns"],
+                                  truth[anchor]["poses"])
+        T_world_map = anchor_transform(a_true[0], a_online[0]) if len(idx) else np.zeros(3)
+        history = team.get("coverage_history", [])
+        t_reach = next((s * 1e-9 for s, c in history if c >= threshold), None)
+        quality = None
+        map_yaml = server_dir / "maps" / team_id / "map.yaml"
+        if map_yaml.exists():
+            est = read_nav2(map_yaml)
+            tg = plan["truth_grid"]
+            q = map_quality(est.cells, est.resolution_m, est.origin[:2], T_world_map, tg.cells,
+                            tg.resolution_m, tg.origin[:2])
+            quality = {"true_coverage": _finite(q.true_coverage),
+                       "explored_free_m2": _finite(q.explored_free_m2),
+                       "true_free_m2": _finite(q.true_free_m2),
+                       "phantom_area_m2": _finite(q.phantom_area_m2)}
+        teams[team_id] = {"robot_ids": team["robot_ids"], "coverage": _finite(team["coverage"]),
+                          "reached": t_reach is not None,
+                          "sim_time_to_threshold_s": _finite(t_reach) if t_reach else None,
+                          "coverage_history": [[s * 1e-9, c] for s, c in history],
+                          **(quality or {})}
+        for rid in team["robot_ids"]:
+            stamps, online = read_trajectory(server_dir / "trajectories" / f"{rid}_online.csv")
+            f_stamps, final = read_trajectory(server_dir / "trajectories" / f"{rid}_final.csv")
+            t = truth.get(rid)
+            if t is None:
+                continue
+            err = pose_errors(stamps, online, T_world_map, t["stamps_ns"], t["poses"])
+            traj_world[rid] = err.stamps_ns
+            srv = summary["robots"].get(rid, {})
+            robots[rid] = {
+                "team_id": team_id,
+                "distance_m": round(t["distance_m"], 3),
+                "max_position_error_m": _finite(err.max_position_m),
+                "max_yaw_error_rad": _finite(err.max_yaw_rad),
+                "ate_rmse_m": _finite(ate_rmse(f_stamps, final, t["stamps_ns"], t["poses"])),
+                "collisions": t["collisions"],
+                "bytes_sent": watch.get("bytes_sent", {}).get(rid, 0),
+                "messages_sent": watch.get("messages_sent", {}).get(rid, 0),
+                "scans": srv.get("scans"), "keyframes": srv.get("keyframes"),
+                "loop_closures": srv.get("loop_closures"),
+                "decisions": srv.get("decisions"),
+                "decision_ms_median": srv.get("decision_ms_median"),
+                "mode": srv.get("mode"),
+            }
+            _plot_data = (err.stamps_ns * 1e-9, err.position_m, err.yaw_rad)
+            robots[rid]["_errors"] = _plot_data
+    reached = bool(teams) and all(t["reached"] for t in teams.values())
+    best = min((t["sim_time_to_threshold_s"] for t in teams.values()
+                if t["sim_time_to_threshold_s"] is not None), default=None)
+    report = {
+        "scenario": plan["title"], "world": plan["world"], "seed": cfg.seed,
+        "explorer": cfg.explorer, "lockstep": cfg.lockstep,
+        "robots_spawn": plan["robots"], "threshold": threshold,
+        "area_m2": plan["area_m2"], "nominal_area_m2": plan["nominal_area_m2"],
+        "reached": reached,
+        "sim_time_to_threshold_s": best,
+        "true_coverage": min((t.get("true_coverage") or 0.0 for t in teams.values()),
+                             default=None),
+        "phantom_area_m2": sum(t.get("phantom_area_m2") or 0.0 for t in teams.values()),
+        "teams": teams, "robots": robots,
+        "wall_time_s": round(wall_time_s, 2), "end": watch.get("end"),
+        "sim_time_s": round(watch.get("sim_time_s", 0.0), 2),
+        "events": summary.get("events", []),
+        "exit_codes": watch.get("exit_codes", {}),
+        "dissertation": plan.get("reported", {}),
+    }
+    try:
+        from mrslam.figures import write_figures
+
+        report["figures"] = write_figures(report, out)
+    except Exception:  # figures are a convenience; the numbers above are the result
+        log.exception("could not draw the figures")
+    for r in robots.values():
+        r.pop("_errors", None)
+    return report
+
+
+def print_summary(report: dict[str, Any], console: Any) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"{report['scenario']}: "
+                        f"{'reached' if report['reached'] else 'did NOT reach'} "
+                        f"{report['threshold']:.0%} "
+                        f"in {report['sim_time_to_threshold_s'] or float('nan'):.0f} s sim "
+                        f"({report['wall_time_s']:.0f} s wall)")
+    for col in ("robot", "distance m", "max pos err m", "max yaw err rad", "ATE m",
+                "collisions", "bytes sent"):
+        table.add_column(col)
+    for rid, r in report["robots"].items():
+        table.add_row(rid, f"{r['distance_m']:.1f}", str(r["max_position_error_m"]),
+                      str(r["max_yaw_error_rad"]), str(r["ate_rmse_m"]), str(r["collisions"]),
+                      f"{r['bytes_sent']:,}")
+    console.print(table)
+    console.print(f"true coverage {report['true_coverage']}, phantom area "
+                  f"{report['phantom_area_m2']:.2f} m², end: {report['end']}")
