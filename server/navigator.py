@@ -24,8 +24,8 @@ from server.control import (
     Vfh,
     VfhParams,
 )
-from server.exploration import Decision, Explorer, Finished, VisitedTargets
-from server.planning import OccupancyGrid, PlanningError
+from server.exploration import Decision, Explorer, Finished, VisitedTargets, analyse
+from server.planning import OccupancyGrid, PlanningError, plan
 
 log = logging.getLogger(__name__)
 
@@ -47,13 +47,15 @@ class Navigator:
     """Target selection and motion control of one robot (no I/O)."""
 
     def __init__(self, explorer: Explorer, pursuit: PursuitParams, vfh: VfhParams | None,
-                 stuck: StuckDetector, replan_period_s: float) -> None:
+                 stuck: StuckDetector, replan_period_s: float,
+                 commit_radius_m: float = 1.5) -> None:
         self.explorer = explorer
         self.pursuit = PurePursuit(pursuit)
         self.vfh = Vfh(vfh) if vfh is not None else None
         self.stuck = stuck
         self.recovery = Recovery()
         self.replan_period_s = replan_period_s
+        self.commit_radius_m = commit_radius_m
         self.mode = WAITING
         self.target_xy: tuple[float, float] | None = None
         self.path_xy: F64 | None = None
@@ -84,10 +86,16 @@ class Navigator:
             self.recovery.start(now_s, points_robot_xy)
             self.mode = RECOVERING
             return self.recovery.command(now_s) or STOP
-        if self.path_xy is None or now_s - self._last_decision_s >= self.replan_period_s:
+        if self.path_xy is None:
             self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
-            if self.mode == DONE or self.path_xy is None:
-                return STOP
+        elif now_s - self._last_decision_s >= self.replan_period_s:
+            # the map has grown: keep the target while it still borders unexplored space
+            # (switching between near-equal targets makes a robot dither), else choose again
+            g = grid()
+            if not self._replan_to_target(now_s, pose, g):
+                self._decide(now_s, pose, start_pose, g, visited, reserved_xy)
+        if self.mode == DONE or self.path_xy is None:
+            return STOP
         assert self.path_xy is not None
         follow = self.pursuit.step(pose, self.path_xy)
         if follow.reached:
@@ -146,6 +154,27 @@ class Navigator:
         self.mode = EXPLORING
         self.target_xy = outcome.target_xy
         self.path_xy = outcome.path.xy_m
+
+    def _replan_to_target(self, now_s: float, pose: F64, grid: OccupancyGrid) -> bool:
+        """A fresh path to the current target if it is still open; False when it is not."""
+        if self.target_xy is None:
+            return False
+        self._last_decision_s = now_s
+        analysis = analyse(grid, self.explorer.params.analysis, include_xy=pose[:2])
+        fr = analysis.frontiers
+        if len(fr) == 0:
+            return False
+        geo = analysis.layer.geometry
+        d = np.hypot(*(geo.cell_to_world(fr.cells_rc) - np.asarray(self.target_xy)).T)
+        if d.min() > self.commit_radius_m:
+            return False
+        try:
+            path = plan(analysis.layer, pose[:2], self.target_xy)
+        except PlanningError as e:
+            log.info("target %s dropped: %s", self.target_xy, e)
+            return False
+        self.path_xy = path.xy_m
+        return True
 
     def _give_up_target(self, visited: VisitedTargets) -> None:
         if self.target_xy is not None:

@@ -1,0 +1,56 @@
+"""End to end on loopback: server, simulator and an agent as processes explore a small world."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from mrslam.demo import run
+
+
+def three_rooms(folder: Path) -> Path:
+    """A 10 m × 6 m flat of three rooms whose doors are out of each other's sight; walls
+    0.15 m thick (a nav2 map)."""
+    res = 0.05
+    img = np.full((int(7 / res), int(11 / res)), 205, np.uint8)  # outside: unknown
+
+    def box(x0: float, y0: float, x1: float, y1: float, value: int) -> None:
+        img[round(y0 / res):round(y1 / res), round(x0 / res):round(x1 / res)] = value
+
+    t = 0.15
+    box(0.5, 0.5, 10.5, 6.5, 0)
+    box(0.5 + t, 0.5 + t, 10.5 - t, 6.5 - t, 254)
+    box(4.5, 0.5, 4.5 + t, 6.5, 0)            # A | B+C
+    box(4.5, 1.0, 4.5 + t, 2.0, 254)          # door A-B, low on the wall
+    box(4.5, 3.5, 10.5, 3.5 + t, 0)           # B / C
+    box(9.0, 3.5, 10.0, 3.5 + t, 254)         # door B-C, far right
+    cv2.imwrite(str(folder / "flat.pgm"), img[::-1])  # the image's first row is the top
+    meta = {"image": "flat.pgm", "resolution": res, "origin": [0.0, 0.0, 0.0], "negate": 0,
+            "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
+    path = folder / "flat.yaml"
+    path.write_text(yaml.safe_dump(meta))
+    return path
+
+
+def test_one_robot_explores_three_rooms_accurately(tmp_path: Path) -> None:
+    world = three_rooms(tmp_path)
+    report = run({"scenario": None, "world": str(world), "robots": {"r1": (1.5, 5.5, -0.5)},
+                  "coverage": 0.97, "cells_per_m": 15, "max_sim_time_s": 400,
+                  "wall_timeout_s": 240, "out": str(tmp_path / "run")}, progress=False)
+    assert report["end"] == "finished", report["end"]
+    assert report["reached"] and report["sim_time_to_threshold_s"] < 400
+    assert report["robots"]["r1"]["distance_m"] > 8.0  # it had to go through both doors
+    r1 = report["robots"]["r1"]
+    assert r1["collisions"] == 0
+    assert r1["max_position_error_m"] < 0.10
+    assert r1["max_yaw_error_rad"] < 0.05
+    assert report["true_coverage"] > 0.90
+    assert report["phantom_area_m2"] < 1.0
+    assert r1["bytes_sent"] > 0
+    run_dir = tmp_path / "run"
+    for f in ("report.json", "demo_config.yaml", "server/maps/team-r1/map.yaml",
+              "server/maps/team-r1/points.ply", "coverage.png", "pose_error.png"):
+        assert (run_dir / f).exists(), f
