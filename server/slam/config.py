@@ -15,7 +15,7 @@ class ScanConfig(_Model):
 
     min_range_m: float = Field(0.05, gt=0)
     max_range_m: float = Field(40.0, gt=0, description="readings at or beyond: no return")
-    min_point_spacing_m: float = Field(0.05, ge=0, description="thin points closer than this")
+    min_point_spacing_m: float = Field(0.08, ge=0, description="thin points closer than this")
     normal_window: int = Field(2, ge=1, description="beams each side used for a normal")
     normal_max_gap_m: float = Field(0.3, gt=0, description="max neighbour distance for normals")
 
@@ -26,6 +26,8 @@ class MatcherConfig(_Model):
     enabled: bool = Field(True, description="False: odometry only (loop closure still runs)")
 
     max_iterations: int = Field(25, ge=1)
+    converged_m: float = Field(5e-4, gt=0, description="stop when a step moves less")
+    converged_deg: float = Field(0.03, gt=0)
     max_correspondence_m: float = Field(0.5, gt=0, description="first iterations")
     min_correspondence_m: float = Field(0.15, gt=0, description="last iterations")
     kernel_m: float = Field(0.05, gt=0, description="Cauchy kernel width on point-to-line")
@@ -47,8 +49,8 @@ class MatcherConfig(_Model):
 
 
 class KeyframeConfig(_Model):
-    distance_m: float = Field(0.3, gt=0)
-    angle_deg: float = Field(10.0, gt=0)
+    distance_m: float = Field(0.5, gt=0)
+    angle_deg: float = Field(20.0, gt=0)
     max_interval_s: float = Field(10.0, gt=0, description="keyframe anyway after this long")
 
 

@@ -2,10 +2,10 @@
 2016), vectorised over candidates.
 
 The map becomes a likelihood field L(c) = exp(−d(c)² / 2σ²), d = distance from cell c to the
-nearest map point. The score of a pose T for scan points p_i is the mean of L at the cells of
-T·p_i. A precomputed max-pyramid L_h(y, x) = max of L over the 2^h × 2^h cells starting at
-(y, x) bounds the score of every translation in a 2^h-cell block from above, so whole blocks
-are discarded when their bound is below the best exact score found.
+nearest cell holding a map point (cut off at 3σ). The score of a pose T for scan points p_i is
+the mean of L at the cells of T·p_i. A precomputed max-pyramid L_h(y, x) = max of L over the
+2^h × 2^h cells starting at (y, x) bounds the score of every translation in a 2^h-cell block
+from above, so whole blocks are discarded when their bound is below the best exact score.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import distance_transform_edt
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -26,6 +25,25 @@ MAX_SURVIVORS = 30000
 class CorrelativeMatch:
     T_map_scan: F64
     score: float
+
+
+def gaussian_max_filter(hits: NDArray[np.float32], sigma_cells: float) -> NDArray[np.float32]:
+    """L(c) = max over hit cells h of exp(−|c − h|² / 2σ²), cut off at 3σ.
+
+    The kernel is separable and non-negative, so the max splits into a pass along y and one
+    along x: max_{dx,dy} g(dx) g(dy) h(x+dx, y+dy) = max_dx g(dx) max_dy g(dy) h(x+dx, y+dy).
+    """
+    radius = max(1, math.ceil(3.0 * sigma_cells))
+    g = np.exp(-0.5 * (np.arange(radius + 1) / sigma_cells) ** 2).astype(np.float32)
+    tmp = hits.copy()
+    for d in range(1, radius + 1):
+        np.maximum(tmp[:-d], g[d] * hits[d:], out=tmp[:-d])
+        np.maximum(tmp[d:], g[d] * hits[:-d], out=tmp[d:])
+    out = tmp.copy()
+    for d in range(1, radius + 1):
+        np.maximum(out[:, :-d], g[d] * tmp[:, d:], out=out[:, :-d])
+        np.maximum(out[:, d:], g[d] * tmp[:, :-d], out=out[:, d:])
+    return out
 
 
 class LikelihoodField:
@@ -39,12 +57,10 @@ class LikelihoodField:
         self.origin = lo
         shape = np.ceil((hi - lo) / resolution_m).astype(np.int64) + 1
         w, h = int(shape[0]), int(shape[1])
-        hits = np.ones((h, w), dtype=bool)
+        hits = np.zeros((h, w), dtype=np.float32)
         ij = np.floor((points_map - lo) / resolution_m).astype(np.int64)
-        hits[ij[:, 1], ij[:, 0]] = False
-        d_cells = distance_transform_edt(hits)
-        sig = sigma_m / resolution_m
-        field = np.exp(-0.5 * (d_cells / sig) ** 2).astype(np.float32)
+        hits[ij[:, 1], ij[:, 0]] = 1.0
+        field = gaussian_max_filter(hits, sigma_m / resolution_m)
         field[0, :] = field[-1, :] = 0.0  # a zero border: indices are clipped onto it
         field[:, 0] = field[:, -1] = 0.0
         self.pyramid = [field]

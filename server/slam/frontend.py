@@ -49,7 +49,8 @@ def icp_params(cfg: MatcherConfig) -> IcpParams:
                      min_correspondence_m=cfg.min_correspondence_m, kernel_m=cfg.kernel_m,
                      min_normal_cos=cfg.min_normal_cos,
                      degenerate_eigen_ratio=cfg.degenerate_eigen_ratio,
-                     point_sigma_m=cfg.point_sigma_m)
+                     point_sigma_m=cfg.point_sigma_m, converged_m=cfg.converged_m,
+                     converged_rad=math.radians(cfg.converged_deg))
 
 
 def odometry_step_suspicious(step: F64, cfg: MatcherConfig) -> bool:

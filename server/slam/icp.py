@@ -30,6 +30,7 @@ class IcpParams:
     degenerate_eigen_ratio: float = 0.02
     converged_m: float = 5e-4
     point_sigma_m: float = 0.03
+    min_points_coarse: int = 20
     converged_rad: float = 5e-4
 
 
@@ -120,11 +121,16 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     tx, ty, th = (float(v) for v in T_init)
     n_pts = len(scan_points)
     # complex arithmetic: R(θ)p = p·e^{iθ}; n·v = Re(v·conj(n)); n·(R(θ+π/2)p) = −Im(Rp·conj(n))
-    P = scan_points[:, 0] + 1j * scan_points[:, 1]
+    P_all = scan_points[:, 0] + 1j * scan_points[:, 1]
     have_n = scan_normals is not None
+    Ns_all = np.zeros(n_pts, dtype=np.complex128)
+    free_all = np.ones(n_pts, dtype=bool)
     if scan_normals is not None:
-        Ns = np.nan_to_num(scan_normals[:, 0]) + 1j * np.nan_to_num(scan_normals[:, 1])
-        no_normal = ~np.isfinite(scan_normals[:, 0])
+        Ns_all = np.nan_to_num(scan_normals[:, 0]) + 1j * np.nan_to_num(scan_normals[:, 1])
+        free_all = ~np.isfinite(scan_normals[:, 0])
+    # while the search radius still shrinks, every other point is enough to steer the pose
+    coarse = (P_all[::2], Ns_all[::2], free_all[::2]) if n_pts >= 4 * p.min_points_coarse else \
+        (P_all, Ns_all, free_all)
     M, MN = target.points_c, target.normals_c
     H = np.zeros((3, 3))
     converged = False
@@ -136,6 +142,7 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     inv_kernel = 1.0 / p.kernel_m
     for step in range(1, p.max_iterations + 1):
         it = step
+        P, Ns, no_normal = coarse if d_max > p.min_correspondence_m else (P_all, Ns_all, free_all)
         rot = complex(math.cos(th), math.sin(th))
         RP = P * rot
         Q = RP + complex(tx, ty)

@@ -31,13 +31,12 @@ class Keyframe:
         return cls(index, stamp_ns, scan, T_odom_robot, scan.with_normals())
 
 
-def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64,
-           with_normals: bool = True) -> tuple[F64, F64]:
-    """Points and normals of keyframes placed by ``T_frame_kf`` (K, 3), concatenated
-    (only points with a normal if ``with_normals``)."""
+def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64) -> tuple[F64, F64]:
+    """Matching points and normals of keyframes placed by ``T_frame_kf`` (K, 3), concatenated
+    (only points with a normal)."""
     if len(keyframes) == 0:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    parts = [kf.matchable if with_normals else kf.scan for kf in keyframes]
+    parts = [kf.matchable for kf in keyframes]
     counts = [len(p) for p in parts]
     P = np.concatenate([p.points for p in parts])
     N = np.concatenate([p.normals for p in parts])

@@ -18,12 +18,10 @@ from __future__ import annotations
 import logging
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from server.slam.config import LoopClosureConfig
 from server.slam.correlative import LikelihoodField, search
@@ -74,23 +72,46 @@ class LoopStats:
     removed_inconsistent: int = 0
 
 
-@dataclass
 class _Graph:
-    """Edges (i, j, length) of the keyframe graph, for path distances."""
+    """Path lengths in a keyframe chain with shortcut edges (loop closures).
 
-    edges: list[tuple[int, int, float]] = field(default_factory=list)
+    Keyframe i sits at arc length c_i along the chain. The shortest path from k is found by
+    relaxing D ← min(D, D[a] + w + |c − c_b|) over the shortcut edges (a, b, w) in both
+    directions until nothing changes (Bellman–Ford on the few extra edges; the chain itself is
+    the |c − c_k| term).
+    """
+
+    def __init__(self) -> None:
+        self.arc = np.zeros(1)
+        self.shortcuts: list[tuple[int, int, float]] = []
+
+    def add_edge(self, i: int, j: int, length_m: float) -> None:
+        if j == i + 1 and j == len(self.arc):
+            self.arc = np.append(self.arc, self.arc[-1] + length_m)
+        else:
+            self.shortcuts.append((i, j, length_m))
 
     def distances_from(self, source: int, n: int) -> F64:
         """Path lengths from ``source`` to keyframes 0..n-1 (inf where not connected)."""
-        n_out = n
-        if not self.edges:
-            return np.full(n, np.inf)
-        e = np.asarray(self.edges, dtype=np.float64)
-        i, j, w = e[:, 0].astype(np.int64), e[:, 1].astype(np.int64), np.maximum(e[:, 2], 1e-6)
-        n = max(n, int(max(i.max(), j.max())) + 1)
-        m = csr_matrix((np.concatenate([w, w]), (np.concatenate([i, j]), np.concatenate([j, i]))),
-                       shape=(n, n))
-        return np.asarray(dijkstra(m, directed=False, indices=source), dtype=np.float64)[:n_out]
+        m = len(self.arc)
+        dist = np.full(n, np.inf)
+        if source >= m:
+            return dist
+        d = np.abs(self.arc - self.arc[source])
+        edges = [(a, b, w) for a, b, w in self.shortcuts if a < m and b < m]
+        for _ in range(len(edges) + 1):
+            changed = False
+            for a, b, w in edges:
+                for u, v in ((a, b), (b, a)):
+                    via = d[u] + w
+                    if via < d[v] - 1e-9:
+                        np.minimum(d, via + np.abs(self.arc - self.arc[v]), out=d)
+                        changed = True
+            if not changed:
+                break
+        k = min(n, m)
+        dist[:k] = d[:k]
+        return dist
 
 
 class LoopCloser:
@@ -105,7 +126,8 @@ class LoopCloser:
 
     # -- bookkeeping ---------------------------------------------------------------------
     def add_edge(self, i: int, j: int, length_m: float) -> None:
-        self._graph.edges.append((i, j, length_m))
+        """Chain edges (k−1, k) in order, or loop edges between any two keyframes."""
+        self._graph.add_edge(i, j, length_m)
 
     def maybe_close_submap(self, keyframes: list[Keyframe], poses: F64) -> None:
         """Freeze the next block of keyframes into a submap once it is complete."""

@@ -9,21 +9,30 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from server.slam.geometry import transform_points
 from server.slam.grid import GridParams, OccupancyGrid
-from server.slam.keyframes import Keyframe, gather, voxel_thin
+from server.slam.keyframes import Keyframe, voxel_thin
 
 F64 = NDArray[np.float64]
+
+
+def hits_in_map(keyframes: Sequence[Keyframe], poses: F64) -> F64:
+    """Every return of the keyframes, in the map frame (N, 2)."""
+    if len(keyframes) == 0:
+        return np.zeros((0, 2))
+    return np.concatenate([transform_points(T, kf.scan.hits)
+                           for kf, T in zip(keyframes, poses, strict=True)])
 
 
 def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
     """A fresh grid from all keyframes at ``poses`` (K, 3)."""
     if len(keyframes) == 0:
         return OccupancyGrid(params)
-    pts, _ = gather(keyframes, poses, with_normals=False)
+    pts = hits_in_map(keyframes, poses)
     both = np.concatenate([pts, poses[:, :2]]) if len(pts) else poses[:, :2]
     grid = OccupancyGrid.covering(params, both.min(axis=0), both.max(axis=0))
     for kf, T in zip(keyframes, poses, strict=True):
-        grid.insert_scan(T, kf.scan.points)
+        grid.insert_scan(T, kf.scan.hits)
     return grid
 
 
@@ -58,13 +67,12 @@ class GridMapper:
             self.renders += 1
         else:
             for kf, T in zip(keyframes[n:], poses[n:], strict=True):
-                self.grid.insert_scan(T, kf.scan.points)
+                self.grid.insert_scan(T, kf.scan.hits)
         self._inserted_poses = np.array(poses, dtype=np.float64).reshape(-1, 3)
         return self.grid
 
 
 def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05) -> F64:
     """All keyframe points in the map frame, one per ``voxel_m`` cell."""
-    pts, _ = gather(keyframes, poses, with_normals=False)
-    (thin,) = voxel_thin(pts, voxel_m)
+    (thin,) = voxel_thin(hits_in_map(keyframes, poses), voxel_m)
     return thin

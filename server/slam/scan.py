@@ -24,22 +24,24 @@ class ScanError(SlamInputError):
 
 @dataclass(frozen=True, slots=True)
 class ScanPoints:
-    """Valid returns of one scan in the sensor frame.
+    """Returns of one scan in the sensor frame.
 
-    ``points`` (N, 2) [m]; ``normals`` (N, 2) unit vectors facing the sensor, NaN where no line
-    could be fitted; ``ranges_m`` (N,) range of each point.
+    ``points`` (N, 2) [m]: the returns used for matching (thinned to a spacing); ``normals``
+    (N, 2) unit vectors facing the sensor, NaN where no line could be fitted; ``ranges_m`` (N,)
+    their ranges; ``hits`` (M, 2): every valid return, for the occupancy grid.
     """
 
     points: F64
     normals: F64
     ranges_m: F64
+    hits: F64
 
     def __len__(self) -> int:
         return len(self.points)
 
     def with_normals(self) -> ScanPoints:
         ok = np.isfinite(self.normals[:, 0])
-        return ScanPoints(self.points[ok], self.normals[ok], self.ranges_m[ok])
+        return ScanPoints(self.points[ok], self.normals[ok], self.ranges_m[ok], self.hits)
 
 
 def valid_returns(ranges_m: F64, angles_rad: F64, min_range_m: float,
@@ -122,7 +124,8 @@ def thin_by_spacing(points: F64, spacing_m: float) -> NDArray[np.bool_]:
     n = len(points)
     if n == 0 or spacing_m <= 0:
         return np.ones(n, dtype=bool)
-    step = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    d = np.diff(points, axis=0)
+    step = np.hypot(d[:, 0], d[:, 1])
     step = np.minimum(step, spacing_m)  # a jump always starts a new bin
     s = np.concatenate([[0.0], np.cumsum(step)])
     bins = np.floor(s / spacing_m).astype(np.int64)
@@ -138,8 +141,8 @@ def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range
     r, a = valid_returns(ranges_m, angles_rad, min_range_m, max_range_m)
     pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
     # the gap allowed between neighbours grows with range, as the beams spread apart
-    beam_step = float(np.median(np.abs(np.diff(a)))) if len(a) > 1 else 0.0
+    beam_step = abs(float(a[-1] - a[0])) / (len(a) - 1) if len(a) > 1 else 0.0
     gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
     keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
     normals = line_normals(pts, normal_window, gap, keep)
-    return ScanPoints(pts[keep], normals, r[keep])
+    return ScanPoints(pts[keep], normals, r[keep], pts)
