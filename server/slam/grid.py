@@ -114,8 +114,9 @@ class OccupancyGrid:
         self.ensure_contains(lo, hi)
         res = self.resolution_m
         h, w = self.shape
-        # sample each ray every half cell, stopping short of its end cell
-        step = 0.5 * res
+        # sample each ray every 0.7 cell (a ray crossing a cell's corner may skip it; other
+        # rays and scans fill it), stopping short of its end cell
+        step = 0.7 * res
         lengths = length * scale
         n_samp = np.ceil(lengths / step).astype(np.int64)
         total = int(n_samp.sum())
