@@ -118,3 +118,25 @@ def test_no_points_falls_back_on_odometry() -> None:
     m = match_scan(empty, target, T_pred, T_pred, np.zeros(3), False, cfg, icp_params(cfg))
     assert m.kind == MatchKind.ODOMETRY
     np.testing.assert_allclose(m.T_map_robot, T_pred)
+
+
+def test_correlative_search_reports_ambiguity() -> None:
+    # a corridor with identical niches every 2 m: shifted by one period it fits as well
+    walls = [((-20.0, -1.0), (20.0, -1.0)), ((-20.0, 1.0), (20.0, 1.0))]
+    for x in np.arange(-20.0, 20.0, 2.0):
+        walls += box(float(x), 1.0, float(x) + 0.4, 1.3)
+    target = map_at(walls, np.zeros(3))
+    field = LikelihoodField(target.points, 0.1, sigma_m=0.1, margin_m=0.4, levels=6)
+    scan = scan_at(walls, np.array([0.3, 0.0, 0.0]))
+    found = search(field, scan.points, np.array([0.3, 0.0, 0.0]), 2.5, math.radians(10.0),
+                   min_score=0.4, ambiguity_ratio=0.9)
+    assert found is not None and found.second_score >= 0.9 * found.score
+    # a room with a pillar and an alcove has one answer
+    room = room_world()
+    target = map_at(room, np.array([3.0, 3.0, 0.0]))
+    field = LikelihoodField(target.points, 0.1, sigma_m=0.1, margin_m=0.4, levels=6)
+    scan = scan_at(room, np.array([3.5, 2.8, 0.2]))
+    found = search(field, scan.points, np.array([3.2, 3.1, 0.1]), 1.5, math.radians(20.0),
+                   min_score=0.4, ambiguity_ratio=0.9)
+    assert found is not None and found.second_score == 0.0
+    assert np.hypot(*(found.T_map_scan[:2] - [3.5, 2.8])) < 0.15  # within a cell or so

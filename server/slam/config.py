@@ -91,6 +91,8 @@ class LoopClosureConfig(_Model):
     submap_range_m: float = Field(20.0, gt=0, description="submap points beyond: dropped")
     min_score: float = Field(0.55, gt=0, le=1)
     min_inlier_fraction: float = Field(0.5, gt=0, le=1)
+    ambiguity_ratio: float = Field(0.9, gt=0, le=1,
+                                   description="reject if a distinct pose scores this × best")
     confirm_correction_m: float = Field(0.5, gt=0, description="larger jumps need a second closure")
     pending_keyframes: int = Field(40, ge=1, description="an unconfirmed closure expires after")
     confirm_tolerance_m: float = Field(0.3, gt=0)

@@ -23,8 +23,11 @@ MAX_SURVIVORS = 30000
 
 @dataclass(frozen=True)
 class CorrelativeMatch:
+    """Best pose, its score (mean likelihood, 0..1) and the best score of a distinct pose."""
+
     T_map_scan: F64
     score: float
+    second_score: float = 0.0
 
 
 def gaussian_max_filter(hits: NDArray[np.float32], sigma_cells: float) -> NDArray[np.float32]:
@@ -109,10 +112,27 @@ def _evaluate(level: NDArray[np.float32], cx: I64, cy: I64, a: I64, dx: I64, dy:
     return out
 
 
+def _children(a: I64, dx: I64, dy: I64, h: int, W: int) -> tuple[I64, I64, I64]:
+    """The four 2^lv-blocks inside each 2^(lv+1)-block, kept within the ±W window."""
+    a4 = np.repeat(a, 4)
+    dx4 = np.repeat(dx, 4) + np.tile(np.array([0, h, 0, h]), len(dx))
+    dy4 = np.repeat(dy, 4) + np.tile(np.array([0, 0, h, h]), len(dy))
+    inside = (np.abs(dx4) <= W) & (np.abs(dy4) <= W)
+    return a4[inside], dx4[inside], dy4[inside]
+
+
 def search(field: LikelihoodField, points: F64, T_center: F64, window_m: float,
-           window_rad: float, min_score: float) -> CorrelativeMatch | None:
+           window_rad: float, min_score: float, ambiguity_ratio: float | None = None,
+           separation_m: float = 0.3, separation_rad: float = math.radians(5.0)
+           ) -> CorrelativeMatch | None:
     """Best pose within ±``window_m`` (x, y) and ±``window_rad`` of ``T_center``, or None if no
-    pose scores ``min_score``. ``points`` are in the scan frame."""
+    pose scores ``min_score``. ``points`` are in the scan frame.
+
+    With ``ambiguity_ratio`` ρ, blocks are kept while they could score ρ·best, and
+    ``second_score`` reports the best pose at least ``separation_m`` or ``separation_rad``
+    away from the best one (0 if none reaches ρ·best): a second peak almost as good means the
+    place is ambiguous (a corridor, repeated rooms).
+    """
     res = field.resolution_m
     step = angle_step(points, res)
     n_ang = math.ceil(window_rad / step)
@@ -124,54 +144,40 @@ def search(field: LikelihoodField, points: F64, T_center: F64, window_m: float,
     cy = np.floor((gy - field.origin[1]) / res).astype(np.int64)
     W = math.ceil(window_m / res)
     top = min(field.levels, max(0, math.floor(math.log2(max(2 * W + 1, 1)))))
-    size = 1 << top
-    offs = np.arange(-W, W + 1, size, dtype=np.int64)
+    offs = np.arange(-W, W + 1, 1 << top, dtype=np.int64)
     A, X, Y = np.meshgrid(np.arange(len(thetas)), offs, offs, indexing="ij")
     a, dx, dy = A.ravel(), X.ravel(), Y.ravel()
     bound = _evaluate(field.pyramid[top], cx, cy, a, dx, dy)
     # a greedy dive from the best block gives a first exact score to prune with
-    best_score, best = -1.0, (0, 0, 0)
     k = int(np.argmax(bound))
     ga, gdx, gdy = a[k:k + 1], dx[k:k + 1], dy[k:k + 1]
     for lv in range(top - 1, -1, -1):
-        h = 1 << lv
-        ca = np.repeat(ga, 4)
-        cdx = np.repeat(gdx, 4) + np.array([0, h, 0, h])
-        cdy = np.repeat(gdy, 4) + np.array([0, 0, h, h])
+        ca, cdx, cdy = _children(ga, gdx, gdy, 1 << lv, W)
         sc = _evaluate(field.pyramid[lv], cx, cy, ca, cdx, cdy)
         j = int(np.argmax(sc))
         ga, gdx, gdy = ca[j:j + 1], cdx[j:j + 1], cdy[j:j + 1]
-    if top == 0:
-        ga, gdx, gdy = a[k:k + 1], dx[k:k + 1], dy[k:k + 1]
-    leaf = float(_evaluate(field.pyramid[0], cx, cy, ga, gdx, gdy)[0])
-    if abs(int(gdx[0])) <= W and abs(int(gdy[0])) <= W:
-        best_score, best = leaf, (int(ga[0]), int(gdx[0]), int(gdy[0]))
-    threshold = max(min_score, best_score)
+    dive = float(_evaluate(field.pyramid[0], cx, cy, ga, gdx, gdy)[0])
+    ratio = 1.0 if ambiguity_ratio is None else ambiguity_ratio
+    threshold = max(min_score, ratio * dive)
     for lv in range(top - 1, -1, -1):
         keep = bound >= threshold
         a, dx, dy, bound = a[keep], dx[keep], dy[keep], bound[keep]
         if len(a) > MAX_SURVIVORS:
             order = np.argsort(-bound)[:MAX_SURVIVORS]
             a, dx, dy, bound = a[order], dx[order], dy[order], bound[order]
-        h = 1 << lv
-        a = np.repeat(a, 4)
-        dx = np.repeat(dx, 4) + np.tile(np.array([0, h, 0, h]), len(dx))
-        dy = np.repeat(dy, 4) + np.tile(np.array([0, 0, h, h]), len(dy))
-        inside = (np.abs(dx) <= W) & (np.abs(dy) <= W)
-        a, dx, dy = a[inside], dx[inside], dy[inside]
-        if len(a) == 0:
-            break
+        a, dx, dy = _children(a, dx, dy, 1 << lv, W)
         bound = _evaluate(field.pyramid[lv], cx, cy, a, dx, dy)
-    if top > 0 and len(a):
-        j = int(np.argmax(bound))
-        if bound[j] > best_score and abs(int(dx[j])) <= W and abs(int(dy[j])) <= W:
-            best_score, best = float(bound[j]), (int(a[j]), int(dx[j]), int(dy[j]))
-    elif top == 0 and len(a):
-        j = int(np.argmax(bound))
-        best_score, best = float(bound[j]), (int(a[j]), int(dx[j]), int(dy[j]))
+    # now ``bound`` holds exact scores of the surviving poses (plus the dive's)
+    a = np.append(a, ga)
+    dx, dy = np.append(dx, gdx), np.append(dy, gdy)
+    scores = np.append(bound, dive)
+    j = int(np.argmax(scores))
+    best_score = float(scores[j])
     if best_score < min_score:
         return None
-    ia, bx, by = best
-    T = np.array([T_center[0] + bx * res, T_center[1] + by * res, thetas[ia]])
-    T[2] = math.remainder(T[2], 2 * math.pi)
-    return CorrelativeMatch(T, best_score)
+    far = (np.hypot(dx - dx[j], dy - dy[j]) * res > separation_m) | \
+        (np.abs(a - a[j]) * step > separation_rad)
+    second = float(scores[far].max()) if far.any() else 0.0
+    T = np.array([T_center[0] + dx[j] * res, T_center[1] + dy[j] * res,
+                  math.remainder(float(thetas[a[j]]), 2 * math.pi)])
+    return CorrelativeMatch(T, best_score, second if second >= ratio * best_score else 0.0)

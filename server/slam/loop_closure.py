@@ -67,6 +67,7 @@ class LoopStats:
     rejected_score: int = 0
     rejected_icp: int = 0
     rejected_degenerate: int = 0
+    rejected_ambiguous: int = 0
     pending: int = 0
     rejected_unconfirmed: int = 0
     removed_inconsistent: int = 0
@@ -210,9 +211,13 @@ class LoopCloser:
         c = self.cfg
         sm = self.submaps[si]
         (coarse_pts,) = voxel_thin(q_pts, c.search_voxel_m)
-        coarse = search(self._field(si), coarse_pts, T_center, radius, angle, c.min_score)
+        coarse = search(self._field(si), coarse_pts, T_center, radius, angle, c.min_score,
+                        c.ambiguity_ratio)
         if coarse is None:
             self.stats.rejected_score += 1
+            return None
+        if coarse.second_score > 0.0:  # another pose in the window fits almost as well
+            self.stats.rejected_ambiguous += 1
             return None
         res: MatchResult = icp(q_pts, q_nrm, sm.point_map, coarse.T_map_scan, self.icp_params)
         if res.inlier_fraction < c.min_inlier_fraction or not math.isfinite(res.rms_m):
