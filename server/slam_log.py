@@ -18,7 +18,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
-from server.carmen import CarmenLog, OdometryScan, attach_odometry, read_log, select_stream
+from server.logs import CarmenLog, OdometryScan, attach_odometry, read_log, select_stream
 from server.slam.config import SlamConfig
 from server.slam.export import write_nav2, write_ply
 from server.slam.robot import RobotSlam, SlamInputError

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.carmen import (
+from server.logs import (
     CarmenError,
     attach_odometry,
     guess_beam_angles,
