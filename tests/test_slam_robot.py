@@ -127,3 +127,17 @@ def wrap_b(b: np.ndarray) -> np.ndarray:
     out = b.copy()
     out[:, 2] = wrap_angle(out[:, 2])
     return out
+
+
+def test_scans_without_returns_fall_back_on_odometry(room_drive: object) -> None:
+    slam = RobotSlam("d", SlamConfig())
+    a = room_drive.angles  # type: ignore[attr-defined]
+    for i in range(3):  # a LIDAR that sees nothing yet
+        pose = slam.add_scan(i * 100_000_000, room_drive.odom[i], np.full(len(a), np.nan), a)  # type: ignore[attr-defined]
+        np.testing.assert_allclose(pose, between(room_drive.odom[0], room_drive.odom[i]),  # type: ignore[attr-defined]
+                                   atol=1e-9)
+    for i in range(3, 40):
+        slam.add_scan(i * 100_000_000, room_drive.odom[i], room_drive.ranges[i], a)  # type: ignore[attr-defined]
+    assert slam.stats.matches["odometry"] == 3
+    assert slam.stats.matches["icp"] >= 30
+    assert slam.occupancy_grid().occupied_mask().any()

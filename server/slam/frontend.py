@@ -84,7 +84,7 @@ def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
     suspicious)."""
     pts = scan.points
     nrm = scan.normals
-    if len(pts) < cfg.min_points or not cfg.enabled:
+    if len(pts) < cfg.min_points or len(target) < cfg.min_points or not cfg.enabled:
         return FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0)
     guesses = [T_pred]
     prior: F64 | None = prior_info

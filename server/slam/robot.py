@@ -107,7 +107,7 @@ class RobotSlam:
         self._velocity = between(T_last, match.T_map_robot)
         self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
-        if self._is_keyframe():                                        # 3. keyframe?
+        if self._is_keyframe(scan):                                    # 3. keyframe?
             k = self._add_keyframe(stamp_ns, scan, odom, match)        # 4. optimise (ISAM2)
             if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
                 self._close_loops(k)                                   # 5. loop closure
@@ -155,10 +155,14 @@ class RobotSlam:
         self.stats.matches[m.kind.value] += 1
         return m
 
-    def _is_keyframe(self) -> bool:
+    def _is_keyframe(self, scan: ScanPoints) -> bool:
         d, a = pose_distance(self._T_kf_robot)
         k = self.cfg.keyframes
-        return d >= k.distance_m or a >= math.radians(k.angle_deg)
+        if d >= k.distance_m or a >= math.radians(k.angle_deg):
+            return True
+        # nothing to match against yet (e.g. the first scans had no returns): take this one
+        n = self.cfg.matcher.min_points
+        return self._local_map is not None and len(self._local_map) < n <= len(scan)
 
     def _relative_information(self, match: FrontendMatch, T_rel: F64) -> F64:
         """Information of the keyframe-to-keyframe measurement in the new keyframe's frame:
