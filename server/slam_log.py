@@ -18,7 +18,14 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict
 
-from server.logs import CarmenLog, OdometryScan, attach_odometry, read_log, select_stream
+from server.logs import (
+    CarmenLog,
+    OdometryScan,
+    attach_odometry,
+    choose_odometry_source,
+    read_log,
+    select_stream,
+)
 from server.slam.config import SlamConfig
 from server.slam.export import write_nav2, write_ply
 from server.slam.robot import RobotSlam, SlamInputError
@@ -74,17 +81,23 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     t0 = time.perf_counter()
     cfg = load_config(SlamLogConfig, config)
     clog = read_log(log_file)
-    scans = attach_odometry(select_stream(clog, cfg.laser), clog.odometry,
-                            _laser_offset(clog, cfg.laser), cfg.odometry)
+    if clog.stats.skipped_total:
+        log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
+                    clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])
+    lasers = select_stream(clog, cfg.laser)
+    source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
+    scans = attach_odometry(lasers, clog.odometry, _laser_offset(clog, cfg.laser), source)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)
+    t_read = time.perf_counter()
     with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
                   "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
         task = bar.add_task("scans", total=len(scans))
         slam, stamps, rejected = process(scans, cfg.slam,
                                          lambda i: bar.update(task, completed=i))
         bar.update(task, completed=len(scans))
+    t_slam = time.perf_counter()
     _, poses = slam.scan_poses()
     with open(out / "poses.txt", "w") as f:
         for text, (x, y, th) in zip(stamps, poses, strict=True):
@@ -95,22 +108,26 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
     summary: dict[str, object] = {
         "log": str(log_file),
+        "laser": lasers[0].kind,
+        "odometry_source": source,
         "scans": len(stamps),
         "scans_rejected": rejected,
         "keyframes": slam.stats.keyframes,
         "loop_closures": slam.stats.loop_closures,
         "loop_closures_removed": slam.stats.loop_closures_removed,
         "matches": slam.stats.matches,
-        "loop_search": asdict(slam.loop_stats),  # type: ignore[call-overload]
+        "loop_search": asdict(slam.loop_stats),
         "lines": clog.stats.lines,
         "lines_skipped": clog.stats.skipped_total,
         "lines_skipped_by_reason": dict(clog.stats.skipped),
         "stream_truncated": clog.stats.truncated_stream,
         "data_duration_s": duration,
+        "read_time_s": t_read - t0,
+        "slam_time_s": t_slam - t_read,
+        "output_time_s": time.perf_counter() - t_slam,
         "wall_time_s": time.perf_counter() - t0,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    log.info("slam-log: %s", summary)
     print(f"{log_file.name}: {len(stamps)} scans, {slam.stats.keyframes} keyframes, "
           f"{slam.stats.loop_closures} loop closures, {summary['wall_time_s']:.1f} s "
           f"→ {out}")

@@ -1,7 +1,13 @@
 """Reading robot logs (CARMEN) into laser scans with odometry."""
 
 from server.logs.carmen import guess_beam_angles, parse_line, read_log
-from server.logs.odometry import OdometryScan, attach_odometry, laser_poses_are_stale, select_stream
+from server.logs.odometry import (
+    OdometryScan,
+    attach_odometry,
+    choose_odometry_source,
+    laser_poses_are_stale,
+    select_stream,
+)
 from server.logs.records import (
     CarmenError,
     CarmenLog,
@@ -12,5 +18,6 @@ from server.logs.records import (
 )
 
 __all__ = ["CarmenError", "CarmenLog", "LaserRecord", "LineError", "OdometryRecord",
-           "OdometryScan", "ReadStats", "attach_odometry", "guess_beam_angles",
+           "OdometryScan", "ReadStats", "attach_odometry", "choose_odometry_source",
+           "guess_beam_angles",
            "laser_poses_are_stale", "parse_line", "read_log", "select_stream"]

@@ -66,25 +66,40 @@ def laser_poses_are_stale(scans: list[LaserRecord], stamps: F64, poses: F64) -> 
     return copies > 0.5 * len(with_pose)
 
 
+def _odometry_table(odometry: list[OdometryRecord]) -> tuple[F64, F64]:
+    stamps = np.array([o.stamp_s for o in odometry], dtype=np.float64)
+    poses = np.array([o.pose for o in odometry], dtype=np.float64).reshape(-1, 3)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], poses[order]
+
+
+def choose_odometry_source(scans: list[LaserRecord], odometry: list[OdometryRecord],
+                           requested: str = "auto") -> str:
+    """``"laser"`` (the pose written in each laser line) or ``"odom"`` (``ODOM`` lines
+    interpolated at the scan stamp). ``"auto"`` takes the laser lines' poses unless they are
+    missing or stale copies of the last ``ODOM`` line."""
+    if requested in ("laser", "odom"):
+        return requested
+    if requested != "auto":
+        raise ValueError(f"unknown odometry source {requested!r}")
+    stamps, poses = _odometry_table(odometry)
+    if len(stamps) and (any(r.laser_pose is None for r in scans)
+                        or laser_poses_are_stale(scans, stamps, poses)):
+        return "odom"
+    return "laser"
+
+
 def attach_odometry(scans: list[LaserRecord], odometry: list[OdometryRecord],
                     laser_offset_x_m: float = 0.0, source: str = "auto") -> list[OdometryScan]:
     """Odometry pose of the laser for each scan.
 
     ``source="laser"`` takes the laser pose written in the laser line; ``"odom"`` interpolates
     the ``ODOM`` poses at the scan stamp and places the laser ``laser_offset_x_m`` ahead of the
-    robot; ``"auto"`` takes the laser line's pose unless it is missing or a stale copy of the
-    last ``ODOM`` line (see ``laser_poses_are_stale``).
+    robot; ``"auto"``: see ``choose_odometry_source``. A scan without a pose in its line always
+    takes the interpolated odometry.
     """
-    stamps = np.array([o.stamp_s for o in odometry], dtype=np.float64)
-    poses = np.array([o.pose for o in odometry], dtype=np.float64).reshape(-1, 3)
-    order = np.argsort(stamps, kind="stable")
-    stamps, poses = stamps[order], poses[order]
-    if source == "auto":
-        use_odom = len(stamps) > 0 and laser_poses_are_stale(scans, stamps, poses)
-    elif source in ("laser", "odom"):
-        use_odom = source == "odom"
-    else:
-        raise ValueError(f"unknown odometry source {source!r}")
+    stamps, poses = _odometry_table(odometry)
+    use_odom = choose_odometry_source(scans, odometry, source) == "odom"
     out: list[OdometryScan] = []
     for rec in scans:
         if rec.laser_pose is not None and not use_odom:

@@ -34,7 +34,7 @@ from server.slam.geometry import between, compose, pose_distance
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, local_point_map
-from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure
+from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
 from server.slam.mapping import GridMapper, point_cloud
 from server.slam.scan import ScanPoints, scan_to_points
 
@@ -279,5 +279,6 @@ class RobotSlam:
         return point_cloud(self.keyframes, self.keyframe_poses(), voxel_m)
 
     @property
-    def loop_stats(self) -> object:
+    def loop_stats(self) -> LoopStats:
+        """Counters of the loop-closure search (candidates, rejections by reason...)."""
         return self._loops.stats
