@@ -40,12 +40,17 @@ class GridMapper:
     """The occupancy grid of a set of keyframes, refreshed lazily.
 
     ``update(keyframes, poses)`` inserts keyframes not yet in the grid; if any keyframe already
-    in the grid has moved by more than ``tolerance`` since it was inserted, the grid is rendered
-    again from scratch (a loop closure bent the trajectory).
+    in the grid has moved by more than ``shift_m`` (default one cell) or ``turn_rad`` since it was
+    inserted, the grid is rendered again from scratch (a loop closure bent the trajectory).
+    Insertion costs about 1 ms per keyframe; a full render of 500 keyframes of a 400-beam
+    10 m LIDAR about 0.9 s.
     """
 
-    def __init__(self, params: GridParams) -> None:
+    def __init__(self, params: GridParams, shift_m: float | None = None,
+                 turn_rad: float = math.radians(1.0)) -> None:
         self.params = params
+        self.shift_m = params.resolution_m if shift_m is None else shift_m
+        self.turn_rad = turn_rad
         self.grid = OccupancyGrid(params)
         self._inserted_poses = np.zeros((0, 3))
         self.renders = 0
@@ -57,8 +62,7 @@ class GridMapper:
         d = poses[:n] - self._inserted_poses
         shift = np.hypot(d[:, 0], d[:, 1])
         turn = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
-        return bool((shift > 0.5 * self.params.resolution_m).any()
-                    or (turn > math.radians(0.5)).any())
+        return bool((shift > self.shift_m).any() or (turn > self.turn_rad).any())
 
     def update(self, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
         n = len(self._inserted_poses)
