@@ -16,6 +16,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from server.logs import (
@@ -60,8 +61,11 @@ def process(scans: list[OdometryScan], cfg: SlamConfig,
     rejected = 0
     for i, s in enumerate(scans):
         rec = s.record
+        ranges = rec.ranges_m
+        if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
+            ranges = np.where(ranges >= rec.max_range_m, np.inf, ranges)
         try:
-            slam.add_scan(round(rec.stamp_s * 1e9), s.T_odom_laser, rec.ranges_m, rec.angles_rad)
+            slam.add_scan(round(rec.stamp_s * 1e9), s.T_odom_laser, ranges, rec.angles_rad)
         except SlamInputError as e:
             rejected += 1
             log.warning("line %d: scan skipped: %s", rec.line_no, e)

@@ -164,3 +164,22 @@ def test_real_logs_first_lines(tmp_path: Path) -> None:
         log = read_log(path)
         assert log.stats.skipped_total == 0
         assert len(log.lasers[0].ranges_m) == n_beams
+
+
+def test_readings_at_the_sensor_maximum_are_no_returns(tmp_path: Path) -> None:
+    from server.slam.config import SlamConfig
+    from server.slam_log import process
+
+    # ROBOTLASER1 with maximum_range 4 m: the 4.0 readings are "nothing seen", not walls
+    lines = []
+    angles = "0 -1.5707963 3.1415926 0.0174533 4.0 0.01 0 181"
+    for k in range(5):
+        ranges = " ".join("4.0" if i % 3 == 0 else "2.0" for i in range(181))
+        lines.append(f"ROBOTLASER1 {angles} {ranges} 0 {0.1 * k} 0 0 {0.1 * k} 0 0 "
+                     f"0 0 0 0 0 {10 + k}.0 h 0")
+    log = read_log(write(tmp_path / "max.clf", "\n".join(lines) + "\n"))
+    slam, stamps, rejected = process(attach_odometry(select_stream(log), log.odometry),
+                                     SlamConfig())
+    assert len(stamps) == 5 and rejected == 0
+    hits = slam.keyframes[0].scan.hits
+    assert np.hypot(hits[:, 0], hits[:, 1]).max() < 2.5
