@@ -46,6 +46,9 @@ IDENTITY = np.zeros(3)
 
 @dataclass
 class SlamStats:
+    """Counters: scans accepted, keyframes, how each scan was matched, loop closures kept and
+    taken out again."""
+
     scans: int = 0
     keyframes: int = 0
     matches: dict[str, int] = field(default_factory=lambda: {k.value: 0 for k in MatchKind})
@@ -63,7 +66,22 @@ class ScanPose:
 
 
 class RobotSlam:
-    """Per-robot graph SLAM: predict → match → keyframe → optimise → loop closure → map."""
+    """Per-robot graph SLAM: predict → match → keyframe → optimise → loop closure → map.
+
+    Feed it with ``add_scan`` once per scan (stamps must not go back in time; bad input raises
+    ``SlamInputError`` and changes nothing). Read it with:
+
+    - ``pose``: the latest robot pose (x, y, θ) in the map frame;
+    - ``keyframes`` (``Keyframe``: index, stamp_ns, scan points in the robot frame) and
+      ``keyframe_poses()`` (K, 3), the current optimised estimates;
+    - ``scan_poses()``: stamps and optimised poses of every scan so far;
+    - ``occupancy_grid()`` (incremental, re-rendered after the graph moved) and
+      ``point_cloud()``;
+    - ``trajectory`` (keys ``gtsam.symbol(robot_char, k)``, the factors this robot added, its
+      prior) and ``graph`` (the ``PoseGraph``, possibly shared with other robots).
+
+    The map frame is the frame of ``T_map_start`` (default: the first pose is the origin).
+    """
 
     def __init__(self, robot_char: str = "a", config: SlamConfig | None = None,
                  graph: PoseGraph | None = None,
