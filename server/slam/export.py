@@ -47,7 +47,7 @@ def write_nav2(grid: OccupancyGrid, out_dir: Path, name: str = "map") -> Path:
         "image": f"{name}.png",
         "mode": "trinary",
         "resolution": float(grid.resolution_m),
-        "origin": [float(grid.origin[0]), float(grid.origin[1]), 0.0],
+        "origin": list(grid.origin_pose),
         "negate": 0,
         "occupied_thresh": 0.65,
         "free_thresh": 0.196,  # 205 (unknown) reads as p 0.19608: neither free nor occupied

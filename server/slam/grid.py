@@ -61,6 +61,11 @@ class OccupancyGrid:
         return cls(params, (float(lo[0]), float(lo[1])), (max(h, 1), max(w, 1)))
 
     @property
+    def origin_pose(self) -> tuple[float, float, float]:
+        """nav2 ``origin``: world (x, y, θ = 0) of the lower-left corner of cell (0, 0)."""
+        return (float(self.origin[0]), float(self.origin[1]), 0.0)
+
+    @property
     def shape(self) -> tuple[int, int]:
         return (int(self.log_odds.shape[0]), int(self.log_odds.shape[1]))
 
