@@ -29,6 +29,7 @@ from server.exploration.analysis import AnalysisParams, MapAnalysis, analyse
 from server.exploration.candidates import rule1_candidates
 from server.exploration.coverage import coverage
 from server.exploration.visited import VisitedTargets
+from server.planning.costmap import CostLayer
 from server.planning.dijkstra import CostField
 from server.planning.errors import StartOccupied
 from server.planning.grid import OccupancyGrid
@@ -101,6 +102,18 @@ class _Proposal:
     rc: NDArray[np.int64]                 # (K, 2) target cells in the analysed grid
     kind: str
     size_cells: NDArray[np.int64] | None = None
+    # Per target: the nearest traversable cell within the snap radius (None: there is none).
+    snapped: list[tuple[int, int] | None] = field(default_factory=list)
+
+    def snap(self, layer: CostLayer, radius_m: float) -> _Proposal:
+        self.snapped = [layer.escape((int(r), int(c)), radius_m) for r, c in self.rc]
+        return self
+
+    def targets_xy(self, layer: CostLayer) -> NDArray[np.float64]:
+        """World positions of the targets (snapped where possible)."""
+        cells = [s if s is not None else (int(rc[0]), int(rc[1]))
+                 for s, rc in zip(self.snapped, self.rc, strict=True)]
+        return layer.geometry.cell_to_world(np.asarray(cells, np.int64).reshape(-1, 2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -145,9 +158,14 @@ class Explorer(ABC):
         analysis = analyse(grid, p.analysis, include_xy=robot_xy)
         if len(analysis.frontiers) == 0:
             return Finished("no frontier left", cov)
-        field_ = CostField(analysis.layer, robot_xy, escape_radius_m=p.escape_radius_m)
+        proposals = self._snapped_proposals(analysis)
+        # Dijkstra stops once every target still worth a look is settled.
+        goals = np.concatenate([pr.targets_xy(analysis.layer) for pr in proposals])
+        goals = goals[~visited.mask(goals)]
+        field_ = CostField(analysis.layer, robot_xy, goals_xy=goals if len(goals) else None,
+                           escape_radius_m=p.escape_radius_m)
         targets: list[Target] = []
-        for proposal in self._proposals(analysis):
+        for proposal in proposals:
             scored = self._score(analysis, field_, proposal, robot_xy, start_xy, visited,
                                  np.asarray(reserved_xy, np.float64).reshape(-1, 2))
             targets.extend(scored)
@@ -178,7 +196,7 @@ class Explorer(ABC):
                 log.warning("robot at %s left out of the assignment: %s", xy, e)
                 fields.append(None)
         none = np.zeros((0, 2))
-        for proposal in self._proposals(analysis) if len(analysis.frontiers) else []:
+        for proposal in self._snapped_proposals(analysis) if len(analysis.frontiers) else []:
             rows: list[list[Target]] = []
             for i, f in enumerate(fields):
                 rows.append([] if f is None else self._score(
@@ -196,6 +214,10 @@ class Explorer(ABC):
             if np.isfinite(cost).any():
                 return TeamCosts(targets_xy, cost, proposal.kind, fields, p.smooth)
         return TeamCosts(none, np.zeros((len(robots), 0)), "", fields, p.smooth)
+
+    def _snapped_proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
+        return [pr.snap(analysis.layer, self.params.snap_radius_m)
+                for pr in self._proposals(analysis)]
 
     @abstractmethod
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
@@ -215,10 +237,8 @@ class Explorer(ABC):
         out: list[Target] = []
         sizes = (proposal.size_cells if proposal.size_cells is not None
                  else np.zeros(len(proposal.rc), np.int64))
-        snapped = [layer.escape((int(r), int(c)), p.snap_radius_m) for r, c in proposal.rc]
-        xy_all = layer.geometry.cell_to_world(
-            np.asarray([s if s is not None else rc for s, rc in zip(snapped, proposal.rc,
-                                                                    strict=True)]).reshape(-1, 2))
+        snapped = proposal.snapped
+        xy_all = proposal.targets_xy(layer)
         is_visited = visited.mask(xy_all)
         for i, xy in enumerate(xy_all):
             t_xy = (float(xy[0]), float(xy[1]))

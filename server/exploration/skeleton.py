@@ -111,32 +111,39 @@ def skeleton_graph(skeleton: NDArray[np.bool_],
     # Which nodes each branch touches: its junction contacts and its end cells.
     touch_branch = np.concatenate([contact[:, 1], blab[end]]).astype(np.int64)
     touch_node = np.concatenate([contact[:, 0] - 1, nj + np.arange(len(end_rc))]).astype(np.int64)
-    order = np.argsort(touch_branch, kind="stable")
-    touch_branch, touch_node = touch_branch[order], touch_node[order]
     branch_len = np.bincount(blab.ravel(), minlength=nb + 1)
 
-    edges, lengths = [], []
-    starts = np.searchsorted(touch_branch, np.arange(1, nb + 2))
-    for k in range(nb):
-        nodes = np.unique(touch_node[starts[k]:starts[k + 1]])
-        for i in range(len(nodes)):
-            for j in range(i + 1, len(nodes)):
-                edges.append((nodes[i], nodes[j]))
-                lengths.append(branch_len[k + 1])
-    edge_arr = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    # One edge per pair of nodes a branch touches (almost always exactly two).
+    key = np.unique(touch_branch * (len(node_rc) + 1) + touch_node)
+    tb, tn = key // (len(node_rc) + 1), key % (len(node_rc) + 1)
+    first = np.searchsorted(tb, np.arange(1, nb + 1))
+    count = np.bincount(tb, minlength=nb + 1)[1:]
+    two = np.flatnonzero(count == 2)
+    edges = [np.stack([tn[first[two]], tn[first[two] + 1]], axis=1)]
+    lengths = [branch_len[two + 1]]
+    for k in np.flatnonzero(count > 2):
+        nodes = tn[first[k]:first[k] + count[k]]
+        clique = np.array([(a, b) for i, a in enumerate(nodes) for b in nodes[i + 1:]])
+        edges.append(clique)
+        lengths.append(np.full(len(clique), branch_len[k + 1]))
+    edge_arr = np.concatenate(edges).astype(np.int64).reshape(-1, 2)
     degree = np.bincount(edge_arr.ravel(), minlength=len(node_rc)).astype(np.int64)
     # A junction's degree counts branches, including ones that lead nowhere (no second node).
     if nj:
         degree[:nj] = np.bincount(contact[:, 0] - 1, minlength=nj)
     return SkeletonGraph(skel, node_rc, node_kind, degree, edge_arr,
-                         np.asarray(lengths, dtype=np.int64))
+                         np.concatenate(lengths).astype(np.int64))
 
 
 def _cluster_representatives(labels: NDArray[np.int32], n: int,
                              clearance: NDArray[np.floating] | None) -> NDArray[np.int64]:
+    """Per label 1..n, its cell of largest clearance (first in row-major order on ties)."""
     if n == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    weight = (np.ones(labels.shape) if clearance is None
-              else np.asarray(clearance, dtype=np.float64))
-    idx = ndimage.maximum_position(weight, labels, index=np.arange(1, n + 1))
-    return np.asarray(idx, dtype=np.int64).reshape(n, 2)
+    cells = np.argwhere(labels > 0)
+    lab = labels[cells[:, 0], cells[:, 1]]
+    weight = (np.zeros(len(cells)) if clearance is None
+              else -np.asarray(clearance, dtype=np.float64)[cells[:, 0], cells[:, 1]])
+    order = np.lexsort((weight, lab))
+    first = order[np.searchsorted(lab[order], np.arange(1, n + 1))]
+    return cells[first].astype(np.int64)
