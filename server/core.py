@@ -93,7 +93,8 @@ class ServerCore:
         r = self.robots.get(scan.robot_id) or self._add_robot(scan.robot_id)
         prev = r.pose.copy()
         ranges, angles = scan.ranges_m(), scan.angles_rad()
-        r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles)
+        r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles,
+                                 scan.range_max_mm / 1000.0)
         if r.scans:
             r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
         else:

@@ -13,7 +13,7 @@ from factors.scan_match import scan_match_factor
 from server.slam import RobotSlam, SlamConfig, SlamInputError
 from server.slam.backend import PoseGraph
 from server.slam.geometry import between, compose, inverse, transform_points, wrap_angle
-from tests.test_slam_synthetic import align_error, drive, room_world, waypoints_path
+from tests.test_slam_synthetic import align_error, cast, drive, room_world, waypoints_path
 
 PATH = [(1.0, 1.0), (8.5, 1.0), (8.5, 4.5), (1.5, 4.5), (1.5, 2.0)]
 
@@ -141,3 +141,33 @@ def test_scans_without_returns_fall_back_on_odometry(room_drive: object) -> None
     assert slam.stats.matches["odometry"] == 3
     assert slam.stats.matches["icp"] >= 30
     assert slam.occupancy_grid().occupied_mask().any()
+
+
+def _state_at(grid: object, xy: tuple[float, float]) -> str:
+    ix, iy = grid.cell_of(np.array([xy]))[0]  # type: ignore[attr-defined]
+    h, w = grid.shape  # type: ignore[attr-defined]
+    if not (0 <= ix < w and 0 <= iy < h) or not grid.observed[iy, ix]:  # type: ignore[attr-defined]
+        return "unknown"
+    if grid.free_mask()[iy, ix]:  # type: ignore[attr-defined]
+        return "free"
+    return "occupied" if grid.occupied_mask()[iy, ix] else "uncertain"  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize(("sensor_max", "free_until", "unknown_from"),
+                         [(None, None, 3.5), (10.0, 4.6, 5.5), (3.0, 2.6, 3.5)])
+def test_beams_without_return_clear_free_space_up_to_the_sensor_range(
+        sensor_max: float | None, free_until: float | None, unknown_from: float) -> None:
+    """A room open on one side: beams into the opening return nothing. They mark free space
+    only when the sensor's range is known, and never beyond it or ``no_return_free_m``."""
+    walls = [((-2.0, -2.0), (-2.0, 2.0)), ((-2.0, 2.0), (0.5, 2.0)), ((-2.0, -2.0), (0.5, -2.0))]
+    angles = -math.pi + 2 * math.pi * np.arange(400) / 400
+    ranges = cast(walls, np.zeros(3), angles)
+    assert np.isinf(ranges).sum() > 100
+    slam = RobotSlam("a", SlamConfig())
+    slam.add_scan(1_000, (0.0, 0.0, 0.0), ranges, angles, sensor_max)
+    grid = slam.occupancy_grid()
+    assert _state_at(grid, (-1.0, 0.0)) == "free"       # toward the wall behind: hits
+    if free_until is not None:
+        assert _state_at(grid, (free_until, 0.0)) == "free"
+    assert _state_at(grid, (unknown_from, 0.0)) == "unknown"
+    assert not any(_state_at(grid, (x, 0.0)) == "occupied" for x in np.arange(0.3, 6.0, 0.1))

@@ -18,6 +18,9 @@ class ScanConfig(_Model):
     min_point_spacing_m: float = Field(0.08, ge=0, description="thin points closer than this")
     normal_window: int = Field(2, ge=1, description="beams each side used for a normal")
     normal_max_gap_m: float = Field(0.3, gt=0, description="max neighbour distance for normals")
+    no_return_free_m: float = Field(
+        5.0, ge=0, description="a beam without a return marks free space up to this range "
+        "(never beyond the sensor's own maximum range; 0: such beams say nothing)")
 
 
 class MatcherConfig(_Model):

@@ -32,7 +32,7 @@ def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -
     both = np.concatenate([pts, poses[:, :2]]) if len(pts) else poses[:, :2]
     grid = OccupancyGrid.covering(params, both.min(axis=0), both.max(axis=0))
     for kf, T in zip(keyframes, poses, strict=True):
-        grid.insert_scan(T, kf.scan.hits)
+        grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
     return grid
 
 
@@ -71,7 +71,7 @@ class GridMapper:
             self.renders += 1
         else:
             for kf, T in zip(keyframes[n:], poses[n:], strict=True):
-                self.grid.insert_scan(T, kf.scan.hits)
+                self.grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
         self._inserted_poses = np.array(poses, dtype=np.float64).reshape(-1, 3)
         return self.grid
 

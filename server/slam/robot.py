@@ -106,14 +106,16 @@ class RobotSlam:
 
     # -- the method ----------------------------------------------------------------------
     def add_scan(self, stamp_ns: int, odom_pose_xyt: ArrayLike, ranges_m: ArrayLike,
-                 angles_rad: ArrayLike) -> F64:
+                 angles_rad: ArrayLike, sensor_max_range_m: float | None = None) -> F64:
         """Process one scan; returns the robot pose (x, y, θ) in the map frame.
 
         ``odom_pose_xyt`` is the wheel-odometry pose at the scan's time; ranges that are not
-        finite (or outside the configured range) are beams without a return.
+        finite (or outside the configured range) are beams without a return. Given the
+        sensor's maximum range, such beams (+inf) also mark free space up to
+        ``min(scan.no_return_free_m, sensor_max_range_m)``.
         """
         odom = self._check_input(stamp_ns, odom_pose_xyt)
-        scan = self._scan_points(ranges_m, angles_rad)
+        scan = self._scan_points(ranges_m, angles_rad, sensor_max_range_m)
         if not self.keyframes:
             self._first_keyframe(stamp_ns, scan, odom)
             return self.pose
@@ -145,12 +147,16 @@ class RobotSlam:
                                  f"({self._last_stamp_ns})")
         return odom
 
-    def _scan_points(self, ranges_m: ArrayLike, angles_rad: ArrayLike) -> ScanPoints:
+    def _scan_points(self, ranges_m: ArrayLike, angles_rad: ArrayLike,
+                     sensor_max_range_m: float | None = None) -> ScanPoints:
         s = self.cfg.scan
+        free_m = 0.0
+        if sensor_max_range_m is not None and math.isfinite(sensor_max_range_m):
+            free_m = max(0.0, min(s.no_return_free_m, sensor_max_range_m))
         return scan_to_points(np.asarray(ranges_m, dtype=np.float64),
                               np.asarray(angles_rad, dtype=np.float64), s.min_range_m,
                               s.max_range_m, s.normal_window, s.normal_max_gap_m,
-                              s.min_point_spacing_m)
+                              s.min_point_spacing_m, free_m)
 
     def _first_keyframe(self, stamp_ns: int, scan: ScanPoints, odom: F64) -> None:
         g = self.cfg.graph

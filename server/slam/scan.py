@@ -8,7 +8,7 @@ matching needs; estimators that treat the scan as a 3D cloud return the useless 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,20 +28,24 @@ class ScanPoints:
 
     ``points`` (N, 2) [m]: the returns used for matching (thinned to a spacing); ``normals``
     (N, 2) unit vectors facing the sensor, NaN where no line could be fitted; ``ranges_m`` (N,)
-    their ranges; ``hits`` (M, 2): every valid return, for the occupancy grid.
+    their ranges; ``hits`` (M, 2): every valid return, for the occupancy grid; ``misses``
+    (K, 2): for beams without a return, the point at the range up to which the sensor saw
+    nothing (free space only, never an obstacle).
     """
 
     points: F64
     normals: F64
     ranges_m: F64
     hits: F64
+    misses: F64 = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __len__(self) -> int:
         return len(self.points)
 
     def with_normals(self) -> ScanPoints:
         ok = np.isfinite(self.normals[:, 0])
-        return ScanPoints(self.points[ok], self.normals[ok], self.ranges_m[ok], self.hits)
+        return ScanPoints(self.points[ok], self.normals[ok], self.ranges_m[ok], self.hits,
+                          self.misses)
 
 
 def valid_returns(ranges_m: F64, angles_rad: F64, min_range_m: float,
@@ -136,13 +140,26 @@ def thin_by_spacing(points: F64, spacing_m: float) -> NDArray[np.bool_]:
 
 def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range_m: float,
                    normal_window: int = 2, normal_max_gap_m: float = 0.3,
-                   min_spacing_m: float = 0.0) -> ScanPoints:
-    """Points (sensor frame) and normals of the beams with a return, thinned to a spacing."""
+                   min_spacing_m: float = 0.0, no_return_free_m: float = 0.0) -> ScanPoints:
+    """Points (sensor frame) and normals of the beams with a return, thinned to a spacing.
+
+    With ``no_return_free_m`` > 0, beams without a return (+inf, or at/after ``max_range_m``)
+    give ``misses`` at that range: the sensor would have seen anything closer. NaN and
+    readings below ``min_range_m`` say nothing and give neither.
+    """
     r, a = valid_returns(ranges_m, angles_rad, min_range_m, max_range_m)
+    misses = np.zeros((0, 2))
+    if no_return_free_m > 0:
+        ra = np.asarray(ranges_m, dtype=np.float64)
+        aa = np.asarray(angles_rad, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            none = np.isfinite(aa) & ((ra == np.inf) | (np.isfinite(ra) & (ra >= max_range_m)))
+        am = aa[none]
+        misses = no_return_free_m * np.stack([np.cos(am), np.sin(am)], axis=1)
     pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
     # the gap allowed between neighbours grows with range, as the beams spread apart
     beam_step = abs(float(a[-1] - a[0])) / (len(a) - 1) if len(a) > 1 else 0.0
     gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
     keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
     normals = line_normals(pts, normal_window, gap, keep)
-    return ScanPoints(pts[keep], normals, r[keep], pts)
+    return ScanPoints(pts[keep], normals, r[keep], pts, misses)
