@@ -245,6 +245,27 @@ def eval_relations(
     call("eval-relations", body)
 
 
+@app.command("lidar-dump")
+def lidar_dump(
+    port: Annotated[str, typer.Option(help="serial port, e.g. /dev/ttyUSB0 or /dev/rplidar")],
+    scans: Annotated[int, typer.Option(min=1, help="number of sweeps to print")] = 1,
+    baud: Annotated[int, typer.Option(help="baud rate (A2: 115200, A3: 256000)")] = 115200,
+    beams: Annotated[int, typer.Option(min=8, max=8192, help="beams per sweep")] = 360,
+    timeout: Annotated[float, typer.Option(help="give up after this long without a sweep [s]")
+                       ] = 10.0,
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Print sweeps of an RPLIDAR: `stamp_ns n angle_0 range_0 ...` (rad, m, no return = inf)."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from robot_agent.lidar_dump import run
+
+        return run(port, scans, baud, beams, timeout)
+
+    call("lidar-dump", body)
+
+
 @app.command("world-map")
 def world_map(
     world: Annotated[Path, typer.Argument(help="Gazebo .world/.sdf file or nav2 map .yaml")],
