@@ -36,10 +36,58 @@ class LockstepConfig(_Model):
     command_timeout_s: float = Field(5.0, gt=0.0, description="wall-clock wait for it")
 
 
+class RplidarConfig(_Model):
+    """SLAMTEC RPLIDAR A-series on a serial port (standard scan mode)."""
+
+    port: str = Field("/dev/rplidar", description="serial port (deploy/ installs this udev name)")
+    baud: int = Field(115200, description="A1/A2: 115200, A3: 256000")
+    beams: int = Field(360, ge=8, le=8192, description="fixed beams per sweep, from -pi")
+    range_min_m: float = Field(0.15, ge=0.0)
+    range_max_m: float = Field(12.0, gt=0.0, le=65.0)
+    mount_yaw_rad: float = Field(0.0, ge=-7.0, le=7.0,
+                                 description="yaw of the device's 0 deg mark on the robot")
+    clockwise: bool = Field(True, description="device angles grow clockwise (RPLIDAR: yes)")
+    motor_dtr: bool = Field(True, description="motor on/off through DTR (A2 USB adapter)")
+    reconnect_s: float = Field(1.0, gt=0.0)
+
+
+class MotorBaseConfig(_Model):
+    """Differential-drive base behind a microcontroller (protocol: deploy/firmware/README.md)."""
+
+    port: str = Field("/dev/mrslam-base", description="serial port of the microcontroller")
+    baud: int = 115200
+    track_m: float = Field(0.30, gt=0.0, le=5.0, description="distance between the wheels b")
+    wheel_radius_m: float = Field(0.05, gt=0.0, le=1.0)
+    ticks_per_rev: float = Field(1000.0, gt=0.0, description="encoder ticks per wheel turn")
+    keepalive_s: float = Field(0.05, gt=0.0, le=0.2, description="command re-send period")
+    hold_s: float = Field(0.4, gt=0.0, le=0.5,
+                          description="a target not renewed for this long becomes a stop")
+    firmware_timeout_ms: int = Field(300, ge=50, le=500,
+                                     description="the firmware stops without frames this long")
+    link_timeout_s: float = Field(0.5, gt=0.0, description="no encoder frames: reconnect")
+    reconnect_s: float = Field(1.0, gt=0.0)
+
+
+class CameraConfig(_Model):
+    enabled: bool = True
+    device: int | str = Field(0, description="V4L2 index or path/URL for cv2.VideoCapture")
+    calibration: str | None = Field(None, description="YAML/JSON with K and dist")
+    rate_hz: float = Field(5.0, gt=0.0, le=60.0, description="frames handed to the detector")
+    width: int | None = Field(None, gt=0)
+    height: int | None = Field(None, gt=0)
+
+
+class HardwareConfig(_Model):
+    lidar: RplidarConfig = RplidarConfig()
+    base: MotorBaseConfig = MotorBaseConfig()
+    camera: CameraConfig = CameraConfig()
+
+
 class AgentConfig(_Model):
     robot_id: str = Field("r1", pattern=ID_PATTERN)
     bus: BusConfig = BusConfig()
-    backend: Literal["sim"] = "sim"
+    backend: Literal["sim", "hardware"] = "sim"
+    hardware: HardwareConfig = HardwareConfig()
     status_period_s: float = Field(1.0, gt=0.0)
     v_max_mps: float = Field(0.5, gt=0.0, le=5.0, description="commands are clipped to this")
     omega_max_rps: float = Field(2.0, gt=0.0, le=20.0)

@@ -237,6 +237,10 @@ def make_backend(cfg: AgentConfig, bus: Bus) -> Backend:
         from robot_agent.sim_backend import sim_backend
 
         return sim_backend(bus, cfg.robot_id)
+    if cfg.backend == "hardware":
+        from robot_agent.hardware import hardware_backend
+
+        return hardware_backend(cfg.hardware)
     raise NotImplementedError(f"backend {cfg.backend}")
 
 

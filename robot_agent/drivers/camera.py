@@ -98,7 +98,7 @@ class OpenCVCamera:
     def __init__(self, device: int | str, calibration: Calibration, rate_hz: float = 5.0,
                  width: int | None = None, height: int | None = None,
                  reconnect_s: float = 1.0, max_failures: int = 10,
-                 capture_factory: Callable[[int | str], Any] = cv2.VideoCapture) -> None:
+                 capture_factory: Callable[..., Any] = cv2.VideoCapture) -> None:
         self.device, self.calibration = device, calibration
         self.period_s = 1.0 / rate_hz
         self.width = width or calibration.width
