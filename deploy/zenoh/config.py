@@ -4,6 +4,9 @@
     python deploy/zenoh/config.py server --certs DIR --listen tls/0.0.0.0:7447 r1 r2 > s.json5
     python deploy/zenoh/config.py agent --certs DIR --connect tls/server:7447 --robot r1 > a.json5
     python deploy/zenoh/config.py client --certs DIR --connect tls/server:7447 --name dashboard
+    python deploy/zenoh/config.py zenohd --certs DIR --name site-b --listen tls/0.0.0.0:7447 \
+        --connect tls/server:7447 r3 r4 > site-b.json5        # a site router for zenohd
+    python deploy/zenoh/config.py server ... --site site-b=r3,r4 r1 r2    # and the server side
 
 The server's router requires mutual TLS and applies access control keyed on the certificate's
 common name: robot <id> may publish, declare tokens and queryables only under
@@ -11,6 +14,11 @@ common name: robot <id> may publish, declare tokens and queryables only under
 commands, the map, the server's liveliness). Names passed with ``--observer`` (dashboards,
 loggers) may read everything and write nothing. Everything else is denied. The server's own
 session is the router, so its publications and subscriptions are local and always allowed.
+
+Several sites: robots at a remote site connect to a ``zenohd`` router there, which connects to
+the server over mutual TLS with its own certificate. The site router enforces the per-robot
+rules for its robots, and the server grants the site router (``--site NAME=r3,r4``) exactly the
+union of its robots' rights, so no robot gains anything by being behind a site router.
 """
 
 from __future__ import annotations
@@ -19,11 +27,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 # what a remote sends into the router (ingress) and receives from it (egress)
 WRITE = ["put", "delete", "declare_queryable", "liveliness_token", "reply"]
 SUBSCRIBE = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
 RECEIVE = ["put", "delete", "reply", "liveliness_token", "query"]
+DECLARE = ["declare_subscriber", "declare_queryable", "declare_liveliness_subscriber"]
+SERVER_CN = "mrslam-server"   # make-certs.sh's common name for the server
 
 
 def tls_block(certs: Path, name: str, listen: bool) -> dict[str, object]:
@@ -43,10 +54,24 @@ def _rule(rid: str, flow: str, messages: list[str], keys: list[str]) -> dict[str
             "key_exprs": keys}
 
 
-def access_control(robots: list[str], observers: list[str]) -> dict[str, object]:
+def access_control(robots: list[str], observers: list[str],
+                   sites: dict[str, list[str]] | None = None) -> dict[str, Any]:
     rules: list[dict[str, object]] = []
     subjects: list[dict[str, object]] = []
     policies: list[dict[str, object]] = []
+    for site, site_robots in (sites or {}).items():
+        own = [f"mrslam/robot/{rid}/**" for rid in site_robots]
+        readable = [*own, "mrslam/server/**"]
+        rules += [_rule(f"{site}-write", "ingress", WRITE, own),
+                  _rule(f"{site}-subscribe", "ingress", SUBSCRIBE, readable),
+                  _rule(f"{site}-receive", "egress", RECEIVE, readable),
+                  # router to router: the server's own subscriptions must reach the site so
+                  # that it forwards its robots' data (declarations carry no data)
+                  _rule(f"{site}-routes", "egress", DECLARE, ["mrslam/**"])]
+        subjects.append({"id": f"site-{site}", "cert_common_names": [site]})
+        policies.append({"id": f"policy-site-{site}", "subjects": [f"site-{site}"],
+                         "rules": [f"{site}-write", f"{site}-subscribe", f"{site}-receive",
+                                   f"{site}-routes"]})
     for rid in robots:
         own = [f"mrslam/robot/{rid}/**"]
         readable = [*own, "mrslam/server/**"]
@@ -67,14 +92,45 @@ def access_control(robots: list[str], observers: list[str]) -> dict[str, object]
 
 
 def server_config(certs: Path, listen: list[str], robots: list[str],
-                  observers: list[str]) -> dict[str, object]:
+                  observers: list[str], sites: dict[str, list[str]] | None = None
+                  ) -> dict[str, object]:
     return {
         "mode": "router",
         "listen": {"endpoints": listen},
         "scouting": {"multicast": {"enabled": False}},
         "transport": {"link": {"tls": tls_block(certs, "server", listen=True)}},
-        "access_control": access_control(robots, observers),
+        "access_control": access_control(robots, observers, sites),
     }
+
+
+def site_router_config(certs: Path, name: str, listen: list[str], connect: list[str],
+                       robots: list[str]) -> dict[str, object]:
+    """A zenohd router at a remote site: its robots connect to it, it connects to the server.
+
+    One certificate ``name`` serves both sides (it is signed for server and client auth).
+    """
+    tls = tls_block(certs, name, listen=True)
+    tls.update({f"connect_{k.split('_', 1)[1]}": v for k, v in tls.items()
+                if k.startswith("listen_")})
+    return {
+        "mode": "router",
+        "listen": {"endpoints": listen},
+        "connect": {"endpoints": connect, "timeout_ms": -1},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"link": {"tls": tls}},
+        "access_control": upstream(access_control(robots, []), SERVER_CN),
+    }
+
+
+def upstream(acl: dict[str, Any], common_name: str) -> dict[str, Any]:
+    """Let everything under mrslam/ pass to and from the router holding ``common_name``."""
+    everything = WRITE + SUBSCRIBE
+    acl["rules"] += [_rule("upstream-in", "ingress", everything, ["mrslam/**"]),
+                     _rule("upstream-out", "egress", everything, ["mrslam/**"])]
+    acl["subjects"].append({"id": "upstream", "cert_common_names": [common_name]})
+    acl["policies"].append({"id": "policy-upstream", "subjects": ["upstream"],
+                            "rules": ["upstream-in", "upstream-out"]})
+    return acl
 
 
 def client_config(certs: Path, connect: list[str], name: str) -> dict[str, object]:
@@ -88,18 +144,32 @@ def client_config(certs: Path, connect: list[str], name: str) -> dict[str, objec
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("role", choices=["server", "agent", "client"])
+    ap.add_argument("role", choices=["server", "agent", "client", "zenohd"])
     ap.add_argument("--certs", type=Path, required=True, help="folder from make-certs.sh")
     ap.add_argument("--listen", action="append", default=[])
     ap.add_argument("--connect", action="append", default=[])
     ap.add_argument("--robot", help="robot id (agent)")
-    ap.add_argument("--name", help="certificate name (client)")
+    ap.add_argument("--name", help="certificate name (client, zenohd)")
+    ap.add_argument("--site", action="append", default=[], metavar="NAME=R1,R2",
+                    help="a site router and the robots behind it (server)")
     ap.add_argument("--observer", action="append", default=[],
                     help="certificate name allowed to read everything (server)")
     ap.add_argument("robots", nargs="*", help="robot ids (server)")
     a = ap.parse_intermixed_args(argv)
     if a.role == "server":
-        conf = server_config(a.certs, a.listen or ["tls/0.0.0.0:7447"], a.robots, a.observer)
+        sites: dict[str, list[str]] = {}
+        for spec in a.site:
+            name, _, ids = spec.partition("=")
+            if not name or not ids:
+                ap.error(f"--site {spec!r}: expected NAME=R1,R2")
+            sites[name] = [r for r in ids.split(",") if r]
+        conf = server_config(a.certs, a.listen or ["tls/0.0.0.0:7447"], a.robots, a.observer,
+                             sites)
+    elif a.role == "zenohd":
+        if not a.name or not a.connect:
+            ap.error("zenohd needs --name (its certificate) and --connect (the server)")
+        conf = site_router_config(a.certs, a.name, a.listen or ["tls/0.0.0.0:7447"],
+                                  a.connect, a.robots)
     else:
         name = a.robot if a.role == "agent" else a.name
         if not name:
