@@ -10,7 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from mrslam.evaluate import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
+from mrslam.evaluate import (
+    anchor_transform,
+    ate_rmse,
+    compose,
+    inverse,
+    map_quality,
+    match_truth,
+    pose_errors,
+)
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +56,46 @@ def _finite(x: float) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), 4)
 
 
+#: a committed merge farther than this from the truth joined maps wrongly
+FALSE_MERGE_M, FALSE_MERGE_RAD = 0.5, math.radians(5.0)
+
+
+def _own_frame(stamps: np.ndarray, online: np.ndarray, t: dict[str, Any]) -> np.ndarray:
+    idx, true_first = match_truth(stamps[:1], t["stamps_ns"], t["poses"])
+    return anchor_transform(true_first[0], online[0]) if len(idx) else np.zeros(3)
+
+
+def _transform_error(T: Any, T_true: np.ndarray) -> tuple[float, float]:
+    d = compose(inverse(T_true), np.asarray(T, dtype=np.float64))
+    return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
+
+
+def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
+                 ) -> list[dict[str, Any]]:
+    """Each merge's transform (b's team frame -> a's) against the truth: after the joint
+    optimisation, fused sightings, and the direct method on the first sighting."""
+    out = []
+    for m in merges:
+        a, b = m["robots_a"][0], m["robots_b"][0]
+        row: dict[str, Any] = {"sim_time_s": round(m["stamp_ns"] * 1e-9, 2),
+                               "team_id": m["team_id"], "joined_team_id": m["joined_team_id"],
+                               "robots": m["robots_a"] + m["robots_b"],
+                               "sightings": len(m["sightings"]),
+                               "undone": m.get("undone_stamp_ns") is not None,
+                               "map_agreement": m.get("map_agreement")}
+        if a in own_frames and b in own_frames:
+            T_true = compose(inverse(own_frames[a]), own_frames[b])
+            for name, key in (("joint", "T_joint"), ("fused", "T_fused"),
+                              ("direct", "T_direct_first")):
+                et, er = _transform_error(m[key], T_true)
+                row[f"{name}_error_m"] = round(et, 4)
+                row[f"{name}_error_deg"] = round(math.degrees(er), 3)
+            row["false"] = (row["joint_error_m"] > FALSE_MERGE_M
+                            or math.radians(row["joint_error_deg"]) > FALSE_MERGE_RAD)
+        out.append(row)
+    return out
+
+
 def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any],
                  wall_time_s: float) -> dict[str, Any]:
     from sim.grid import read_nav2
@@ -59,6 +107,7 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     robots: dict[str, Any] = {}
     teams: dict[str, Any] = {}
     traj_world: dict[str, np.ndarray] = {}
+    own_frames: dict[str, np.ndarray] = {}
     for team_id, team in summary["teams"].items():
         anchor = team["robot_ids"][0]
         a_stamps, a_online = read_trajectory(server_dir / "trajectories" / f"{anchor}_online.csv")
@@ -89,7 +138,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
             t = truth.get(rid)
             if t is None:
                 continue
-            err = pose_errors(stamps, online, T_world_map, t["stamps_ns"], t["poses"])
+            # online poses are in the robot's own map frame (its first pose is the origin)
+            T_world_own = own_frames[rid] = _own_frame(stamps, online, t)
+            err = pose_errors(stamps, online, T_world_own, t["stamps_ns"], t["poses"])
             traj_world[rid] = err.stamps_ns
             srv = summary["robots"].get(rid, {})
             robots[rid] = {
@@ -109,9 +160,18 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
             }
             _plot_data = (err.stamps_ns * 1e-9, err.position_m, err.yaw_rad)
             robots[rid]["_errors"] = _plot_data
-    reached = bool(teams) and all(t["reached"] for t in teams.values())
-    best = min((t["sim_time_to_threshold_s"] for t in teams.values()
-                if t["sim_time_to_threshold_s"] is not None), default=None)
+    merges = merge_errors(summary.get("merges", []), own_frames)
+    for tid, old in summary.get("merged_teams", {}).items():
+        hist = old.get("coverage_history", [])
+        teams.setdefault(tid, {"robot_ids": old["robot_ids"], "merged_into": old["merged_into"],
+                               "coverage": _finite(hist[-1][1]) if hist else None,
+                               "reached": False, "sim_time_to_threshold_s": None,
+                               "coverage_history": [[s * 1e-9, c] for s, c in hist]})
+    reached = bool(teams) and all(t["reached"] for t in teams.values()
+                                  if not t.get("merged_into"))
+    # the run reached its threshold when the last of the (final) teams did
+    times = [t["sim_time_to_threshold_s"] for t in teams.values() if not t.get("merged_into")]
+    best = max(times) if times and None not in times else None
     report = {
         "scenario": plan["title"], "world": plan["world"], "seed": cfg.seed,
         "explorer": cfg.explorer, "lockstep": cfg.lockstep,
@@ -125,6 +185,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "teams": teams, "robots": robots,
         "wall_time_s": round(wall_time_s, 2), "end": watch.get("end"),
         "sim_time_s": round(watch.get("sim_time_s", 0.0), 2),
+        "merges": merges,
+        "false_merges": sum(1 for m in merges if m.get("false")),
+        "tag_counters": summary.get("tag_counters", {}),
         "events": summary.get("events", []),
         "exit_codes": watch.get("exit_codes", {}),
         "dissertation": plan.get("reported", {}),

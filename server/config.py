@@ -37,6 +37,33 @@ class ControlConfig(_Model):
     stuck_min_progress_m: float = Field(0.15, gt=0.0)
 
 
+class TeamsConfig(_Model):
+    """Rendezvous, merge verification and team coordination."""
+
+    enabled: bool = Field(True, description="False: robots never merge (each explores alone)")
+    min_sightings: int = Field(3, ge=1, description="consistent sightings before a merge "
+                               "(one fewer when both robots saw each other)")
+    window_s: float = Field(60.0, gt=0.0, description="sightings older than this are forgotten")
+    max_conflict_ratio: float = Field(0.1, ge=0.0, le=1.0, description="aligned maps may "
+                                      "contradict each other in this share of wall cells")
+    min_checked_cells: int = Field(40, ge=0, description="fewer wall cells in the overlap: "
+                                   "the map check cannot object")
+    pose_sigma_m: float = Field(0.03, gt=0.0, description="each robot's own pose uncertainty "
+                                "at a sighting (weighs sightings against each other)")
+    pose_sigma_deg: float = Field(0.5, gt=0.0)
+    sighting_tolerance_s: float = Field(0.15, gt=0.0, description="a robot's nearest scan "
+                                        "must be this close to the sighting's time")
+    max_pending_s: float = Field(3.0, gt=0.0, description="wait this long for the scans "
+                                 "around a sighting")
+    refine_period_s: float = Field(2.0, ge=0.0, description="within a team, at most one more "
+                                   "rendezvous factor per robot pair this often")
+    undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
+                            "contradict a committed merge undo it")
+    coordination: Literal["optimal", "thesis"] = Field(
+        "optimal", description="team targets by optimal assignment on path costs, or the "
+        "dissertation's rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
+
+
 def _router() -> BusConfig:
     return BusConfig(mode="router", listen=[f"tcp/0.0.0.0:{DEFAULT_PORT}"], connect=[])
 
@@ -50,6 +77,7 @@ class ServerConfig(_Model):
     slam: SlamConfig = SlamConfig(grid=GridConfig(p_hit=0.75, p_miss=0.35))
     explore: ExploreConfig = ExploreConfig()
     control: ControlConfig = ControlConfig()
+    teams: TeamsConfig = TeamsConfig()
     map_period_s: float = Field(
         1.0, gt=0.0, description="map updates and coverage checks, every this much scan time")
     states_period_s: float = Field(0.25, gt=0.0)

@@ -12,6 +12,7 @@ stamps, not the wall clock, so a lockstep simulation gives the same run every ti
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
@@ -19,24 +20,44 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from factors.noise import NoiseError
+from factors.rendezvous import Sighting, rendezvous_factor
 from schemas import (
     Event,
     MapUpdate,
     RobotEstimate,
     RobotStates,
     Scan,
+    TagDetection,
+    TagDetections,
     TeamCoverage,
     VelocityCommand,
 )
 from server.config import ServerConfig
 from server.control import PursuitParams, StuckDetector, VfhParams
+from server.coordination import Member, TeamExplorer, drop_target
 from server.exploration import ExplorerParams, VisitedTargets, make_explorer
 from server.exploration.analysis import AnalysisParams
 from server.navigator import DONE, Navigator
 from server.planning import CostParams
 from server.planning import OccupancyGrid as PlanningGrid
 from server.slam import RobotSlam
-from server.slam.geometry import transform_points
+from server.slam.backend import FactorRecord
+from server.slam.geometry import compose, inverse, transform_points
+from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.mapping import GridMapper
+from server.teams import (
+    CHI2_3DOF_99,
+    MergeProposal,
+    MergeVerifier,
+    SightingRecord,
+    VerifierParams,
+    chi2_between,
+    join_graph,
+    make_record,
+    map_agreement,
+    team_initial_values,
+)
 
 log = logging.getLogger(__name__)
 
@@ -56,8 +77,39 @@ class RobotContext:
     scans: int = 0
     last_stamp_ns: int = 0
     alive: bool = True
-    #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the team frame
+    #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the robot's own map
+    #: frame (its first pose is the origin; a merge does not move it)
     online: list[tuple[int, float, float, float]] = field(default_factory=list)
+
+    def team_from_own(self) -> F64:
+        """The robot's own map frame in its team's frame (identity until it joins a team)."""
+        return self.slam.keyframe_pose(0) if self.slam.keyframes else np.zeros(3)
+
+
+@dataclass
+class Link:
+    """A rendezvous factor inside a team's graph."""
+
+    a: str
+    b: str
+    stamp_ns: int
+    record: FactorRecord
+
+
+@dataclass
+class MergeRecord:
+    stamp_ns: int
+    team_id: str                  # the team that absorbed the other
+    joined_team_id: str
+    robots_a: list[str]
+    robots_b: list[str]
+    sightings: list[tuple[str, str, int]]   # (observer, observed, stamp_ns)
+    T_fused: F64                  # b's frame -> a's frame, fused sightings (direct method)
+    cov_fused: F64
+    T_direct_first: F64           # the direct method on the first sighting alone
+    T_joint: F64                  # after the joint optimisation
+    agreement: dict[str, float]
+    undone_stamp_ns: int | None = None
 
 
 @dataclass
@@ -70,6 +122,10 @@ class Team:
     finished: bool = False
     finished_stamp_ns: int | None = None
     history: list[tuple[int, float]] = field(default_factory=list)  # (stamp_ns, coverage)
+    anchor: str = ""              # the robot whose first pose is the team frame's origin
+    mapper: GridMapper | None = None
+    links: list[Link] = field(default_factory=list)
+    merged_into: str | None = None
 
 
 class ServerCore:
@@ -87,6 +143,18 @@ class ServerCore:
         self.latest_grids: dict[str, PlanningGrid] = {}
         self.map_stamp_ns = 0
         self._explorer_params = self._explorer_params_from(cfg)
+        t = cfg.teams
+        self.verifier = MergeVerifier(VerifierParams(min_sightings=t.min_sightings,
+                                                     window_s=t.window_s))
+        self._pose_sigmas = (t.pose_sigma_m, t.pose_sigma_m, math.radians(t.pose_sigma_deg))
+        self._pending: list[tuple[int, str, TagDetection]] = []
+        self._contradictions: dict[tuple[str, str], list[SightingRecord]] = {}
+        self.merges: list[MergeRecord] = []
+        self.retired_teams: dict[str, Team] = {}
+        self.tag_counters = {"sightings": 0, "used": 0, "unknown_robot": 0, "self": 0,
+                             "bad": 0, "expired": 0, "within_team": 0, "refined": 0,
+                             "contradicting": 0, "merges": 0, "merges_rejected": 0,
+                             "merges_undone": 0}
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -101,7 +169,12 @@ class ServerCore:
             r.start_pose = r.pose.copy()
         r.scans += 1
         r.last_stamp_ns = scan.stamp_ns
-        r.online.append((scan.stamp_ns, float(r.pose[0]), float(r.pose[1]), float(r.pose[2])))
+        own = r.pose
+        if len(self.teams[r.team_id].robot_ids) > 1:
+            own = compose(inverse(r.team_from_own()), r.pose)
+        r.online.append((scan.stamp_ns, float(own[0]), float(own[1]), float(own[2])))
+        if self._pending:
+            self._process_pending(scan.stamp_ns)
         team = self.teams[r.team_id]
         self._periodic(scan.stamp_ns)
         if team.finished:
@@ -159,7 +232,8 @@ class ServerCore:
         r = RobotContext(robot_id, RobotSlam(char, self.cfg.slam), nav, team_id)
         self.robots[robot_id] = r
         self.teams[team_id] = Team(team_id, [robot_id],
-                                   VisitedTargets(self.cfg.explore.visited_radius_m))
+                                   VisitedTargets(self.cfg.explore.visited_radius_m),
+                                   anchor=robot_id, mapper=self._new_mapper())
         self.emit("robot_joined", [robot_id], team_id, f"robot {robot_id} joined", 0)
         log.info("robot %s tracked as graph symbol %r in %s", robot_id, char, team_id)
         return r
@@ -182,12 +256,250 @@ class ServerCore:
 
         return transform_points(inverse(r.pose), np.array(xy))
 
+    def _new_mapper(self) -> GridMapper:
+        return GridMapper(GridParams(**self.cfg.slam.grid.model_dump()))
+
+    def team_grid(self, team_id: str) -> OccupancyGrid:
+        """The team's log-odds grid from all its robots' keyframes, in the team frame."""
+        team = self.teams[team_id]
+        assert team.mapper is not None
+        return team.mapper.update_many({
+            rid: (self.robots[rid].slam.keyframes, self.robots[rid].slam.keyframe_poses())
+            for rid in team.robot_ids})
+
     def planning_grid(self, team_id: str) -> PlanningGrid:
         """The team's occupancy grid in the nav2 convention (robots of one team share it)."""
-        team = self.teams[team_id]
-        grid = self.robots[team.robot_ids[0]].slam.occupancy_grid()
+        grid = self.team_grid(team_id)
         return PlanningGrid(grid.to_nav2(), grid.resolution_m,
                             (float(grid.origin[0]), float(grid.origin[1])))
+
+    # -- rendezvous ------------------------------------------------------------------------
+    def on_tags(self, msg: TagDetections) -> None:
+        """Queue a robot's tag sightings until the scans around their time are in."""
+        if not self.cfg.teams.enabled:
+            return
+        for det in msg.detections:
+            self.tag_counters["sightings"] += 1
+            if det.observed_robot_id == msg.robot_id:
+                self.tag_counters["self"] += 1
+                continue
+            self._pending.append((msg.stamp_ns, msg.robot_id, det))
+        latest = max((r.last_stamp_ns for r in self.robots.values()), default=0)
+        self._process_pending(latest)
+
+    def _process_pending(self, now_ns: int) -> None:
+        t = self.cfg.teams
+        keep = []
+        for stamp, observer, det in self._pending:
+            a, b = self.robots.get(observer), self.robots.get(det.observed_robot_id)
+            if a is None or b is None:
+                if now_ns - stamp > t.max_pending_s * 1e9:
+                    self.tag_counters["unknown_robot"] += 1
+                    log.info("sighting of unknown robot %s by %s dropped",
+                             det.observed_robot_id, observer)
+                else:
+                    keep.append((stamp, observer, det))
+                continue
+            tol = int(t.sighting_tolerance_s * 1e9)
+            at_a, at_b = a.slam.pose_at(stamp, tol), b.slam.pose_at(stamp, tol)
+            if at_a is None or at_b is None:
+                if min(a.last_stamp_ns, b.last_stamp_ns) > stamp + tol or \
+                        now_ns - stamp > t.max_pending_s * 1e9:
+                    self.tag_counters["expired"] += 1
+                else:
+                    keep.append((stamp, observer, det))
+                continue
+            try:
+                self._sighting(stamp, a, b, det, at_a, at_b)
+            except NoiseError as e:
+                self.tag_counters["bad"] += 1
+                log.warning("sighting by %s refused: %s", observer, e)
+        self._pending = keep
+
+    def _sighting(self, stamp: int, a: RobotContext, b: RobotContext, det: TagDetection,
+                  at_a: tuple[int, F64], at_b: tuple[int, F64]) -> None:
+        s = Sighting(det.range_m, det.bearing_rad, det.yaw_rad, det.sigma_range_m,
+                     det.sigma_bearing_rad, det.sigma_yaw_rad)
+        P_a = compose(a.slam.keyframe_pose(at_a[0]), at_a[1])
+        P_b = compose(b.slam.keyframe_pose(at_b[0]), at_b[1])
+        rec = make_record(stamp, a.robot_id, b.robot_id, s, at_a, at_b, P_a, P_b,
+                          self._pose_sigmas)
+        self.tag_counters["used"] += 1
+        if a.team_id == b.team_id:
+            self._within_team(rec)
+            return
+        proposal = self.verifier.add(a.team_id, b.team_id, rec)
+        if proposal is not None:
+            self._try_merge(proposal, stamp)
+
+    def _link(self, rec: SightingRecord) -> Link:
+        a, b = self.robots[rec.observer], self.robots[rec.observed]
+        f = rendezvous_factor(a.slam.trajectory.key(rec.kf_a), b.slam.trajectory.key(rec.kf_b),
+                              rec.sighting, rec.T_kf_a, rec.T_kf_b, kernel="huber")
+        return Link(rec.observer, rec.observed, rec.stamp_ns, FactorRecord(f, "rendezvous"))
+
+    def _try_merge(self, p: MergeProposal, stamp: int) -> None:
+        t = self.cfg.teams
+        ta, tb = self.teams[p.team_a], self.teams[p.team_b]
+        agree = map_agreement(self.team_grid(ta.team_id), self.team_grid(tb.team_id), p.T_ab)
+        info = {"overlap_cells": agree.overlap_cells, "wall_cells": agree.occupied_checked,
+                "conflicts": agree.conflicts, "conflict_ratio": round(agree.conflict_ratio, 4)}
+        if agree.occupied_checked >= t.min_checked_cells and \
+                agree.conflict_ratio > t.max_conflict_ratio:
+            self.verifier.reject(p)
+            self.tag_counters["merges_rejected"] += 1
+            self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
+                      f"{tb.team_id} not merged into {ta.team_id}: maps disagree "
+                      f"({agree.conflicts} of {agree.occupied_checked} wall cells)", stamp)
+            return
+        b_anchor = self.robots[tb.anchor]
+        b_origin_before = b_anchor.slam.keyframe_pose(0)
+        links = [self._link(r) for r in p.records]
+        self._rebuild(ta, [(rid, np.zeros(3)) for rid in ta.robot_ids]
+                      + [(rid, p.T_ab) for rid in tb.robot_ids],
+                      ta.links + tb.links + links)
+        T_joint = compose(b_anchor.slam.keyframe_pose(0), inverse(b_origin_before))
+        for rid in tb.robot_ids:
+            r = self.robots[rid]
+            r.team_id = ta.team_id
+            r.start_pose = compose(p.T_ab, r.start_pose)
+            r.pose = r.slam.pose
+        for xy in tb.visited.points_xy:
+            ta.visited.add(transform_points(p.T_ab, np.asarray(xy).reshape(1, 2))[0])
+        merged_ids = list(tb.robot_ids)
+        ta.robot_ids = ta.robot_ids + merged_ids
+        ta.links = ta.links + tb.links + links
+        tb.merged_into = ta.team_id
+        self.retired_teams[tb.team_id] = self.teams.pop(tb.team_id)
+        self.latest_grids.pop(tb.team_id, None)
+        self.verifier.forget(tb.team_id)
+        self._coordinate(ta)
+        rec = MergeRecord(stamp, ta.team_id, tb.team_id, [r for r in ta.robot_ids
+                                                          if r not in merged_ids], merged_ids,
+                          [(r.observer, r.observed, r.stamp_ns) for r in p.records],
+                          p.T_ab, p.cov_ab, p.direct_first, T_joint, info)
+        self.merges.append(rec)
+        self.tag_counters["merges"] += 1
+        log.info("merged %s into %s from %d sightings: T %s (direct %s)", tb.team_id,
+                 ta.team_id, len(p.records), T_joint.round(3), p.T_ab.round(3))
+        self._seq += 1
+        ev = Event(kind="merge", robot_ids=ta.robot_ids, team_id=ta.team_id,
+                   message=f"{tb.team_id} merged into {ta.team_id} from {len(p.records)} "
+                   f"sightings", transform=(float(T_joint[0]), float(T_joint[1]),
+                                            float(T_joint[2])),
+                   covariance=[float(v) for v in p.cov_ab.reshape(-1)], seq=self._seq,
+                   stamp_ns=stamp)
+        self.events.append(ev)
+        self.event_log.append(ev)
+
+    def _rebuild(self, team: Team, frames: list[tuple[str, F64]], links: list[Link]) -> None:
+        """One joint graph for ``frames`` (robot, transform of its current frame into the
+        team's), anchored on ``team.anchor``, with ``links``; every robot continues in it."""
+        slams = [(self.robots[rid].slam, T) for rid, T in frames]
+        graph = join_graph([sl for sl, _ in slams], self.robots[team.anchor].slam,
+                           [ln.record for ln in links], team_initial_values(slams),
+                           self.cfg.slam.graph.relinearize_threshold)
+        for rid, _ in frames:
+            r = self.robots[rid]
+            r.slam.rebind(graph)
+            r.pose = r.slam.pose
+            drop_target(r.nav)
+
+    def _coordinate(self, team: Team) -> None:
+        """Robots of a team of several decide together (see ``server.coordination``)."""
+        for rid in team.robot_ids:
+            nav = self.robots[rid].nav
+            base = nav.explorer.base if isinstance(nav.explorer, TeamExplorer) else nav.explorer
+            if len(team.robot_ids) > 1:
+                nav.explorer = TeamExplorer(  # type: ignore[assignment]
+                    base, rid, functools.partial(self._members, team.team_id),
+                    self.cfg.teams.coordination)
+            else:
+                nav.explorer = base
+
+    def _members(self, team_id: str) -> list[Member]:
+        team = self.teams.get(team_id)
+        if team is None:
+            return []
+        return [Member(rid, self.robots[rid].pose, self.robots[rid].start_pose,
+                       self.robots[rid].nav)
+                for rid in team.robot_ids if self.robots[rid].alive]
+
+    def _within_team(self, rec: SightingRecord) -> None:
+        """A sighting between teammates: another factor if it agrees with the team's graph;
+        consistent disagreement undoes the merge that joined them."""
+        t = self.cfg.teams
+        self.tag_counters["within_team"] += 1
+        team = self.teams[self.robots[rec.observer].team_id]
+        pair = (min(rec.observer, rec.observed), max(rec.observer, rec.observed))
+        vp = self.verifier.p
+        miss = float(np.hypot(*(rec.p_seen_a - rec.p_own_b)))
+        agrees = miss <= vp.gate_sigmas * rec.sigma_p_m + vp.gate_floor_m
+        if agrees and rec.sighting.sigma_yaw_rad <= vp.informative_yaw_rad:
+            agrees = abs(math.remainder(rec.T_ab[2], 2 * math.pi)) <= \
+                vp.gate_sigmas * math.sqrt(rec.cov_ab[2, 2]) + math.radians(2)
+        if agrees:
+            self._contradictions.pop(pair, None)
+            last = max((ln.stamp_ns for ln in team.links if {ln.a, ln.b} == set(pair)),
+                       default=None)
+            if last is None or rec.stamp_ns - last >= t.refine_period_s * 1e9:
+                ln = self._link(rec)
+                a = self.robots[rec.observer]
+                (idx,) = a.slam.graph.add([ln.record.factor], {})
+                ln.record.index = idx
+                team.links.append(ln)
+                self.tag_counters["refined"] += 1
+            return
+        self.tag_counters["contradicting"] += 1
+        bad = self._contradictions.setdefault(pair, [])
+        bad.append(rec)
+        bad[:] = [r for r in bad if r.stamp_ns >= rec.stamp_ns - t.window_s * 1e9]
+        agreeing = [r for r in bad
+                    if chi2_between(r.T_ab, r.cov_ab, rec.T_ab, rec.cov_ab) <= CHI2_3DOF_99]
+        if len(agreeing) >= t.undo_after:
+            self._undo(team, rec, pair)
+
+    def _undo(self, team: Team, rec: SightingRecord, pair: tuple[str, str]) -> None:
+        """Split ``team`` back along the latest merge that put ``pair`` together."""
+        merge = next((m for m in reversed(self.merges) if m.team_id == team.team_id
+                      and m.undone_stamp_ns is None
+                      and (pair[0] in m.robots_b) != (pair[1] in m.robots_b)), None)
+        self._contradictions.pop(pair, None)
+        if merge is None or any(m.team_id == team.team_id and m.stamp_ns > merge.stamp_ns
+                                and m.undone_stamp_ns is None for m in self.merges):
+            log.warning("sightings contradict team %s but its latest merge does not separate "
+                        "%s and %s: kept", team.team_id, *pair)
+            return
+        side_b = [r for r in team.robot_ids if r in merge.robots_b]
+        side_a = [r for r in team.robot_ids if r not in merge.robots_b]
+        old = self.retired_teams.pop(merge.joined_team_id)
+        b_anchor = self.robots[old.anchor]
+        T_team_b = compose(b_anchor.slam.keyframe_pose(0),
+                           inverse(b_anchor.slam.trajectory.prior_pose()))
+        inside_a = [ln for ln in team.links if ln.a in side_a and ln.b in side_a]
+        inside_b = [ln for ln in team.links if ln.a in side_b and ln.b in side_b]
+        for ln in team.links:
+            if ln not in inside_a and ln not in inside_b:
+                ln.record.index = None
+        back = inverse(T_team_b)
+        old.robot_ids, old.links, old.merged_into = side_b, inside_b, None
+        old.finished, old.mapper = False, self._new_mapper()
+        team.robot_ids, team.links = side_a, inside_a
+        team.mapper = self._new_mapper()
+        self.teams[old.team_id] = old
+        self._rebuild(team, [(rid, np.zeros(3)) for rid in side_a], inside_a)
+        self._rebuild(old, [(rid, back) for rid in side_b], inside_b)
+        for rid in side_b:
+            r = self.robots[rid]
+            r.team_id = old.team_id
+            r.start_pose = compose(back, r.start_pose)
+        self._coordinate(team)
+        self._coordinate(old)
+        merge.undone_stamp_ns = rec.stamp_ns
+        self.tag_counters["merges_undone"] += 1
+        self.emit("merge_undone", side_a + side_b, team.team_id,
+                  f"{old.team_id} split from {team.team_id}: sightings contradict the merge",
+                  rec.stamp_ns)
 
     @staticmethod
     def _explorer_params_from(cfg: ServerConfig) -> ExplorerParams:

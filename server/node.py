@@ -66,6 +66,11 @@ class ServerNode:
             self.registry.admit(keys.robot_id_of(key), msg.robot_id, "tags", msg.stamp_ns)
         except Refused:
             return
+        with self._cv:
+            name = f"#tags:{msg.robot_id}"
+            self._queues.setdefault(name, deque()).append(msg)  # type: ignore[arg-type]
+            self._order.append(name)
+            self._cv.notify()
 
     def _on_alive(self, key: str, alive: bool) -> None:
         rid = keys.robot_id_of(key)
@@ -94,6 +99,8 @@ class ServerNode:
                 try:
                     if rid.startswith("#alive:"):
                         self.core.set_alive(rid.split(":", 1)[1], bool(payload))
+                    elif rid.startswith("#tags:"):
+                        self.core.on_tags(payload)
                     else:
                         last_stamp = max(last_stamp, payload.stamp_ns)
                         cmd = self.core.on_scan(payload)

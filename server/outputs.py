@@ -72,6 +72,17 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
                               "finished_stamp_ns": t.finished_stamp_ns,
                               "coverage_history": t.history}
                   for t in core.teams.values()},
+        "merged_teams": {t.team_id: {"merged_into": t.merged_into, "robot_ids": t.robot_ids,
+                                     "coverage_history": t.history}
+                         for t in core.retired_teams.values()},
+        "merges": [{"stamp_ns": m.stamp_ns, "team_id": m.team_id,
+                    "joined_team_id": m.joined_team_id, "robots_a": m.robots_a,
+                    "robots_b": m.robots_b, "sightings": m.sightings,
+                    "T_joint": m.T_joint.tolist(), "T_fused": m.T_fused.tolist(),
+                    "cov_fused": m.cov_fused.tolist(), "T_direct_first": m.T_direct_first.tolist(),
+                    "map_agreement": m.agreement, "undone_stamp_ns": m.undone_stamp_ns}
+                   for m in core.merges],
+        "tag_counters": core.tag_counters,
         "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": e.robot_ids,
                     "team_id": e.team_id, "message": e.message} for e in core.event_log],
         **(extra or {}),

@@ -55,6 +55,13 @@ class RobotTrajectory:
     def all_keys(self) -> list[int]:
         return [self.key(k) for k in range(self.n_keys)]
 
+    def prior_pose(self) -> F64:
+        """Where the prior pins the first key (the origin of the robot's own map frame)."""
+        if self.prior is None:
+            return np.zeros(3)
+        p = self.prior.factor.prior()  # type: ignore[attr-defined]
+        return np.array([p.x(), p.y(), p.theta()])
+
     def records(self, kind: str | None = None) -> list[FactorRecord]:
         return [r for r in self.factors if kind is None or r.kind == kind]
 

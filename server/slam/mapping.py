@@ -37,13 +37,14 @@ def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -
 
 
 class GridMapper:
-    """The occupancy grid of a set of keyframes, refreshed lazily.
+    """The occupancy grid of one or more sets of keyframes in one frame, refreshed lazily.
 
-    ``update(keyframes, poses)`` inserts keyframes not yet in the grid; if any keyframe already
-    in the grid has moved by more than ``shift_m`` (default one cell) or ``turn_rad`` since it was
-    inserted, the grid is rendered again from scratch (a loop closure bent the trajectory).
-    Insertion costs about 1 ms per keyframe; a full render of 500 keyframes of a 400-beam
-    10 m LIDAR about 0.9 s.
+    ``update(keyframes, poses)`` (one robot) or ``update_many({member: (keyframes, poses)})``
+    (a team) inserts keyframes not yet in the grid; if any keyframe already in the grid has
+    moved by more than ``shift_m`` (default one cell) or ``turn_rad`` since it was inserted, or
+    a member left, the grid is rendered again from scratch (a loop closure or a merge moved the
+    trajectories). Insertion costs about 1 ms per keyframe; a full render of 500 keyframes of a
+    400-beam 10 m LIDAR about 0.9 s.
     """
 
     def __init__(self, params: GridParams, shift_m: float | None = None,
@@ -52,27 +53,41 @@ class GridMapper:
         self.shift_m = params.resolution_m if shift_m is None else shift_m
         self.turn_rad = turn_rad
         self.grid = OccupancyGrid(params)
-        self._inserted_poses = np.zeros((0, 3))
+        self._inserted: dict[str, F64] = {}
         self.renders = 0
 
-    def _moved(self, poses: F64) -> bool:
-        n = len(self._inserted_poses)
+    def _moved(self, inserted: F64, poses: F64) -> bool:
+        n = len(inserted)
         if n == 0:
             return False
-        d = poses[:n] - self._inserted_poses
+        if len(poses) < n:
+            return True
+        d = poses[:n] - inserted
         shift = np.hypot(d[:, 0], d[:, 1])
         turn = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
         return bool((shift > self.shift_m).any() or (turn > self.turn_rad).any())
 
     def update(self, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
-        n = len(self._inserted_poses)
-        if len(keyframes) < n or self._moved(poses):
-            self.grid = render_grid(self.params, keyframes, poses)
+        return self.update_many({"": (keyframes, poses)})
+
+    def update_many(self, members: dict[str, tuple[Sequence[Keyframe], F64]]
+                    ) -> OccupancyGrid:
+        rerender = any(m not in members for m in self._inserted) or any(
+            self._moved(self._inserted.get(m, np.zeros((0, 3))), np.asarray(p).reshape(-1, 3))
+            for m, (_, p) in members.items())
+        if rerender:
+            every: list[Keyframe] = [kf for k, _ in members.values() for kf in k]
+            poses = np.concatenate([np.asarray(p, dtype=np.float64).reshape(-1, 3)
+                                    for _, p in members.values()])
+            self.grid = render_grid(self.params, every, poses)
             self.renders += 1
         else:
-            for kf, T in zip(keyframes[n:], poses[n:], strict=True):
-                self.grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
-        self._inserted_poses = np.array(poses, dtype=np.float64).reshape(-1, 3)
+            for m, (kfs, poses) in members.items():
+                n = len(self._inserted.get(m, ()))
+                for kf, T in zip(kfs[n:], poses[n:], strict=True):
+                    self.grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
+        self._inserted = {m: np.array(p, dtype=np.float64).reshape(-1, 3)
+                          for m, (_, p) in members.items()}
         return self.grid
 
 

@@ -3,6 +3,7 @@ by the server daemon). Its pose graph may be shared with other robots (see ``bac
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from dataclasses import dataclass, field
@@ -269,6 +270,48 @@ class RobotSlam:
         keys = [self.trajectory.key(kf.index) for kf in kfs]
         self._local_map = local_point_map(kfs, self.graph.poses(keys),
                                           self.cfg.local_map.voxel_m)
+
+    def rebind(self, graph: PoseGraph) -> None:
+        """Continue in ``graph`` (which now holds this robot's keys, e.g. a team's joint
+        problem in the team's frame): cached map-frame poses and the local map follow."""
+        self.graph = graph
+        if self.keyframes:
+            self._T_kf_map_cache = graph.pose(self.trajectory.key(len(self.keyframes) - 1))
+            self._refresh_local_map()
+
+    def pose_at(self, stamp_ns: int, tolerance_ns: int = 150_000_000
+                ) -> tuple[int, F64] | None:
+        """Where the robot was at ``stamp_ns``: a keyframe index and the robot's pose relative
+        to that keyframe, interpolated between the scans around that instant (the nearest scan
+        within ``tolerance_ns`` at either end). None when no scan is close enough."""
+        sp = self._scan_poses
+        if not sp:
+            return None
+        stamps = [s.stamp_ns for s in sp]
+        i = bisect.bisect_left(stamps, stamp_ns)
+        if i < len(sp) and stamps[i] == stamp_ns:
+            return sp[i].keyframe, sp[i].T_kf_robot.copy()
+        if i == 0 or i == len(sp):
+            j = 0 if i == 0 else len(sp) - 1
+            if abs(stamps[j] - stamp_ns) > tolerance_ns:
+                return None
+            return sp[j].keyframe, sp[j].T_kf_robot.copy()
+        a, b = sp[i - 1], sp[i]
+        if b.stamp_ns - a.stamp_ns > 2 * tolerance_ns:
+            near = a if stamp_ns - a.stamp_ns <= b.stamp_ns - stamp_ns else b
+            if abs(near.stamp_ns - stamp_ns) > tolerance_ns:
+                return None
+            return near.keyframe, near.T_kf_robot.copy()
+        f = (stamp_ns - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
+        keys = [self.trajectory.key(a.keyframe), self.trajectory.key(b.keyframe)]
+        Xa, Xb = self.graph.poses(keys)
+        Pa, Pb = compose(Xa, a.T_kf_robot), compose(Xb, b.T_kf_robot)
+        step = between(Pa, Pb)
+        return a.keyframe, compose(a.T_kf_robot, step * f)
+
+    def keyframe_pose(self, index: int) -> F64:
+        """The optimised pose of one keyframe."""
+        return self.graph.pose(self.trajectory.key(index))
 
     # -- accessors -----------------------------------------------------------------------
     @property

@@ -1,0 +1,122 @@
+"""Targets for a team: the robots of a merged team decide together.
+
+``TeamExplorer`` stands in for a robot's explorer once its team has more than one robot. When
+that robot needs a target, teammates still heading for an open target keep it (their goals are
+reserved); the robot and every teammate without a target are assigned jointly:
+
+- ``optimal``: minimum total path cost over the team's cost matrix (Hungarian method);
+- ``thesis``: the dissertation's rule — the robot takes its cheapest target at least the
+  reserve radius (2 m) from the others' goals.
+
+Teammates that received a target this way are redirected at once.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from server.exploration import (
+    Decision,
+    Explorer,
+    ExplorerParams,
+    Finished,
+    VisitedTargets,
+    assign_optimal,
+)
+from server.navigator import EXPLORING, Navigator
+from server.planning import OccupancyGrid
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class Member:
+    robot_id: str
+    pose: F64
+    start_pose: F64
+    nav: Navigator
+
+
+def redirect(nav: Navigator, target_xy: tuple[float, float], path_xy: F64) -> None:
+    """Send a robot to a new target along ``path_xy`` (team assignment)."""
+    nav.pursuit.reset()
+    nav.stuck.reset()
+    nav.target_xy = target_xy
+    nav.path_xy = path_xy
+    nav.mode = EXPLORING
+
+
+def drop_target(nav: Navigator) -> None:
+    """Forget the current target and path (e.g. the map frame changed under them)."""
+    nav.target_xy = None
+    nav.path_xy = None
+    nav.pursuit.reset()
+    nav.stuck.reset()
+
+
+class TeamExplorer:
+    """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
+
+    def __init__(self, base: Explorer, robot_id: str, members: Callable[[], Sequence[Member]],
+                 mode: str = "optimal") -> None:
+        if mode not in ("optimal", "thesis"):
+            raise ValueError(f"unknown coordination {mode!r}")
+        self.base = base
+        self.robot_id = robot_id
+        self.members = members
+        self.mode = mode
+        self.assignments = 0
+
+    @property
+    def params(self) -> ExplorerParams:
+        return self.base.params
+
+    def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
+               visited: VisitedTargets, reserved_xy: ArrayLike = ()) -> Decision | Finished:
+        team = list(self.members())
+        me = next((i for i, m in enumerate(team) if m.robot_id == self.robot_id), None)
+        if me is None or len(team) < 2:
+            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=reserved_xy)
+        others = [m for m in team if m.robot_id != self.robot_id]
+        committed = np.array([m.nav.target_xy for m in others if m.nav.target_xy is not None],
+                             dtype=np.float64).reshape(-1, 2)
+        if self.mode == "thesis":
+            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+        free = [i for i, m in enumerate(team)
+                if i == me or (m.nav.target_xy is None and m.nav.mode != "done")]
+        tc = self.base.team_costs(grid, [team[i].pose for i in free],
+                                  [team[i].start_pose for i in free], visited)
+        if tc.cost.shape[1] == 0:
+            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+        cost = tc.cost.copy()
+        if len(committed):
+            r = self.params.reserve_radius_m
+            near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],
+                            tc.targets_xy[:, None, 1] - committed[None, :, 1]).min(axis=1) < r
+            cost[:, near] = np.inf
+        assignment = assign_optimal(cost)
+        mine = assignment[free.index(me)]
+        if mine is None:
+            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+        self.assignments += 1
+        for row, i in enumerate(free):
+            k = assignment[row]
+            if i == me or k is None:
+                continue
+            try:
+                path = tc.path(row, k)
+            except Exception as e:  # a teammate that cannot be planned for decides alone
+                log.info("no path for %s to its assigned target: %s", team[i].robot_id, e)
+                continue
+            xy = (float(tc.targets_xy[k, 0]), float(tc.targets_xy[k, 1]))
+            redirect(team[i].nav, xy, path.xy_m)
+        xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
+        return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
+                        (), None)
