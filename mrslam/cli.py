@@ -178,6 +178,12 @@ def demo(
     explorer: Annotated[str, typer.Option(help="voronoi or frontier")] = "voronoi",
     max_sim_time: Annotated[float, typer.Option(help="give up after this sim time [s]")
                             ] = 3600.0,
+    spurious_detections: Annotated[float, typer.Option(
+        help="share of tag views drawn false by the simulator (0..1)")] = 0.0,
+    coordination: Annotated[str, typer.Option(
+        help="team targets: optimal (assignment on path costs) or thesis")] = "optimal",
+    merge: Annotated[bool, typer.Option("--merge/--no-merge",
+                                        help="merge maps at rendezvous")] = True,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
@@ -189,7 +195,9 @@ def demo(
         from sim.config import parse_robot_spec
 
         opts: dict[str, Any] = {"seed": seed, "lockstep": lockstep, "rtf": rtf,
-                                "explorer": explorer, "max_sim_time_s": max_sim_time}
+                                "explorer": explorer, "max_sim_time_s": max_sim_time,
+                                "spurious_detections": spurious_detections,
+                                "coordination": coordination, "merge": merge}
         if world is not None:
             opts.update(world=str(world), scenario=scenario)
         elif scenario is not None:

@@ -45,6 +45,10 @@ class DemoConfig(BaseModel):
     v_mps: float | None = None
     omega_max_rps: float | None = None
     lookahead_m: float | None = None
+    spurious_detections: float = Field(0.0, ge=0, le=1, description="share of tag views "
+                                       "the simulator draws false (merge verification test)")
+    coordination: Literal["optimal", "thesis"] = "optimal"
+    merge: bool = Field(True, description="False: robots never merge their maps")
     max_sim_time_s: float = Field(3600.0, gt=0)
     wall_timeout_s: float = Field(1800.0, gt=0)
     out: str = ""
@@ -116,6 +120,7 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
                     "coverage_threshold": plan["threshold"]},
         "control": {"v_mps": plan["v_mps"], "omega_max_rps": plan["omega_max_rps"],
                     "lookahead_m": plan["lookahead_m"]},
+        "teams": {"enabled": cfg.merge, "coordination": cfg.coordination},
         "out": str(out / "server"),
         "exit_when_done": True,
     }
@@ -123,6 +128,8 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
     for rid in plan["robots"]:
         agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000}}
         (out / f"agent_{rid}.yaml").write_text(yaml.safe_dump(agent, sort_keys=False))
+    sim = {"camera": {"spurious_rate": cfg.spurious_detections}}
+    (out / "sim.yaml").write_text(yaml.safe_dump(sim, sort_keys=False))
 
 
 def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
@@ -139,7 +146,8 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                 raise RuntimeError(f"the server did not come up:\n{server.tail()}")
             for rid in plan["robots"]:
                 procs.start(f"agent_{rid}", "agent", "-c", str(out / f"agent_{rid}.yaml"))
-            sim_args = ["sim", "--world", plan["world"], "--seed", str(cfg.seed),
+            sim_args = ["sim", "-c", str(out / "sim.yaml"), "--world", plan["world"],
+                        "--seed", str(cfg.seed),
                         "--connect", endpoint, "--out", str(out / "sim"),
                         "--duration", str(cfg.max_sim_time_s)]
             for rid, p in plan["robots"].items():

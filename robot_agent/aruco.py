@@ -244,3 +244,18 @@ def refine_corners(gray: np.ndarray, quad: np.ndarray, cells: int,
     if np.max(np.linalg.norm(out - q, axis=1)) > max(2.0, cell_px):
         return q  # refinement went astray; keep the detector's corners
     return out
+
+
+def in_line_of_sight(range_m: float, bearing_rad: float, ranges_m: np.ndarray,
+                     angles_rad: np.ndarray, half_width_rad: float = math.radians(3.0),
+                     margin_m: float = 0.4) -> bool:
+    """The dissertation's check against the LIDAR: a sighting at (range, bearing) is false when
+    the scan has a return clearly closer (by more than ``margin_m``, which covers the observed
+    robot's own body) within ``half_width_rad`` of the bearing — a wall stands in between and
+    the tag was seen through a gap or is not what it seems. Beams without a return (inf/NaN)
+    never object."""
+    r = np.asarray(ranges_m, dtype=np.float64)
+    a = np.asarray(angles_rad, dtype=np.float64)
+    off = np.abs(np.remainder(a - bearing_rad + math.pi, 2 * math.pi) - math.pi)
+    near = (off <= half_width_rad) & np.isfinite(r)
+    return not bool(np.any(r[near] < range_m - margin_m))

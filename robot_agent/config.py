@@ -26,6 +26,12 @@ class DetectorConfig(_Model):
     yaw_b_rad_per_m2: float = Field(0.03, ge=0.0)
     ambiguous_ratio: float = Field(3.0, ge=1.0)
     ambiguous_sigma_yaw_rad: float = Field(1.5, gt=0.0)
+    line_of_sight: bool = Field(True, description="drop sightings with a closer LIDAR return "
+                                "toward the tag (seen through a gap in a wall)")
+    los_half_width_deg: float = Field(3.0, gt=0.0, le=45.0)
+    los_margin_m: float = Field(0.4, ge=0.0, description="returns this much nearer than the "
+                                "tag are not the observed robot itself")
+    los_max_age_s: float = Field(0.3, gt=0.0, description="the scan must be this recent")
 
 
 class LockstepConfig(_Model):

@@ -16,6 +16,7 @@ server's liveliness token disappears. Liveliness ``mrslam/robot/<id>/alive`` and
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import signal
@@ -26,14 +27,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from mrslam.config import load_config
-from robot_agent.aruco import SigmaModel, TagDetector
+from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight
 from robot_agent.backend import Backend, Frame, Sweep
 from robot_agent.config import AgentConfig
 from robot_agent.watchdog import Watchdog
 from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus
-from schemas.messages import RobotState
+from schemas.messages import RobotState, ranges_from_mm
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +59,7 @@ class Agent:
         self.counters: Counter[str] = Counter()
         self.seq: Counter[str] = Counter()
         self.last_sweep_wall = 0.0
+        self.last_sweep: Sweep | None = None
         self._status_cpu = (time.monotonic(), time.process_time())
 
     def start(self) -> None:
@@ -98,6 +102,7 @@ class Agent:
                 range_max_mm=sweep.range_max_mm, ranges_mm=sweep.ranges_mm))
             self.counters["scans_sent"] += 1
         self.last_sweep_wall = time.monotonic()
+        self.last_sweep = sweep
         sync = self.backend.sync
         if sweep.step is not None and sync is not None and sync.lockstep():
             self._wait_for_command(sweep.stamp_ns)
@@ -130,17 +135,37 @@ class Agent:
             log.warning("tag detection failed: %s: %s", type(e).__name__, e)
             return
         self.counters["tags_rejected"] += len(found.rejected)
-        if not found.sightings:
+        sightings = [s for s in found.sightings if self._in_sight(s, frame.stamp_ns)]
+        self.counters["tags_occluded"] += len(found.sightings) - len(sightings)
+        if not sightings:
             return
         dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
                              bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
                              sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
                              sigma_yaw_rad=s.sigma_yaw_rad,
                              reprojection_error_px=s.reprojection_error_px)
-                for s in found.sightings[:64]]
+                for s in sightings[:64]]
         self.publish(keys.robot_tags(self.rid), TagDetections(
             robot_id=self.rid, seq=self._next("tags"), stamp_ns=frame.stamp_ns, detections=dets))
         self.counters["tag_detections"] += len(dets)
+
+    def _in_sight(self, s: Sighting, stamp_ns: int) -> bool:
+        """The line-of-sight check against the latest scan (turned by odometry to the frame's
+        time); without a recent scan the sighting is kept (the server verifies it too)."""
+        d = self.cfg.detector
+        sweep = self.last_sweep
+        if not d.line_of_sight or sweep is None or \
+                abs(sweep.stamp_ns - stamp_ns) > d.los_max_age_s * 1e9:
+            return True
+        turn = 0.0
+        at_frame = self.backend.base.odometry_at(stamp_ns)
+        at_sweep = self.backend.base.odometry_at(sweep.stamp_ns)
+        if at_frame is not None and at_sweep is not None:
+            turn = at_frame.pose[2] - at_sweep.pose[2]
+        ranges = ranges_from_mm(sweep.ranges_mm)
+        angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
+        return in_line_of_sight(s.range_m, s.bearing_rad + turn, ranges, angles,
+                                math.radians(d.los_half_width_deg), d.los_margin_m)
 
     def _queue_frame(self, frame: Frame) -> None:
         if self.events.qsize() > self.cfg.max_queued_frames and not self._lockstep():

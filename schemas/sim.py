@@ -108,6 +108,10 @@ class TrueRelative(msgspec.Struct, kw_only=True):
     tag_id: Annotated[int, msgspec.Meta(ge=0, le=4095)]
     relative_pose: Pose2
     image_seq: Seq
+    spurious: Annotated[str, msgspec.Meta(
+        max_length=16, description="'' for a true view; else how it was falsified: "
+        "'id' (another robot's tag), 'pose' (drawn ≥ 1 m or ≥ 30° off), 'occluded' "
+        "(seen through a wall)")] = ""
 
 
 class SimGroundTruth(Message, kw_only=True):

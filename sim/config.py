@@ -69,6 +69,9 @@ class CameraConfig(_Model):
                                   description="cos of the largest viewing angle off the tag normal")
     blur_sigma_px: float = Field(0.6, ge=0.0, le=10.0)
     noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="pixel noise [grey levels]")
+    spurious_rate: float = Field(0.0, ge=0.0, le=1.0, description="share of tag views drawn "
+                                 "false (another robot's id, a pose ≥ 1 m or ≥ 30° off, or a "
+                                 "tag behind a wall), to test merge verification")
 
 
 class SimConfig(_Model):

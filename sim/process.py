@@ -64,7 +64,8 @@ def params_from_config(cfg: SimConfig) -> SimParams:
             camera=PinholeCamera.from_hfov(cam.width, cam.height, math.radians(cam.hfov_deg)),
             every_steps=max(1, round(lid.rate_hz / cam.rate_hz)) if cam.enabled else 0,
             max_range_m=cam.max_range_m, min_facing_cos=cam.min_facing_cos,
-            blur_sigma_px=cam.blur_sigma_px, noise_sigma=cam.noise_sigma),
+            blur_sigma_px=cam.blur_sigma_px, noise_sigma=cam.noise_sigma,
+            spurious_rate=cam.spurious_rate),
         tags=cfg.tags, mount=cfg.camera_mount)
 
 
@@ -87,7 +88,8 @@ def step_messages(sim: Simulator, obs: Observation, world_name: str, lockstep: b
                 robot_id=rid, seq=frame.seq, stamp_ns=obs.stamp_ns, width=w, height=h,
                 fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, data=frame.image.tobytes())))
             relatives += [TrueRelative(observer_id=rid, observed_id=other, tag_id=tag,
-                                       relative_pose=rel, image_seq=frame.seq)
+                                       relative_pose=rel, image_seq=frame.seq,
+                                       spurious=frame.spurious.get(tag, ""))
                           for other, tag, rel in frame.relatives]
         pose, v, w = obs.odometry[rid]
         msgs.append((keys.sim_odom(rid), SimOdometry(

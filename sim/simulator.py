@@ -69,6 +69,7 @@ class CameraSpec:
     min_facing_cos: float = 0.2
     blur_sigma_px: float = 0.6
     noise_sigma: float = 2.0
+    spurious_rate: float = 0.0      # share of views drawn false (see ``Simulator._falsify``)
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,7 @@ class Frame:
     seq: int
     views: list[TagView]
     relatives: list[tuple[str, int, Pose]]   # (observed id, tag id, observed pose in observer)
+    spurious: dict[int, str] = field(default_factory=dict)  # tag id -> how it was falsified
 
 
 @dataclass(frozen=True)
@@ -199,13 +201,67 @@ class Simulator:
         for rid, r in self.robots.items():
             views = visible_tags(rid, poses, self.p.tags, self.p.mount, cam.camera,
                                  cam.max_range_m, cam.min_facing_cos, blocked)
+            fake: dict[int, str] = {}
+            if cam.spurious_rate > 0:
+                views, fake = self._falsify(rid, poses, views, r.rng_camera)
             if not views:
                 continue
             image = self.renderer.render(views, r.rng_camera, cam.blur_sigma_px, cam.noise_sigma)
             rel = [(v.observed, v.tag_id, between2(r.pose, poses[v.observed])) for v in views]
-            frames[rid] = Frame(image, r.image_seq, views, rel)
+            frames[rid] = Frame(image, r.image_seq, views, rel, fake)
             r.image_seq += 1
         return frames
+
+    def _falsify(self, rid: str, poses: dict[str, Pose], views: list[TagView],
+                 rng: np.random.Generator) -> tuple[list[TagView], dict[int, str]]:
+        """Replace each view, with probability ``spurious_rate``, by a false one: the tag of
+        a robot that is not there ('id'), the robot drawn ≥ 1 m or ≥ 30° from where it is
+        ('pose'); and add, with that probability, a tag hidden behind a wall ('occluded')."""
+        cam = self.p.camera
+        rate = cam.spurious_rate
+        out: list[TagView] = []
+        fake: dict[int, str] = {}
+        others = [o for o in self.robots if o != rid]
+
+        def clear(p: tuple[float, float], q: tuple[float, float], a: str, b: str) -> bool:
+            return False
+
+        for v in views:
+            if rng.random() >= rate:
+                out.append(v)
+                continue
+            kind = "id" if len(others) >= 2 and rng.random() < 0.5 else "pose"
+            if kind == "id":
+                wrong = [o for o in others if o != v.observed]
+                who = wrong[int(rng.integers(len(wrong)))]
+                tag = self.p.tags.tag_id(who, v.side)
+                out.append(TagView(v.observer, v.observed, v.side, tag, v.plate_px,
+                                   v.T_camera_tag, v.distance_m))
+                fake[tag] = "id"
+                continue
+            x, y, t = poses[v.observed]
+            if rng.random() < 0.5:
+                ang, d = rng.uniform(-math.pi, math.pi), rng.uniform(1.0, 2.0)
+                moved = (x + d * math.cos(ang), y + d * math.sin(ang), t)
+            else:
+                moved = (x, y, t + float(rng.choice([-1, 1])) * rng.uniform(0.52, 1.05))
+            seen = visible_tags(rid, {**poses, v.observed: moved}, self.p.tags, self.p.mount,
+                                cam.camera, cam.max_range_m, cam.min_facing_cos, clear)
+            alt = [w for w in seen if w.observed == v.observed]
+            if alt:
+                out.append(alt[0])
+                fake[alt[0].tag_id] = "pose"
+            else:
+                out.append(v)
+        if rng.random() < rate:
+            shown = {w.observed for w in out}
+            hidden = [w for w in visible_tags(rid, poses, self.p.tags, self.p.mount,
+                                              cam.camera, cam.max_range_m, cam.min_facing_cos,
+                                              clear) if w.observed not in shown]
+            if hidden:
+                out.append(hidden[0])
+                fake[hidden[0].tag_id] = "occluded"
+        return out, fake
 
     # -- physics ----------------------------------------------------------------------------
     def advance(self) -> None:

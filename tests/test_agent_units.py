@@ -55,3 +55,23 @@ def test_corner_refinement_keeps_corners_of_tiny_or_blank_quads() -> None:
     assert np.array_equal(refine_corners(img, quad, 6), quad)        # cells below 3 px
     big = quad * 5
     assert np.array_equal(refine_corners(np.full((100, 100), 128, np.float32), big, 6), big)
+
+
+def test_line_of_sight_drops_tags_behind_a_closer_return() -> None:
+    import math as m
+
+    import numpy as np
+
+    from robot_agent.aruco import in_line_of_sight
+
+    angles = np.linspace(-m.pi, m.pi, 400, endpoint=False)
+    ranges = np.full(400, np.inf)
+    # the observed robot itself (its body, 0.13 m before its centre) at 3 m, bearing 0.2 rad
+    ranges[np.abs(angles - 0.2) < 0.03] = 2.87
+    assert in_line_of_sight(3.0, 0.2, ranges, angles)
+    # a wall at 1.5 m in that direction: seen through a gap, or not what it seems
+    ranges[np.abs(angles - 0.21) < 0.01] = 1.5
+    assert not in_line_of_sight(3.0, 0.2, ranges, angles)
+    # the same wall well off the bearing does not matter; no-return beams never object
+    assert in_line_of_sight(3.0, -1.0, ranges, angles)
+    assert in_line_of_sight(3.0, 0.2, np.full(400, np.nan), angles)
