@@ -98,3 +98,29 @@ def test_tag_layout_ids_round_trip_and_geometry() -> None:
     assert np.isclose(np.linalg.det(T[:3, :3]), 1.0)
     C = MOUNT.T_robot_camera()  # optical axis forward, image x to the right
     assert np.allclose(C[:3, 2], [1, 0, 0]) and np.allclose(C[:3, 0], [0, -1, 0])
+
+
+def test_spurious_views_are_drawn_false_and_flagged() -> None:
+    """With every view falsified, what the detector reads disagrees with the truth, and the
+    frame says how each false tag was made."""
+    from dataclasses import replace
+
+    detector = TagDetector(LAYOUT, MOUNT)
+    params = SimParams()
+    params = replace(params, camera=replace(params.camera, spurious_rate=1.0))
+    kinds: set[str] = set()
+    wrong = 0
+    for k in range(20):
+        spawn = {"r1": (0.0, 0.0, 0.0), "r2": facing_pose(2.0, 0.1, 0.2), "r3": (-3.0, 3.0, 0.0)}
+        frame = Simulator(empty(), spawn, params, seed=k).sense().frames.get("r1")
+        if frame is None:
+            continue
+        kinds |= set(frame.spurious.values())
+        for s in detector.detect(frame.image, params.camera.camera.K, "r1").sightings:
+            rel = next(r for o, _, r in frame.relatives if o == "r2")
+            far = math.hypot(s.range_m * math.cos(s.bearing_rad) - rel[0],
+                             s.range_m * math.sin(s.bearing_rad) - rel[1]) > 0.5
+            turned = abs(math.remainder(s.yaw_rad - rel[2], 2 * math.pi)) > 0.4
+            wrong += s.robot_id != "r2" or far or turned
+    assert {"id", "pose"} <= kinds
+    assert wrong >= 10
