@@ -8,7 +8,7 @@ venv:
 	@bash deploy/bootstrap.sh all,dev
 
 demo: venv
-	$(VENV)/mrslam demo $(or $(ARGS),--scenario thesis-case-1)
+	$(VENV)/mrslam demo $(ARGS)
 
 test: venv lint
 	$(VENV)/python -m pytest -q

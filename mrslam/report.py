@@ -179,9 +179,10 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "area_m2": plan["area_m2"], "nominal_area_m2": plan["nominal_area_m2"],
         "reached": reached,
         "sim_time_to_threshold_s": best,
-        "true_coverage": min((t.get("true_coverage") or 0.0 for t in teams.values()),
-                             default=None),
-        "phantom_area_m2": sum(t.get("phantom_area_m2") or 0.0 for t in teams.values()),
+        "true_coverage": min((t.get("true_coverage") or 0.0 for t in teams.values()
+                              if not t.get("merged_into")), default=None),
+        "phantom_area_m2": sum(t.get("phantom_area_m2") or 0.0 for t in teams.values()
+                               if not t.get("merged_into")),
         "teams": teams, "robots": robots,
         "wall_time_s": round(wall_time_s, 2), "end": watch.get("end"),
         "sim_time_s": round(watch.get("sim_time_s", 0.0), 2),

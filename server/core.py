@@ -285,7 +285,7 @@ class ServerCore:
                 continue
             self._pending.append((msg.stamp_ns, msg.robot_id, det))
         latest = max((r.last_stamp_ns for r in self.robots.values()), default=0)
-        self._process_pending(latest)
+        self._process_pending(max(latest, msg.stamp_ns))
 
     def _process_pending(self, now_ns: int) -> None:
         t = self.cfg.teams

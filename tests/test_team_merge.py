@@ -1,0 +1,137 @@
+"""Two robots meet in the dissertation's small house: the simulator renders their tags, the
+agent's detector reads them, and the server core merges the two graphs into one team — or,
+fed sightings that put the other robot in the wrong place, refuses to.
+
+The loop runs in one process (simulator → scans and detections → ``ServerCore`` → commands),
+so it is quick and exactly repeatable; the process-level path is the demo's."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from factors.rendezvous import between, compose
+from robot_agent.aruco import TagDetector
+from schemas import Scan, TagDetection, TagDetections
+from schemas.messages import quantise_ranges_mm
+from schemas.tags import CameraMount, TagLayout
+from server.config import ServerConfig
+from server.core import ServerCore
+from sim.loader import load_world
+from sim.simulator import SimParams, Simulator
+from tests.conftest import DATA
+
+WORLD = DATA / "worlds" / "thesis" / "house_small.world"
+SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.0, 8.0, math.pi)}
+
+
+def config() -> ServerConfig:
+    return ServerConfig.model_validate({
+        "robots": ["r1", "r2"],
+        "slam": {"grid": {"resolution_m": 1 / 15}},
+        "explore": {"total_area_m2": 374.5, "coverage_threshold": 0.98},
+    })
+
+
+def run(steps: int, falsify: bool = False) -> tuple[ServerCore, Simulator]:
+    sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=3)
+    core = ServerCore(config())
+    detector = TagDetector(TagLayout(), CameraMount())
+    lidar = sim.p.lidar
+    K = sim.p.camera.camera.K
+    for _ in range(steps):
+        obs = sim.sense()
+        for rid in SPAWN:
+            scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
+                        odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
+                        angle_increment_rad=lidar.angle_increment_rad,
+                        range_min_mm=round(lidar.range_min_m * 1000),
+                        range_max_mm=round(lidar.range_max_m * 1000),
+                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
+                                                     lidar.range_max_m))
+            cmd = core.on_scan(scan)
+            sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
+        for rid, frame in obs.frames.items():
+            found = detector.detect(frame.image, K, rid)
+            dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id,
+                                 range_m=s.range_m + (1.5 if falsify else 0.0),
+                                 bearing_rad=s.bearing_rad + (0.4 if falsify else 0.0),
+                                 yaw_rad=s.yaw_rad, sigma_range_m=s.sigma_range_m,
+                                 sigma_bearing_rad=s.sigma_bearing_rad,
+                                 sigma_yaw_rad=s.sigma_yaw_rad)
+                    for s in found.sightings]
+            if dets:
+                core.on_tags(TagDetections(robot_id=rid, seq=obs.step + 1,
+                                           stamp_ns=obs.stamp_ns, detections=dets))
+        sim.advance()
+    return core, sim
+
+
+@pytest.fixture(scope="module")
+def met() -> tuple[ServerCore, Simulator]:
+    return run(250)
+
+
+def test_robots_that_see_each_other_become_one_team(met: tuple[ServerCore, Simulator]) -> None:
+    core, _ = met
+    assert core.tag_counters["used"] > 10
+    assert len(core.merges) == 1 and len(core.teams) == 1
+    team = next(iter(core.teams.values()))
+    assert sorted(team.robot_ids) == ["r1", "r2"]
+    assert {core.robots[r].team_id for r in SPAWN} == {team.team_id}
+    assert any(e.kind == "merge" and e.transform is not None and e.covariance is not None
+               for e in core.event_log)
+    # both robots now plan on one grid, and share one graph
+    assert core.robots["r1"].slam.graph is core.robots["r2"].slam.graph
+
+
+def test_the_merge_transform_is_accurate_and_beats_the_direct_method(
+        met: tuple[ServerCore, Simulator]) -> None:
+    core, _ = met
+    m = core.merges[0]
+    # each robot's own map frame is its first pose: the truth is their spawn poses
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+
+    def err(T: np.ndarray) -> tuple[float, float]:
+        d = between(T_true, T)
+        return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
+
+    joint, direct = err(m.T_joint), err(m.T_direct_first)
+    assert joint[0] <= 0.05 and joint[1] <= math.radians(1.0)
+    assert joint[0] < direct[0]
+
+
+def test_team_poses_stay_on_the_truth(met: tuple[ServerCore, Simulator]) -> None:
+    core, sim = met
+    r1_start = np.array(SPAWN["r1"])
+    for rid in SPAWN:
+        truth = np.array(sim.robots[rid].pose)
+        est_world = compose(r1_start, core.robots[rid].pose)  # team frame = r1's first pose
+        assert math.hypot(*(est_world[:2] - truth[:2])) < 0.1
+
+
+def test_sightings_that_place_the_robot_wrongly_do_not_merge() -> None:
+    core, _ = run(250, falsify=True)
+    assert core.tag_counters["used"] > 10
+    assert not core.merges
+    assert len(core.teams) == 2
+
+
+def test_sightings_of_unknown_robots_or_oneself_are_counted_not_fatal() -> None:
+    core = ServerCore(config())
+    bad = TagDetection(tag_id=1, observed_robot_id="r9", range_m=2.0, bearing_rad=0.0,
+                       yaw_rad=0.0, sigma_range_m=0.1, sigma_bearing_rad=0.1, sigma_yaw_rad=0.1)
+    me = replace_id(bad, "r1")
+    core.on_tags(TagDetections(robot_id="r1", seq=1, stamp_ns=10, detections=[bad, me]))
+    core.on_tags(TagDetections(robot_id="r1", seq=2, stamp_ns=5 * 10**9, detections=[]))
+    assert core.tag_counters["self"] == 1
+    assert core.tag_counters["unknown_robot"] == 1
+
+
+def replace_id(d: TagDetection, rid: str) -> TagDetection:
+    import msgspec
+
+    return msgspec.structs.replace(d, observed_robot_id=rid)
+
