@@ -27,22 +27,25 @@ WORLD = DATA / "worlds" / "thesis" / "house_small.world"
 SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.0, 8.0, math.pi)}
 
 
-def config() -> ServerConfig:
+def config(**teams: object) -> ServerConfig:
     return ServerConfig.model_validate({
         "robots": ["r1", "r2"],
         "slam": {"grid": {"resolution_m": 1 / 15}},
         "explore": {"total_area_m2": 374.5, "coverage_threshold": 0.98},
+        "teams": teams,
     })
 
 
-def run(steps: int, falsify: bool = False) -> tuple[ServerCore, Simulator]:
+def run(steps: int, falsify: bool = False, false_until: int = 0,
+        cfg: ServerConfig | None = None) -> tuple[ServerCore, Simulator]:
     sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=3)
-    core = ServerCore(config())
+    core = ServerCore(cfg or config())
     detector = TagDetector(TagLayout(), CameraMount())
     lidar = sim.p.lidar
     K = sim.p.camera.camera.K
-    for _ in range(steps):
+    for step in range(steps):
         obs = sim.sense()
+        wrong = falsify or step < false_until
         for rid in SPAWN:
             scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
                         odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
@@ -56,8 +59,8 @@ def run(steps: int, falsify: bool = False) -> tuple[ServerCore, Simulator]:
         for rid, frame in obs.frames.items():
             found = detector.detect(frame.image, K, rid)
             dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id,
-                                 range_m=s.range_m + (1.5 if falsify else 0.0),
-                                 bearing_rad=s.bearing_rad + (0.4 if falsify else 0.0),
+                                 range_m=s.range_m + (1.5 if wrong else 0.0),
+                                 bearing_rad=s.bearing_rad + (0.4 if wrong else 0.0),
                                  yaw_rad=s.yaw_rad, sigma_range_m=s.sigma_range_m,
                                  sigma_bearing_rad=s.sigma_bearing_rad,
                                  sigma_yaw_rad=s.sigma_yaw_rad)
@@ -117,6 +120,24 @@ def test_sightings_that_place_the_robot_wrongly_do_not_merge() -> None:
     assert core.tag_counters["used"] > 10
     assert not core.merges
     assert len(core.teams) == 2
+
+
+def test_a_wrong_merge_contradicted_by_later_sightings_is_undone() -> None:
+    """Without the map check, false sightings merge the robots wrongly; the true sightings
+    that follow disagree with the joint graph, and the merge is taken back."""
+    core, _ = run(250, false_until=20, cfg=config(max_conflict_ratio=1.0))
+    assert core.merges and core.merges[0].undone_stamp_ns is not None
+    assert core.tag_counters["merges_undone"] >= 1
+    assert any(e.kind == "merge_undone" for e in core.event_log)
+    # the robots went back to their own teams and graphs (and may have merged again, rightly)
+    if len(core.teams) == 1:
+        m = core.merges[-1]
+        assert m.undone_stamp_ns is None
+        T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+        d = between(T_true, m.T_joint)
+        assert math.hypot(d[0], d[1]) < 0.1
+    else:
+        assert core.robots["r1"].slam.graph is not core.robots["r2"].slam.graph
 
 
 def test_sightings_of_unknown_robots_or_oneself_are_counted_not_fatal() -> None:
