@@ -179,6 +179,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "area_m2": plan["area_m2"], "nominal_area_m2": plan["nominal_area_m2"],
         "reached": reached,
         "sim_time_to_threshold_s": best,
+        # the first team whose own map reached the threshold (other teams may still explore)
+        "first_team_time_to_threshold_s": min(
+            (t for t in times if t is not None), default=None),
         "true_coverage": min((t.get("true_coverage") or 0.0 for t in teams.values()
                               if not t.get("merged_into")), default=None),
         "phantom_area_m2": sum(t.get("phantom_area_m2") or 0.0 for t in teams.values()
