@@ -65,7 +65,8 @@ def test_visited_and_reserved_targets_are_skipped() -> None:
     visited = VisitedTargets(radius_m=1.0, points_xy=[first.target_xy])
     second = decide(ex, LEFT_START, visited=visited)
     assert second.target_xy[0] > 9.5
-    assert any(t.status == "visited" for t in second.candidates)
+    # the left end's frontier, still open next to where the robot stood, no longer counts
+    assert not any(t.xy[0] < 2.5 and t.status == "ok" for t in second.candidates)
     reserved = decide(ex, LEFT_START, reserved_xy=[first.target_xy])
     assert reserved.target_xy[0] > 9.5
     assert any(t.status == "reserved" for t in reserved.candidates)
@@ -109,9 +110,13 @@ def test_finished_when_no_frontier_or_coverage_reached() -> None:
     assert isinstance(out, Finished) and out.reason == "no frontier left"
     # Both open ends visited: frontiers remain but none is reachable as a new target.
     visited = VisitedTargets(1.0, [(1.5, 3.75), (10.5, 3.75)])
-    out = VoronoiExplorer().decide(g, LEFT_START, LEFT_START, visited)
+    keep_seen = ExplorerParams(analysis=AnalysisParams(seen_radius_m=0.0))
+    out = VoronoiExplorer(keep_seen).decide(g, LEFT_START, LEFT_START, visited)
     assert isinstance(out, Finished) and out.reason == "no reachable frontier"
     assert out.candidates and all(t.status != "ok" for t in out.candidates)
+    # By default frontier cells next to visited targets are settled: nothing is left.
+    out = VoronoiExplorer().decide(g, LEFT_START, LEFT_START, visited)
+    assert isinstance(out, Finished) and out.reason == "no frontier left"
     area = explored_area_m2(g)
     done = VoronoiExplorer(ExplorerParams(total_area_m2=area / 0.97, coverage_threshold=0.96))
     out = done.decide(g, LEFT_START, LEFT_START, VisitedTargets())

@@ -21,7 +21,12 @@ from server.exploration.explorer import (
     VoronoiExplorer,
     make_explorer,
 )
-from server.exploration.frontiers import Frontiers, find_frontiers, frontier_mask
+from server.exploration.frontiers import (
+    Frontiers,
+    cluster_frontiers,
+    find_frontiers,
+    frontier_mask,
+)
 from server.exploration.skeleton import SkeletonGraph, skeleton_graph, voronoi_skeleton
 from server.exploration.visited import VisitedTargets
 
@@ -42,6 +47,7 @@ __all__ = [
     "analyse",
     "assign_optimal",
     "assign_separated",
+    "cluster_frontiers",
     "coverage",
     "coverage_reached",
     "explored_area_m2",

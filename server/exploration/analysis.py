@@ -6,8 +6,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
-from server.exploration.frontiers import Frontiers, find_frontiers
+from server.exploration.frontiers import Frontiers, cluster_frontiers, frontier_mask
 from server.exploration.skeleton import SkeletonGraph, skeleton_graph, voronoi_skeleton
 from server.planning.costmap import CostLayer, CostParams, build_cost_layer
 from server.planning.grid import OccupancyGrid, small_components
@@ -25,6 +26,10 @@ class AnalysisParams:
     min_frontier_m: float = 0.3
     # Border of unknown cells kept around the observed part of the grid.
     margin_cells: int = 3
+    # Frontier cells this close to a place the robot has already been sent to (a visited
+    # target) are not frontiers: standing there did not resolve them, so looking cannot (a
+    # wall cleared by grazing beams, a gap too narrow to see through).
+    seen_radius_m: float = 1.2
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,9 +45,11 @@ class MapAnalysis:
 
 
 def analyse(grid: OccupancyGrid, params: AnalysisParams,
-            include_xy: ArrayLike | None = None) -> MapAnalysis:
+            include_xy: ArrayLike | None = None,
+            seen_xy: ArrayLike | None = None) -> MapAnalysis:
     """Crop to the observed cells (and ``include_xy``, e.g. robot positions), then build the
-    cost layer, the Voronoi skeleton of known free space and the frontier clusters."""
+    cost layer, the Voronoi skeleton of known free space and the frontier clusters (without
+    cells within ``params.seen_radius_m`` of the ``seen_xy`` points, e.g. visited targets)."""
     crop = grid.crop_to_known(params.margin_cells, include_xy=include_xy)
     res = crop.resolution_m
     cp = params.cost
@@ -58,6 +65,15 @@ def analyse(grid: OccupancyGrid, params: AnalysisParams,
                                 nearest_boundary=nearest)
     graph = skeleton_graph(skeleton, clearance=layer.clearance_m)
     layer = layer.with_preferred(skeleton, cp.skeleton_factor)
-    frontiers = find_frontiers(space, unexplored,
-                               min_cells=int(np.ceil(params.min_frontier_m / res)))
+    # wall cells: occupied, or observed without a verdict (beams both hit and crossed them)
+    walls = crop.occupied | (crop.unobserved & (crop.data >= 0))
+    mask = frontier_mask(space, unexplored & ~walls, walls)
+    seen = np.asarray(seen_xy if seen_xy is not None else (), np.float64).reshape(-1, 2)
+    if len(seen) and params.seen_radius_m > 0 and mask.any():
+        cells = np.argwhere(mask)
+        d, _ = cKDTree(seen).query(crop.geometry.cell_to_world(cells),
+                                   distance_upper_bound=params.seen_radius_m)
+        near = np.isfinite(d)
+        mask[cells[near, 0], cells[near, 1]] = False
+    frontiers = cluster_frontiers(mask, min_cells=int(np.ceil(params.min_frontier_m / res)))
     return MapAnalysis(crop, layer, space, unexplored, graph, frontiers)

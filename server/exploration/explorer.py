@@ -28,6 +28,8 @@ from numpy.typing import ArrayLike, NDArray
 from server.exploration.analysis import AnalysisParams, MapAnalysis, analyse
 from server.exploration.candidates import rule1_candidates
 from server.exploration.coverage import coverage
+from server.exploration.frontiers import Frontiers
+from server.exploration.targets import TargetPlacer, reachable_mask
 from server.exploration.visited import VisitedTargets
 from server.planning.costmap import CostLayer
 from server.planning.dijkstra import CostField
@@ -40,6 +42,7 @@ log = logging.getLogger(__name__)
 VORONOI, FRONTIER = "voronoi", "frontier"
 OK, VISITED, RESERVED, AT_ROBOT, LETHAL, UNREACHABLE = (
     "ok", "visited", "reserved", "at robot", "lethal", "unreachable")
+# LETHAL: no traversable cell near the target; UNREACHABLE: none that the robot can reach.
 
 
 @dataclass(frozen=True)
@@ -52,8 +55,11 @@ class ExplorerParams:
     coverage_threshold: float = 0.98
     # Rule-1 junctions count as near a frontier within this distance.
     frontier_radius_m: float = 0.6
-    # Lethal target cells move to the nearest traversable cell within this distance.
+    # Junction targets move to the nearest cell the robot can reach within this distance.
     snap_radius_m: float = 0.5
+    # A frontier cluster is approached from the reachable cell nearest to one of its cells,
+    # at most this far from it (no wall in between).
+    approach_radius_m: float = 1.0
     # Targets closer than this to the robot are where it already is.
     min_target_distance_m: float = 0.4
     # Targets within this distance of another robot's goal are reserved for it.
@@ -102,15 +108,20 @@ class _Proposal:
     rc: NDArray[np.int64]                 # (K, 2) target cells in the analysed grid
     kind: str
     size_cells: NDArray[np.int64] | None = None
-    # Per target: the nearest traversable cell within the snap radius (None: there is none).
+    # Frontier clusters the targets stand for (then placed by approach, not snapping).
+    frontiers: Frontiers | None = None
+    # Per target: the reachable cell the robot goes to (None: there is none near it).
     snapped: list[tuple[int, int] | None] = field(default_factory=list)
 
-    def snap(self, layer: CostLayer, radius_m: float) -> _Proposal:
-        self.snapped = [layer.escape((int(r), int(c)), radius_m) for r, c in self.rc]
+    def place(self, placer: TargetPlacer, params: ExplorerParams) -> _Proposal:
+        if self.frontiers is not None:
+            self.snapped = placer.frontiers(self.frontiers, params.approach_radius_m)
+        else:
+            self.snapped = placer.points(self.rc, params.snap_radius_m)
         return self
 
     def targets_xy(self, layer: CostLayer) -> NDArray[np.float64]:
-        """World positions of the targets (snapped where possible)."""
+        """World positions of the targets (placed where possible)."""
         cells = [s if s is not None else (int(rc[0]), int(rc[1]))
                  for s, rc in zip(self.snapped, self.rc, strict=True)]
         return layer.geometry.cell_to_world(np.asarray(cells, np.int64).reshape(-1, 2))
@@ -155,10 +166,10 @@ class Explorer(ABC):
         if cov is not None and cov >= p.coverage_threshold:
             return Finished(f"coverage {cov:.3f} reached the threshold {p.coverage_threshold}",
                             cov)
-        analysis = analyse(grid, p.analysis, include_xy=robot_xy)
+        analysis = analyse(grid, p.analysis, include_xy=robot_xy, seen_xy=visited.points_xy)
         if len(analysis.frontiers) == 0:
             return Finished("no frontier left", cov)
-        proposals = self._snapped_proposals(analysis)
+        proposals = self._placed_proposals(analysis, [robot_xy])
         # Dijkstra stops once every target still worth a look is settled.
         goals = np.concatenate([pr.targets_xy(analysis.layer) for pr in proposals])
         goals = goals[~visited.mask(goals)]
@@ -187,7 +198,7 @@ class Explorer(ABC):
         p = self.params
         robots = np.asarray(robot_poses, np.float64).reshape(-1, 3)[:, :2]
         starts = np.asarray(start_poses, np.float64).reshape(-1, 3)[:, :2]
-        analysis = analyse(grid, p.analysis, include_xy=robots)
+        analysis = analyse(grid, p.analysis, include_xy=robots, seen_xy=visited.points_xy)
         fields: list[CostField | None] = []
         for xy in robots:
             try:
@@ -196,7 +207,8 @@ class Explorer(ABC):
                 log.warning("robot at %s left out of the assignment: %s", xy, e)
                 fields.append(None)
         none = np.zeros((0, 2))
-        for proposal in self._snapped_proposals(analysis) if len(analysis.frontiers) else []:
+        placed = self._placed_proposals(analysis, list(robots)) if len(analysis.frontiers) else []
+        for proposal in placed:
             rows: list[list[Target]] = []
             for i, f in enumerate(fields):
                 rows.append([] if f is None else self._score(
@@ -215,9 +227,11 @@ class Explorer(ABC):
                 return TeamCosts(targets_xy, cost, proposal.kind, fields, p.smooth)
         return TeamCosts(none, np.zeros((len(robots), 0)), "", fields, p.smooth)
 
-    def _snapped_proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
-        return [pr.snap(analysis.layer, self.params.snap_radius_m)
-                for pr in self._proposals(analysis)]
+    def _placed_proposals(self, analysis: MapAnalysis,
+                          robots_xy: list[NDArray[np.float64]]) -> list[_Proposal]:
+        reach = reachable_mask(analysis.layer, robots_xy, self.params.escape_radius_m)
+        placer = TargetPlacer(analysis.layer, reach, analysis.grid.occupied)
+        return [pr.place(placer, self.params) for pr in self._proposals(analysis)]
 
     @abstractmethod
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
@@ -246,7 +260,11 @@ class Explorer(ABC):
             d_origin = float(np.hypot(*(xy - start_xy)))
             status = OK
             if snapped[i] is None:
-                status = LETHAL
+                # out of reach: walled off from the robot, or no traversable cell near at all
+                r, c = (int(v) for v in proposal.rc[i])
+                radius = (p.approach_radius_m if proposal.frontiers is not None
+                          else p.snap_radius_m)
+                status = LETHAL if layer.escape((r, c), radius) is None else UNREACHABLE
             elif is_visited[i]:
                 status = VISITED
             elif len(reserved_xy) and np.min(np.hypot(*(reserved_xy - xy).T)) < p.reserve_radius_m:
@@ -279,7 +297,7 @@ class VoronoiExplorer(Explorer):
                                  self.params.frontier_radius_m / res)
         fr = analysis.frontiers
         return [_Proposal(analysis.graph.node_rc[nodes], VORONOI),
-                _Proposal(fr.middle_rc, FRONTIER, fr.size_cells)]
+                _Proposal(fr.middle_rc, FRONTIER, fr.size_cells, fr)]
 
     def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
         lam = self.params.lam
@@ -294,7 +312,7 @@ class FrontierExplorer(Explorer):
 
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
         fr = analysis.frontiers
-        return [_Proposal(fr.middle_rc, FRONTIER, fr.size_cells)]
+        return [_Proposal(fr.middle_rc, FRONTIER, fr.size_cells, fr)]
 
     def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
         return self.params.potential_scale * d_robot_m - self.params.gain_scale * size_m

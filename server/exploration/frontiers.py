@@ -1,4 +1,12 @@
-"""Frontiers: known free cells next to unexplored space, grouped into clusters."""
+"""Frontiers: known free cells next to unexplored space, grouped into clusters.
+
+Walls seen at a grazing angle get holes: beams that pass along them clear some wall cells, or
+leave them uncertain. A free cell in such a hole touches the unknown space behind the wall, but
+no robot position on this side will ever see through it, so it would stay a frontier for good
+and draw the robot back again and again. Frontier cells therefore must not touch (8-connected)
+a wall cell — occupied, or observed without a verdict — when the walls are given; real openings
+(a doorway, the open end of a corridor) keep their cells away from the jambs.
+"""
 
 from __future__ import annotations
 
@@ -28,16 +36,27 @@ class Frontiers:
         return len(self.size_cells)
 
 
-def frontier_mask(space: NDArray[np.bool_], unexplored: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Cells of ``space`` (known free) with a 4-neighbour in ``unexplored``."""
+def frontier_mask(space: NDArray[np.bool_], unexplored: NDArray[np.bool_],
+                  walls: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+    """Cells of ``space`` (known free) with a 4-neighbour in ``unexplored`` and, when ``walls``
+    is given, no 8-neighbour in ``walls``."""
     near = ndimage.binary_dilation(unexplored, structure=_FOUR_CONNECTED)
-    return space & near
+    mask = space & near
+    if walls is not None:
+        mask &= ~ndimage.binary_dilation(walls, structure=EIGHT_CONNECTED)
+    return mask
 
 
 def find_frontiers(space: NDArray[np.bool_], unexplored: NDArray[np.bool_], *,
-                   min_cells: int) -> Frontiers:
-    """Frontier cells grouped 8-connected; clusters with fewer than ``min_cells`` are dropped."""
-    labels, n = ndimage.label(frontier_mask(space, unexplored), structure=EIGHT_CONNECTED)
+                   min_cells: int, walls: NDArray[np.bool_] | None = None) -> Frontiers:
+    """Frontier cells (see :func:`frontier_mask`) grouped 8-connected; clusters with fewer than
+    ``min_cells`` are dropped."""
+    return cluster_frontiers(frontier_mask(space, unexplored, walls), min_cells=min_cells)
+
+
+def cluster_frontiers(mask: NDArray[np.bool_], *, min_cells: int) -> Frontiers:
+    """Frontier cells ``mask`` grouped 8-connected; clusters under ``min_cells`` are dropped."""
+    labels, n = ndimage.label(mask, structure=EIGHT_CONNECTED)
     sizes = np.bincount(labels.ravel(), minlength=n + 1)
     keep = sizes >= max(1, min_cells)
     keep[0] = False
