@@ -57,6 +57,8 @@ class TeamsConfig(_Model):
                                  "around a sighting")
     refine_period_s: float = Field(2.0, ge=0.0, description="within a team, at most one more "
                                    "rendezvous factor per robot pair this often")
+    refine_on_maps: bool = Field(True, description="after a merge, match each robot's "
+                                 "keyframes against the other side's map where they overlap")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
     coordination: Literal["optimal", "thesis"] = Field(

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from factors.noise import NoiseError
 from factors.rendezvous import Sighting, rendezvous_factor
+from factors.scan_match import loop_closure_factor, whitened_chi2
 from schemas import (
     Event,
     MapUpdate,
@@ -53,6 +54,7 @@ from server.teams import (
     SightingRecord,
     VerifierParams,
     chi2_between,
+    cross_matches,
     join_graph,
     make_record,
     map_agreement,
@@ -151,10 +153,10 @@ class ServerCore:
         self._contradictions: dict[tuple[str, str], list[SightingRecord]] = {}
         self.merges: list[MergeRecord] = []
         self.retired_teams: dict[str, Team] = {}
-        self.tag_counters = {"sightings": 0, "used": 0, "unknown_robot": 0, "self": 0,
-                             "bad": 0, "expired": 0, "within_team": 0, "refined": 0,
-                             "contradicting": 0, "merges": 0, "merges_rejected": 0,
-                             "merges_undone": 0}
+        self.tag_counters: dict[str, int] = dict.fromkeys((
+            "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
+            "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
+            "map_matches"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -358,6 +360,7 @@ class ServerCore:
         self._rebuild(ta, [(rid, np.zeros(3)) for rid in ta.robot_ids]
                       + [(rid, p.T_ab) for rid in tb.robot_ids],
                       ta.links + tb.links + links)
+        info["map_matches"] = self._refine_on_maps(ta.robot_ids, tb.robot_ids, links)
         T_joint = compose(b_anchor.slam.keyframe_pose(0), inverse(b_origin_before))
         for rid in tb.robot_ids:
             r = self.robots[rid]
@@ -391,6 +394,47 @@ class ServerCore:
                    stamp_ns=stamp)
         self.events.append(ev)
         self.event_log.append(ev)
+
+    def _refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link]
+                        ) -> int:
+        """Match each joining robot's keyframes against the other side's map where they
+        overlap, and add the matches as robust between-factors (``links`` gets them); those
+        still inconsistent after optimisation are taken out. Returns how many were kept."""
+        if not self.cfg.teams.refine_on_maps:
+            return 0
+        g = self.cfg.slam.graph
+        loop = self.cfg.slam.loop
+        floor = np.array([g.match_sigma_floor_m, g.match_sigma_floor_m,
+                          math.radians(g.match_sigma_floor_deg)])
+        added: list[Link] = []
+        graph = None
+        for ra in side_a:
+            for rb in side_b:
+                a, b = self.robots[ra].slam, self.robots[rb].slam
+                graph = a.graph
+                for m in cross_matches(a, b):
+                    f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
+                                            m.T_ka_kb, m.information, loop.sigma_scale ** 2,
+                                            floor, "huber", loop.huber_k)
+                    rec = FactorRecord(f, "cross")
+                    (rec.index,) = graph.add([f], {})
+                    added.append(Link(ra, rb, 0, rec))
+        if graph is None or not added:
+            return 0
+        graph.iterate(g.extra_iterations_after_loop)
+        est = graph.estimate()
+        bad = [ln for ln in added if whitened_chi2(ln.record.factor, est) > loop.max_chi2]
+        if bad:
+            graph.remove([ln.record.index for ln in bad if ln.record.index is not None])
+            graph.iterate(g.extra_iterations_after_loop)
+        kept = [ln for ln in added if ln not in bad]
+        links.extend(kept)
+        for rid in side_a + side_b:
+            r = self.robots[rid]
+            r.slam.rebind(graph)
+            r.pose = r.slam.pose
+        self.tag_counters["map_matches"] += len(kept)
+        return len(kept)
 
     def _rebuild(self, team: Team, frames: list[tuple[str, F64]], links: list[Link]) -> None:
         """One joint graph for ``frames`` (robot, transform of its current frame into the

@@ -343,3 +343,59 @@ def team_initial_values(members_frames: Iterable[tuple[RobotSlam, F64]]) -> dict
         for k, P in zip(slam.trajectory.all_keys(), poses, strict=True):
             out[k] = compose(T, P)
     return out
+
+
+# -- refining a merge on the maps ------------------------------------------------------------
+@dataclass(frozen=True)
+class CrossMatch:
+    """Keyframe kb of robot b matched against robot a's keyframes around it."""
+
+    ka: int
+    kb: int
+    T_ka_kb: F64
+    information: F64      # in kb's frame (the between factor's error space)
+    inlier_fraction: float
+
+
+def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 4.0,
+                  min_inlier_fraction: float = 0.6, max_correction_m: float = 0.5,
+                  max_correction_rad: float = math.radians(5.0)) -> list[CrossMatch]:
+    """Scan-to-map matches of b's keyframes (every ``every``-th) against a's keyframes within
+    ``radius_m``, both placed by the current joint estimate: the overlap of the two maps says
+    how they fit together, far more precisely than tag sightings. Matches that moved the
+    keyframe implausibly far, matched poorly or were degenerate are left out."""
+    from server.slam.frontend import icp_params
+    from server.slam.icp import icp
+    from server.slam.keyframes import local_point_map
+
+    if not a.keyframes or not b.keyframes:
+        return []
+    pa, pb = a.keyframe_poses(), b.keyframe_poses()
+    params = icp_params(a.cfg.matcher)
+    out: list[CrossMatch] = []
+    for kb in range(0, len(b.keyframes), max(1, every)):
+        d = np.hypot(pa[:, 0] - pb[kb, 0], pa[:, 1] - pb[kb, 1])
+        near = np.flatnonzero(d <= radius_m)
+        scan = b.keyframes[kb].matchable
+        if len(near) == 0 or len(scan) < a.cfg.matcher.min_points:
+            continue
+        target = local_point_map([a.keyframes[i] for i in near], pa[near],
+                                 a.cfg.local_map.voxel_m)
+        if len(target) < a.cfg.matcher.min_points:
+            continue
+        m = icp(scan.points, scan.normals, target, pb[kb], params)
+        shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
+        turn = abs(math.remainder(m.T_map_scan[2] - pb[kb, 2], 2 * math.pi))
+        if (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
+                or shift > max_correction_m or turn > max_correction_rad):
+            continue
+        ka = int(near[np.argmin(d[near])])
+        c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        out.append(CrossMatch(ka, kb, between_poses(pa[ka], m.T_map_scan),
+                              R.T @ m.information @ R, m.inlier_fraction))
+    return out
+
+
+def between_poses(A: F64, B: F64) -> F64:
+    return compose(inverse(A), B)
