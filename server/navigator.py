@@ -24,7 +24,7 @@ from server.control import (
     Vfh,
     VfhParams,
 )
-from server.exploration import Decision, Explorer, Finished, VisitedTargets, analyse
+from server.exploration import Decision, Explorer, Finished, VisitedTargets
 from server.planning import OccupancyGrid, PlanningError, plan
 
 log = logging.getLogger(__name__)
@@ -160,7 +160,7 @@ class Navigator:
         if self.target_xy is None:
             return False
         self._last_decision_s = now_s
-        analysis = analyse(grid, self.explorer.params.analysis, include_xy=pose[:2])
+        analysis = self.explorer.analyse(grid, pose[:2])
         fr = analysis.frontiers
         if len(fr) == 0:
             return False

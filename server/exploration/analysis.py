@@ -10,6 +10,7 @@ from scipy.spatial import cKDTree
 
 from server.exploration.frontiers import Frontiers, cluster_frontiers, frontier_mask
 from server.exploration.skeleton import SkeletonGraph, skeleton_graph, voronoi_skeleton
+from server.exploration.walls import WallMemory
 from server.planning.costmap import CostLayer, CostParams, build_cost_layer
 from server.planning.grid import OccupancyGrid, small_components
 
@@ -46,10 +47,12 @@ class MapAnalysis:
 
 def analyse(grid: OccupancyGrid, params: AnalysisParams,
             include_xy: ArrayLike | None = None,
-            seen_xy: ArrayLike | None = None) -> MapAnalysis:
+            seen_xy: ArrayLike | None = None,
+            walls_seen: WallMemory | None = None) -> MapAnalysis:
     """Crop to the observed cells (and ``include_xy``, e.g. robot positions), then build the
     cost layer, the Voronoi skeleton of known free space and the frontier clusters (without
-    cells within ``params.seen_radius_m`` of the ``seen_xy`` points, e.g. visited targets)."""
+    cells within ``params.seen_radius_m`` of the ``seen_xy`` points, e.g. visited targets, and
+    away from the cells ``walls_seen`` remembers as walls, as from the current ones)."""
     crop = grid.crop_to_known(params.margin_cells, include_xy=include_xy)
     res = crop.resolution_m
     cp = params.cost
@@ -67,6 +70,8 @@ def analyse(grid: OccupancyGrid, params: AnalysisParams,
     layer = layer.with_preferred(skeleton, cp.skeleton_factor)
     # wall cells: occupied, or observed without a verdict (beams both hit and crossed them)
     walls = crop.occupied | (crop.unobserved & (crop.data >= 0))
+    if walls_seen is not None:
+        walls = walls | walls_seen.mask(crop.geometry)
     mask = frontier_mask(space, unexplored & ~walls, walls)
     seen = np.asarray(seen_xy if seen_xy is not None else (), np.float64).reshape(-1, 2)
     if len(seen) and params.seen_radius_m > 0 and mask.any():

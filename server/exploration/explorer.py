@@ -31,6 +31,7 @@ from server.exploration.coverage import coverage
 from server.exploration.frontiers import Frontiers
 from server.exploration.targets import TargetPlacer, reachable_mask
 from server.exploration.visited import VisitedTargets
+from server.exploration.walls import WallMemory
 from server.planning.costmap import CostLayer
 from server.planning.dijkstra import CostField
 from server.planning.errors import StartOccupied
@@ -149,6 +150,16 @@ class Explorer(ABC):
 
     def __init__(self, params: ExplorerParams | None = None) -> None:
         self.params = params or ExplorerParams()
+        #: cells once seen occupied, kept off frontiers (see :mod:`server.exploration.walls`)
+        self.walls_seen = WallMemory()
+
+    def analyse(self, grid: OccupancyGrid, include_xy: ArrayLike,
+                visited: VisitedTargets | None = None) -> MapAnalysis:
+        """The map analysis this explorer decides on (remembering the grid's walls first)."""
+        self.walls_seen.update(grid)
+        return analyse(grid, self.params.analysis, include_xy=include_xy,
+                       seen_xy=None if visited is None else visited.points_xy,
+                       walls_seen=self.walls_seen)
 
     def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
                visited: VisitedTargets, *,
@@ -166,7 +177,7 @@ class Explorer(ABC):
         if cov is not None and cov >= p.coverage_threshold:
             return Finished(f"coverage {cov:.3f} reached the threshold {p.coverage_threshold}",
                             cov)
-        analysis = analyse(grid, p.analysis, include_xy=robot_xy, seen_xy=visited.points_xy)
+        analysis = self.analyse(grid, robot_xy, visited)
         if len(analysis.frontiers) == 0:
             return Finished("no frontier left", cov)
         proposals = self._placed_proposals(analysis, [robot_xy])
@@ -198,7 +209,7 @@ class Explorer(ABC):
         p = self.params
         robots = np.asarray(robot_poses, np.float64).reshape(-1, 3)[:, :2]
         starts = np.asarray(start_poses, np.float64).reshape(-1, 3)[:, :2]
-        analysis = analyse(grid, p.analysis, include_xy=robots, seen_xy=visited.points_xy)
+        analysis = self.analyse(grid, robots, visited)
         fields: list[CostField | None] = []
         for xy in robots:
             try:
