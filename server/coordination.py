@@ -78,6 +78,10 @@ class TeamExplorer:
     def params(self) -> ExplorerParams:
         return self.base.params
 
+    def __getattr__(self, name: str) -> object:
+        # everything but the decision is the robot's own explorer's (map analysis, ...)
+        return getattr(self.base, name)
+
     def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
                visited: VisitedTargets, reserved_xy: ArrayLike = ()) -> Decision | Finished:
         team = list(self.members())

@@ -156,7 +156,7 @@ class ServerCore:
         self.tag_counters: dict[str, int] = dict.fromkeys((
             "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
             "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
-            "map_matches"), 0)
+            "map_matches", "too_far"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -284,6 +284,9 @@ class ServerCore:
             self.tag_counters["sightings"] += 1
             if det.observed_robot_id == msg.robot_id:
                 self.tag_counters["self"] += 1
+                continue
+            if det.range_m > self.cfg.teams.max_sighting_range_m:
+                self.tag_counters["too_far"] += 1
                 continue
             self._pending.append((msg.stamp_ns, msg.robot_id, det))
         latest = max((r.last_stamp_ns for r in self.robots.values()), default=0)
