@@ -66,6 +66,9 @@ class ExplorerParams:
     # Targets within this distance of another robot's goal are reserved for it.
     reserve_radius_m: float = 2.0
     escape_radius_m: float = 0.5
+    # Score all target groups together (rule-1 junctions and frontier clusters compete on cost);
+    # False: a later group only when no target of an earlier one is reachable.
+    pool_groups: bool = False
     smooth: bool = True
     # Frontier explorer (explore_lite's defaults): cost = potential·d_robot − gain·size_m.
     potential_scale: float = 3.0
@@ -187,15 +190,18 @@ class Explorer(ABC):
         field_ = CostField(analysis.layer, robot_xy, goals_xy=goals if len(goals) else None,
                            escape_radius_m=p.escape_radius_m)
         targets: list[Target] = []
+        ok: list[Target] = []
         for proposal in proposals:
             scored = self._score(analysis, field_, proposal, robot_xy, start_xy, visited,
                                  np.asarray(reserved_xy, np.float64).reshape(-1, 2))
             targets.extend(scored)
-            ok = [t for t in scored if t.status == OK]
-            if ok:
-                best = min(ok, key=lambda t: t.cost)
-                path = field_.path_to(best.xy, smooth=p.smooth)
-                return Decision(best.xy, path, proposal.kind, tuple(targets), cov)
+            ok.extend(t for t in scored if t.status == OK)
+            if ok and not p.pool_groups:
+                break
+        if ok:
+            best = min(ok, key=lambda t: t.cost)  # the earlier group wins a tie
+            path = field_.path_to(best.xy, smooth=p.smooth)
+            return Decision(best.xy, path, best.kind, tuple(targets), cov)
         return Finished("no reachable frontier", cov, tuple(targets))
 
     def team_costs(self, grid: OccupancyGrid, robot_poses: Sequence[ArrayLike],
@@ -246,8 +252,8 @@ class Explorer(ABC):
 
     @abstractmethod
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
-        """Groups of targets, tried in order: a later group only when no earlier one has a
-        reachable target."""
+        """Groups of targets: scored together (``pool_groups``), or tried in order — a later
+        group only when no earlier one has a reachable target."""
 
     @abstractmethod
     def _target_cost(self, d_robot_m: float, d_origin_m: float, size_m: float) -> float:
