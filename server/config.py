@@ -61,6 +61,8 @@ class TeamsConfig(_Model):
                                    "rendezvous factor per robot pair this often")
     refine_on_maps: bool = Field(True, description="after a merge, match each robot's "
                                  "keyframes against the other side's map where they overlap")
+    min_map_match_tries: int = Field(3, ge=1, description="where the aligned maps overlap at "
+                                     "this many keyframes, at least one must match")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
     coordination: Literal["optimal", "thesis"] = Field(

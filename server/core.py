@@ -357,6 +357,18 @@ class ServerCore:
                       f"{tb.team_id} not merged into {ta.team_id}: maps disagree "
                       f"({agree.conflicts} of {agree.occupied_checked} wall cells)", stamp)
             return
+        tried = [0]
+        found = sum(len(cross_matches(self.robots[ra].slam, self.robots[rb].slam, T_ab=p.T_ab,
+                                      tried=tried))
+                    for ra in ta.robot_ids for rb in tb.robot_ids)
+        info["map_match_tries"], info["map_matches_before"] = tried[0], found
+        if tried[0] >= t.min_map_match_tries and found == 0:
+            self.verifier.reject(p)
+            self.tag_counters["merges_rejected"] += 1
+            self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
+                      f"{tb.team_id} not merged into {ta.team_id}: no part of the maps "
+                      f"matches within 0.5 m ({tried[0]} tried)", stamp)
+            return
         b_anchor = self.robots[tb.anchor]
         b_origin_before = b_anchor.slam.keyframe_pose(0)
         links = [self._link(r) for r in p.records]

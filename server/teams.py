@@ -359,11 +359,14 @@ class CrossMatch:
 
 def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 4.0,
                   min_inlier_fraction: float = 0.6, max_correction_m: float = 0.5,
-                  max_correction_rad: float = math.radians(5.0)) -> list[CrossMatch]:
+                  max_correction_rad: float = math.radians(5.0),
+                  T_ab: F64 | None = None, tried: list[int] | None = None
+                  ) -> list[CrossMatch]:
     """Scan-to-map matches of b's keyframes (every ``every``-th) against a's keyframes within
-    ``radius_m``, both placed by the current joint estimate: the overlap of the two maps says
-    how they fit together, far more precisely than tag sightings. Matches that moved the
-    keyframe implausibly far, matched poorly or were degenerate are left out."""
+    ``radius_m``, both placed by the current joint estimate (or b's by ``T_ab``): the overlap
+    of the two maps says how they fit together, far more precisely than tag sightings.
+    Matches that moved the keyframe implausibly far, matched poorly or were degenerate are left
+    out; ``tried[0]`` is increased for every keyframe that had a map to match against."""
     from server.slam.frontend import icp_params
     from server.slam.icp import icp
     from server.slam.keyframes import local_point_map
@@ -371,6 +374,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     if not a.keyframes or not b.keyframes:
         return []
     pa, pb = a.keyframe_poses(), b.keyframe_poses()
+    if T_ab is not None:  # b's keyframes not yet in a's frame: place them by T_ab
+        pb = np.array([compose(T_ab, P) for P in pb])
     params = icp_params(a.cfg.matcher)
     out: list[CrossMatch] = []
     for kb in range(0, len(b.keyframes), max(1, every)):
@@ -383,6 +388,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                                  a.cfg.local_map.voxel_m)
         if len(target) < a.cfg.matcher.min_points:
             continue
+        if tried is not None:
+            tried[0] += 1
         m = icp(scan.points, scan.normals, target, pb[kb], params)
         shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
         turn = abs(math.remainder(m.T_map_scan[2] - pb[kb, 2], 2 * math.pi))
