@@ -216,6 +216,104 @@ def demo(
     call("demo", body)
 
 
+ConnectOpt = Annotated[list[str] | None, typer.Option(
+    "--connect", help="router endpoint to connect to (repeatable; default tcp/127.0.0.1:7447)")]
+ListenOpt = Annotated[list[str] | None, typer.Option(
+    "--listen", help="run standalone: open a router listening here (repeatable)")]
+ZenohConfigOpt = Annotated[Path | None, typer.Option(
+    "--zenoh-config", help="Zenoh json5 config (TLS, access control)")]
+
+
+def _bus_config(connect: list[str] | None, listen: list[str] | None,
+                zenoh_config: Path | None) -> Any:
+    from schemas.config import BusConfig
+
+    fields: dict[str, Any] = {"zenoh_config": str(zenoh_config) if zenoh_config else None}
+    if listen:
+        fields.update(mode="router", listen=list(listen), connect=list(connect or []))
+    elif connect:
+        fields["connect"] = list(connect)
+    return BusConfig(**fields)
+
+
+@app.command()
+def record(
+    out: Annotated[Path, typer.Option(help="MCAP file to write, e.g. run.mcap")],
+    foxglove: Annotated[bool, typer.Option(
+        "--foxglove", help="also write Foxglove's scan, grid and pose types (JSON)")] = False,
+    compression: Annotated[str, typer.Option(help="chunk compression: zstd, lz4 or none")
+                           ] = "zstd",
+    duration: Annotated[float | None, typer.Option(help="stop after this many seconds")] = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Record every message under mrslam/** into an MCAP file until interrupted."""
+    setup_logging(verbose)
+    if compression not in ("zstd", "lz4", "none"):
+        _fail(f"record: unknown compression {compression!r} (zstd, lz4 or none)")
+
+    def body() -> Any:
+        from recording.record import run
+
+        summary = run(out, _bus_config(connect, listen, zenoh_config), foxglove=foxglove,
+                      compression=compression, duration_s=duration)  # type: ignore[arg-type]
+        typer.echo(f"recorded {summary['messages']} messages on {summary['keys']} keys "
+                   f"({summary['undecodable']} undecodable) into {out}", err=True)
+        return summary
+
+    call("record", body)
+
+
+@app.command()
+def replay(
+    recording: Annotated[Path, typer.Argument(help="MCAP file written by mrslam record")],
+    speed: Annotated[float, typer.Option(
+        min=0.0, help="time scale: 2 = twice as fast, 0 = as fast as possible")] = 1.0,
+    only: Annotated[list[str] | None, typer.Option(
+        help="replay only keys matching this key expression, e.g. 'mrslam/robot/**' "
+             "(repeatable)")] = None,
+    until_ns: Annotated[int | None, typer.Option(
+        help="stop after the messages stamped at this time [ns]")] = None,
+    max_gap: Annotated[float, typer.Option(
+        min=0.0, help="shorten longer pauses of the recording to this [s]")] = 5.0,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Publish a recording onto the bus again with its timing (e.g. to run a new server on it)."""
+    setup_logging(verbose)
+
+    def body() -> Any:
+        from recording.replay import run
+
+        summary = run(recording, _bus_config(connect, listen, zenoh_config), speed=speed,
+                      only=list(only or []), until_ns=until_ns, max_gap_s=max_gap)
+        typer.echo(f"replayed {summary['published']} of {summary['recorded']} messages in "
+                   f"{summary['wall_s']:.1f} s ({summary['unreadable']} unreadable)", err=True)
+        return summary
+
+    call("replay", body)
+
+
+@app.command()
+def merge(
+    first: Annotated[Path, typer.Argument(help="first session (MCAP)")],
+    second: Annotated[Path, typer.Argument(help="second session (MCAP)")],
+    out: Annotated[Path, typer.Option(help="output folder")],
+    marker: Annotated[str | None, typer.Option(
+        help="pose X,Y,YAW of the second session's marker as measured in the first")] = None,
+) -> None:
+    """Merge the maps of two recorded sessions offline."""
+
+    def body() -> Any:
+        raise NotImplementedError
+
+    call("merge", body)
+
+
 @app.command("slam-log")
 def slam_log(
     log_file: Annotated[Path, typer.Argument(help="CARMEN log (.clf/.log, optionally .gz/.bz2)")],

@@ -1,0 +1,1 @@
+"""Recording runs to MCAP files and replaying them onto the bus."""
