@@ -184,6 +184,8 @@ def demo(
         help="team targets: optimal (assignment on path costs) or thesis")] = "optimal",
     merge: Annotated[bool, typer.Option("--merge/--no-merge",
                                         help="merge maps at rendezvous")] = True,
+    record: Annotated[bool, typer.Option("--record/--no-record",
+                                         help="record the run into run.mcap")] = True,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
@@ -197,7 +199,8 @@ def demo(
         opts: dict[str, Any] = {"seed": seed, "lockstep": lockstep, "rtf": rtf,
                                 "explorer": explorer, "max_sim_time_s": max_sim_time,
                                 "spurious_detections": spurious_detections,
-                                "coordination": coordination, "merge": merge}
+                                "coordination": coordination, "merge": merge,
+                                "record": record}
         if world is not None:
             opts.update(world=str(world), scenario=scenario)
         elif scenario is not None:

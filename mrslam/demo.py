@@ -49,6 +49,7 @@ class DemoConfig(BaseModel):
                                        "the simulator draws false (merge verification test)")
     coordination: Literal["optimal", "thesis"] = "optimal"
     merge: bool = Field(True, description="False: robots never merge their maps")
+    record: bool = Field(True, description="record every bus message into <out>/run.mcap")
     max_sim_time_s: float = Field(3600.0, gt=0)
     wall_timeout_s: float = Field(1800.0, gt=0)
     out: str = ""
@@ -144,6 +145,13 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
         with Monitor(endpoint, list(plan["robots"])) as mon:
             if not mon.wait_for_server(30.0, server.alive):
                 raise RuntimeError(f"the server did not come up:\n{server.tail()}")
+            if cfg.record:  # the file appears once the recorder is on the bus
+                rec = procs.start("recorder", "record", "--out", str(out / "run.mcap"),
+                                  "--connect", endpoint)
+                until = time.monotonic() + 30.0
+                while rec.alive() and not (out / "run.mcap").exists() and \
+                        time.monotonic() < until:
+                    time.sleep(0.1)
             for rid in plan["robots"]:
                 procs.start(f"agent_{rid}", "agent", "-c", str(out / f"agent_{rid}.yaml"))
             sim_args = ["sim", "-c", str(out / "sim.yaml"), "--world", plan["world"],
@@ -158,6 +166,7 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                              progress)
             procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
             procs.stop(["server"], timeout_s=60.0)
+            procs.stop(["recorder"])
             watch = mon.results()
         watch["end"] = why
         watch["exit_codes"] = {p.name: p.popen.returncode for p in procs.procs}
