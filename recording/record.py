@@ -35,8 +35,9 @@ def run(out: str | Path, bus: BusConfig | None = None, *, foxglove: bool = False
     meta = {"schema_version": str(SCHEMA_VERSION), "key": key,
             "started_unix_ns": str(time.time_ns())}
     t0 = time.monotonic()
-    with McapRecorder(out, compression, foxglove, metadata=meta) as rec, \
-            Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as session:
+    with Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as session, \
+            McapRecorder(out, compression, foxglove, metadata=meta) as rec:
+        # the file appears only once the session is up (the demo waits for it)
         session.subscribe_raw(key, rec.add)
         log.info("recording %s into %s", key, out)
         deadline = None if duration_s is None else t0 + duration_s
@@ -44,7 +45,7 @@ def run(out: str | Path, bus: BusConfig | None = None, *, foxglove: bool = False
             rec.flush()
             if deadline is not None and time.monotonic() >= deadline:
                 break
-        session.close()  # no callback can run past this point
+        session.close()  # no callback runs past this point; then the file is finished
     summary = {"out": str(out), "wall_s": time.monotonic() - t0, **rec.stats.as_dict()}
     log.info("recorded %d messages on %d keys", summary["messages"], summary["keys"])
     return summary
