@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +31,7 @@ STEM = (6.25, 1.0, 0.0)         # bottom of the dead-end stem
 
 def decide(explorer: VoronoiExplorer | FrontierExplorer, pose: tuple[float, float, float],
            start: tuple[float, float, float] | None = None,
-           visited: VisitedTargets | None = None, **kw: object) -> Decision:
+           visited: VisitedTargets | None = None, **kw: Any) -> Decision:
     out = explorer.decide(t_corridor(), pose, start or pose, visited or VisitedTargets(), **kw)
     assert isinstance(out, Decision), out
     return out
@@ -43,7 +44,8 @@ def test_voronoi_goes_to_nearest_open_end_with_lambda_one() -> None:
     assert np.allclose(d.path.xy_m[0], LEFT_START[:2]) and np.allclose(d.path.xy_m[-1],
                                                                        d.target_xy)
     ok = [t for t in d.candidates if t.status == "ok"]
-    assert len(ok) == 2
+    # both open ends, each as a rule-1 junction and as a frontier cluster (pooled with λ > 0)
+    assert sorted(t.kind for t in ok) == ["frontier", "frontier", "voronoi", "voronoi"]
     chosen = min(ok, key=lambda t: t.cost)
     assert chosen.xy == d.target_xy and chosen.cost == pytest.approx(chosen.d_robot_m)
     # d_robot is a path length: at least the straight-line distance, at most a bit more here.
@@ -70,6 +72,15 @@ def test_visited_and_reserved_targets_are_skipped() -> None:
     reserved = decide(ex, LEFT_START, reserved_xy=[first.target_xy])
     assert reserved.target_xy[0] > 9.5
     assert any(t.status == "reserved" for t in reserved.candidates)
+
+
+def test_junctions_first_unless_pooled() -> None:
+    # λ = 0: junctions first (the dissertation's order), frontier clusters never scored here.
+    d0 = decide(VoronoiExplorer(ExplorerParams(lam=0.0)), LEFT_START)
+    assert {t.kind for t in d0.candidates} == {"voronoi"}
+    pooled = decide(VoronoiExplorer(ExplorerParams(lam=0.0, pool_groups=True)), LEFT_START)
+    assert {t.kind for t in pooled.candidates} == {"voronoi", "frontier"}
+    assert ExplorerParams(lam=0.5).pooled and not ExplorerParams(lam=1.0, pool_groups=False).pooled
 
 
 def test_frontier_targets_when_the_skeleton_offers_none() -> None:

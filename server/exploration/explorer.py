@@ -66,9 +66,16 @@ class ExplorerParams:
     # Targets within this distance of another robot's goal are reserved for it.
     reserve_radius_m: float = 2.0
     escape_radius_m: float = 0.5
-    # Score all target groups together (rule-1 junctions and frontier clusters compete on cost);
-    # False: a later group only when no target of an earlier one is reachable.
-    pool_groups: bool = False
+    # True: score all target groups together (rule-1 junctions and frontier clusters compete on
+    # cost); False: a later group only when no target of an earlier one is reachable (the
+    # dissertation's order). None: pool when λ > 0. With λ = 0 the cost ignores where the robot
+    # is, and pooled frontier clusters — they line the whole known region — would send it to
+    # and fro between edges about as far from the start; junctions first damp that.
+    pool_groups: bool | None = None
+
+    @property
+    def pooled(self) -> bool:
+        return self.lam > 0 if self.pool_groups is None else self.pool_groups
     smooth: bool = True
     # Frontier explorer (explore_lite's defaults): cost = potential·d_robot − gain·size_m.
     potential_scale: float = 3.0
@@ -196,7 +203,7 @@ class Explorer(ABC):
                                  np.asarray(reserved_xy, np.float64).reshape(-1, 2))
             targets.extend(scored)
             ok.extend(t for t in scored if t.status == OK)
-            if ok and not p.pool_groups:
+            if ok and not p.pooled:
                 break
         if ok:
             best = min(ok, key=lambda t: t.cost)  # the earlier group wins a tie
