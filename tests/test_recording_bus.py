@@ -114,9 +114,8 @@ def test_replay_keeps_order_and_timing_and_filters_keys(tmp_path: Path, endpoint
     span = got[-1][2] - got[0][2]
     assert 0.9 * 1.9 / 2 <= span < 1.9 / 2 + 1.5  # 1.9 s of stamps at twice the speed
 
-    got.clear()
-    summary = replay(path, BusConfig(connect=[endpoint]), speed=0, until_ns=3 * 10**9 + 10**8 + 10**6,
-                     linger_s=1.0)
+    summary = replay(path, BusConfig(connect=[endpoint]), speed=0,
+                     until_ns=3 * 10**9 + 10**8 + 10**6, linger_s=1.0)
     assert summary["by_type"] == {"Scan": 4, "Event": 2}
 
 

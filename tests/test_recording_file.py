@@ -196,3 +196,18 @@ def test_unreadable_files_raise_a_typed_error(tmp_path: Path,
                         ("head.mcap", "no readable message"), ("missing.mcap", "cannot read")):
         with pytest.raises(RecordingError, match=words):
             read_recording(tmp_path / name)
+
+
+def test_recording_imports_only_schemas_of_ours() -> None:
+    import ast
+
+    ours = {"schemas", "factors", "server", "robot_agent", "sim", "mrslam", "recording"}
+    folder = Path(__file__).resolve().parent.parent / "recording"
+    used: set[str] = set()
+    for f in folder.glob("*.py"):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import):
+                used |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                used.add(node.module.split(".")[0])
+    assert used & ours == {"schemas", "recording"}
