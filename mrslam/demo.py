@@ -41,7 +41,10 @@ class DemoConfig(BaseModel):
     rtf: float = Field(5.0, gt=0, description="real-time factor when not in lockstep")
     explorer: Literal["voronoi", "frontier"] = "voronoi"
     cells_per_m: float | None = Field(None, gt=0, description="default: the scenario's, else 15")
-    lam: float | None = None
+    # λ of the Voronoi explorer; default 0.5, not the scenario's: the dissertation's λ = 0 for
+    # the large world (cost = distance from the start only) sends a robot to and fro across the
+    # map; pass the scenario's value to reproduce it
+    lam: float | None = Field(None, ge=0, le=1)
     v_mps: float | None = None
     omega_max_rps: float | None = None
     lookahead_m: float | None = None
@@ -104,7 +107,7 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
         "world_figures": figures,
         "truth_grid": truth_grid,
         "threshold": cfg.coverage or float(case.get("coverage_threshold", 0.95)),
-        "lam": cfg.lam if cfg.lam is not None else float(case.get("lambda", 1.0)),
+        "lam": cfg.lam if cfg.lam is not None else 0.5,
         "v_mps": cfg.v_mps or float(case.get("v_mps", 0.3)),
         "omega_max_rps": cfg.omega_max_rps or float(case.get("omega_max_rps", 1.5)),
         "lookahead_m": cfg.lookahead_m or float(case.get("lookahead_m", 1.0)),
