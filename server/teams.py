@@ -357,7 +357,7 @@ class CrossMatch:
     inlier_fraction: float
 
 
-def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 4.0,
+def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
                   min_inlier_fraction: float = 0.6, max_correction_m: float = 0.5,
                   max_correction_rad: float = math.radians(5.0),
                   T_ab: F64 | None = None, tried: list[int] | None = None
@@ -378,7 +378,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         pb = np.array([compose(T_ab, P) for P in pb])
     params = icp_params(a.cfg.matcher)
     out: list[CrossMatch] = []
-    for kb in range(0, len(b.keyframes), max(1, every)):
+    last = len(b.keyframes) - 1
+    for kb in sorted({*range(0, last, max(1, every)), last}):  # the newest: where they met
         d = np.hypot(pa[:, 0] - pb[kb, 0], pa[:, 1] - pb[kb, 1])
         near = np.flatnonzero(d <= radius_m)
         scan = b.keyframes[kb].matchable
