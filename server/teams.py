@@ -358,7 +358,7 @@ class CrossMatch:
 
 
 def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
-                  min_inlier_fraction: float = 0.6, max_correction_m: float = 0.5,
+                  min_inlier_fraction: float = 0.5, max_correction_m: float = 0.5,
                   max_correction_rad: float = math.radians(5.0),
                   T_ab: F64 | None = None, tried: list[int] | None = None
                   ) -> list[CrossMatch]:
