@@ -17,6 +17,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+# run as a script, this folder comes first on sys.path and bench/sim.py would hide the
+# simulator package: look in the repository instead
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
+
 GOALS = {"speedup_case2": 2.5, "speedup_case4": 3.5, "merge_error_m": 0.05,
          "merge_error_deg": 1.0, "max_position_error_m": {"2": 0.15, "4": 0.40}}
 
