@@ -133,8 +133,10 @@ class Team:
 class ServerCore:
     """Per-robot SLAM and navigation, per-team coverage; one thread calls it."""
 
-    def __init__(self, cfg: ServerConfig) -> None:
+    def __init__(self, cfg: ServerConfig, navigate: bool = True) -> None:
         self.cfg = cfg
+        #: False: scans only feed SLAM, rendezvous and coverage (offline merging); commands are 0
+        self.navigate = navigate
         self.robots: dict[str, RobotContext] = {}
         self.teams: dict[str, Team] = {}
         self.events: list[Event] = []
@@ -181,6 +183,9 @@ class ServerCore:
         self._periodic(scan.stamp_ns)
         if team.finished:
             r.nav.finish("team coverage reached")
+        if not self.navigate:
+            return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=scan.stamp_ns,
+                                   v_mps=0.0, omega_rps=0.0, ttl_s=self.cfg.control.command_ttl_s)
         ok = np.isfinite(ranges)
         pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])], 1)
         twist = r.nav.step(scan.stamp_ns * 1e-9, r.pose, r.start_pose, pts,
@@ -343,7 +348,10 @@ class ServerCore:
                               rec.sighting, rec.T_kf_a, rec.T_kf_b, kernel="huber")
         return Link(rec.observer, rec.observed, rec.stamp_ns, FactorRecord(f, "rendezvous"))
 
-    def _try_merge(self, p: MergeProposal, stamp: int) -> None:
+    def _try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = ()
+                   ) -> None:
+        """Verify and commit a merge; ``extra_links`` join the graphs besides the proposal's
+        sightings (a marker measured by hand between two recorded sessions)."""
         t = self.cfg.teams
         ta, tb = self.teams[p.team_a], self.teams[p.team_b]
         agree = map_agreement(self.team_grid(ta.team_id), self.team_grid(tb.team_id), p.T_ab)
@@ -371,7 +379,7 @@ class ServerCore:
             return
         b_anchor = self.robots[tb.anchor]
         b_origin_before = b_anchor.slam.keyframe_pose(0)
-        links = [self._link(r) for r in p.records]
+        links = [self._link(r) for r in p.records] + list(extra_links)
         self._rebuild(ta, [(rid, np.zeros(3)) for rid in ta.robot_ids]
                       + [(rid, p.T_ab) for rid in tb.robot_ids],
                       ta.links + tb.links + links)
