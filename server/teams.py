@@ -141,8 +141,8 @@ class MergeVerifier:
         if len(recs) < 2:
             return None
         p = self.p
-        xX = np.array([self._xX(key, r) for r in recs])
-        xY = np.array([self._xY(key, r) for r in recs])
+        xX = np.array([_in_x(r) for r in recs])
+        xY = np.array([_in_y(r) for r in recs])
         sig = np.array([r.sigma_p_m for r in recs])
         informative = np.array([r.sighting.sigma_yaw_rad <= p.informative_yaw_rad for r in recs])
         hyps: list[F64] = [r.T_ab for r, ok in zip(recs, informative, strict=True) if ok]
@@ -187,14 +187,6 @@ class MergeVerifier:
         first = min(members, key=lambda r: r.stamp_ns)
         return MergeProposal(key[0], key[1], tuple(members), T, C, first.T_ab.copy())
 
-    @staticmethod
-    def _xX(key: tuple[str, str], r: SightingRecord) -> F64:
-        return r.p_own_b if r.flipped else r.p_seen_a
-
-    @staticmethod
-    def _xY(key: tuple[str, str], r: SightingRecord) -> F64:
-        return r.p_seen_a if r.flipped else r.p_own_b
-
     def _inliers(self, T: F64, recs: list[SightingRecord], xX: F64, xY: F64, sig: F64,
                  informative: NDArray[np.bool_]) -> NDArray[np.bool_]:
         ok = _residuals(T, xX, xY) <= self.p.gate_sigmas * sig + self.p.gate_floor_m
@@ -219,6 +211,16 @@ class MergeVerifier:
 
     def rejected_total(self) -> int:
         return sum(v.rejected_by_map for v in self.pairs.values())
+
+
+def _in_x(r: SightingRecord) -> F64:
+    """The observed robot's position in the pair's first team's frame."""
+    return r.p_own_b if r.flipped else r.p_seen_a
+
+
+def _in_y(r: SightingRecord) -> F64:
+    """... and in the second team's frame."""
+    return r.p_seen_a if r.flipped else r.p_own_b
 
 
 def _flip(rec: SightingRecord) -> SightingRecord:
