@@ -359,11 +359,8 @@ class ServerCore:
                 "conflicts": agree.conflicts, "conflict_ratio": round(agree.conflict_ratio, 4)}
         if agree.occupied_checked >= t.min_checked_cells and \
                 agree.conflict_ratio > t.max_conflict_ratio:
-            self.verifier.reject(p)
-            self.tag_counters["merges_rejected"] += 1
-            self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
-                      f"{tb.team_id} not merged into {ta.team_id}: maps disagree "
-                      f"({agree.conflicts} of {agree.occupied_checked} wall cells)", stamp)
+            self._refuse(p, f"maps disagree ({agree.conflicts} of {agree.occupied_checked} "
+                         "wall cells)", stamp)
             return
         tried = [0]
         found = sum(len(cross_matches(self.robots[ra].slam, self.robots[rb].slam, T_ab=p.T_ab,
@@ -371,11 +368,8 @@ class ServerCore:
                     for ra in ta.robot_ids for rb in tb.robot_ids)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
-            self.verifier.reject(p)
-            self.tag_counters["merges_rejected"] += 1
-            self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
-                      f"{tb.team_id} not merged into {ta.team_id}: no part of the maps "
-                      f"matches within 0.5 m ({tried[0]} tried)", stamp)
+            self._refuse(p, f"no part of the maps matches within 0.5 m ({tried[0]} tried)",
+                         stamp)
             return
         b_anchor = self.robots[tb.anchor]
         b_origin_before = b_anchor.slam.keyframe_pose(0)
@@ -417,6 +411,13 @@ class ServerCore:
                    stamp_ns=stamp)
         self.events.append(ev)
         self.event_log.append(ev)
+
+    def _refuse(self, p: MergeProposal, why: str, stamp: int) -> None:
+        ta, tb = self.teams[p.team_a], self.teams[p.team_b]
+        self.verifier.reject(p)
+        self.tag_counters["merges_rejected"] += 1
+        self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
+                  f"{tb.team_id} not merged into {ta.team_id}: {why}", stamp)
 
     def _refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link]
                         ) -> int:
