@@ -308,11 +308,22 @@ def merge(
     out: Annotated[Path, typer.Option(help="output folder")],
     marker: Annotated[str | None, typer.Option(
         help="pose X,Y,YAW of the second session's marker as measured in the first")] = None,
+    config: ConfigOpt = None,
+    verbose: VerboseOpt = 0,
 ) -> None:
     """Merge the maps of two recorded sessions offline."""
+    setup_logging(verbose)
 
     def body() -> Any:
-        raise NotImplementedError
+        from mrslam.config import load_config
+        from server.config import ServerConfig
+        from server.offline_merge import run_merge
+
+        cfg = load_config(ServerConfig, config)
+        rep = run_merge(first, second, out, marker, cfg)
+        typer.echo(f"merged: transform {rep['transform']}, {rep['sightings_used']} sightings, "
+                   f"{rep['map_matches']} map matches; report in {out / 'merge_report.json'}")
+        return rep
 
     call("merge", body)
 
