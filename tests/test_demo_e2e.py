@@ -54,3 +54,24 @@ def test_one_robot_explores_three_rooms_accurately(tmp_path: Path) -> None:
     for f in ("report.json", "demo_config.yaml", "server/maps/team-r1/map.yaml",
               "server/maps/team-r1/points.ply", "coverage.png", "pose_error.png"):
         assert (run_dir / f).exists(), f
+
+
+def test_two_robots_merge_over_the_wire(tmp_path: Path) -> None:
+    """Two robots that start in sight of each other, as processes on loopback: the agents'
+    detector reads the rendered tags, the server verifies and merges, and the report scores the
+    merge against the ground truth."""
+    world = three_rooms(tmp_path)
+    report = run({"scenario": None, "world": str(world),
+                  "robots": {"r1": (1.5, 5.5, -0.5), "r2": (3.5, 4.5, 2.6)},
+                  "coverage": 0.97, "cells_per_m": 15, "max_sim_time_s": 300,
+                  "wall_timeout_s": 240, "out": str(tmp_path / "run")}, progress=False)
+    assert report["end"] == "finished", report["end"]
+    assert report["reached"]
+    assert report["tag_counters"]["used"] > 0
+    merges = [m for m in report["merges"] if not m["undone"]]
+    assert len(merges) == 1 and report["false_merges"] == 0
+    assert merges[0]["joint_error_m"] <= 0.05 and merges[0]["joint_error_deg"] <= 1.0
+    final = [t for t in report["teams"].values() if not t.get("merged_into")]
+    assert len(final) == 1 and sorted(final[0]["robot_ids"]) == ["r1", "r2"]
+    for r in report["robots"].values():
+        assert r["collisions"] == 0 and r["max_position_error_m"] < 0.10
