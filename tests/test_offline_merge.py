@@ -191,3 +191,30 @@ def test_a_truncated_session_is_recovered_or_refused(halves: tuple[Path, Path],
     with pytest.raises(MergeError, match="no robot scan"):
         empty = split(a, "r9", tmp_path / "none.mcap")
         run_merge(a, empty, tmp_path / "q")
+
+
+def relabel(session: Path, robot_id: str, shift_ns: int, out: Path) -> Path:
+    """A session as if another run of robot ``robot_id`` had recorded it ``shift_ns`` later."""
+    with McapRecorder(out) as rec:
+        for m in read_recording(session).in_time_order():
+            if m.topic.endswith("/scan"):
+                s = msgspec.msgpack.decode(m.data, type=Scan)
+                s = msgspec.structs.replace(s, robot_id=robot_id, stamp_ns=s.stamp_ns + shift_ns)
+                rec.add(keys.robot_scan(robot_id), encode(s))
+    return out
+
+
+def test_one_robot_two_runs_at_different_times_merge_by_marker(
+        halves: tuple[Path, Path], tmp_path: Path) -> None:
+    """The corridor experiment: one robot (r1) in both sessions, an hour apart."""
+    a, b = halves
+    later = relabel(b, "r1", 3600 * 10**9, tmp_path / "later.mcap")
+    with pytest.raises(MergeError, match="--marker"):
+        run_merge(a, later, tmp_path / "x", cfg=config())
+    off = T_TRUE + np.array([-0.2, 0.2, math.radians(-2.0)])
+    rep = run_merge(a, later, tmp_path / "m", marker=",".join(f"{v:.6f}" for v in off),
+                    cfg=config())
+    assert rep["robot_b"] == "r1b" and rep["sessions"]["b"]["renamed"] == {"r1": "r1b"}
+    et, er = error(rep["transform"])
+    assert et <= 0.05 and er <= math.radians(1.0)
+    assert (tmp_path / "m" / "trajectories" / "r1b_final.csv").exists()
