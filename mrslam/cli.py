@@ -247,6 +247,9 @@ def record(
     compression: Annotated[str, typer.Option(help="chunk compression: zstd, lz4 or none")
                            ] = "zstd",
     duration: Annotated[float | None, typer.Option(help="stop after this many seconds")] = None,
+    exclude: Annotated[list[str] | None, typer.Option(
+        help="leave out keys matching this key expression (repeatable), "
+             "e.g. 'mrslam/sim/robot/*/image'")] = None,
     connect: ConnectOpt = None,
     listen: ListenOpt = None,
     zenoh_config: ZenohConfigOpt = None,
@@ -261,7 +264,8 @@ def record(
         from recording.record import run
 
         summary = run(out, _bus_config(connect, listen, zenoh_config), foxglove=foxglove,
-                      compression=compression, duration_s=duration)  # type: ignore[arg-type]
+                      compression=compression, duration_s=duration,  # type: ignore[arg-type]
+                      exclude=tuple(exclude or ()))
         typer.echo(f"recorded {summary['messages']} messages on {summary['keys']} keys "
                    f"({summary['undecodable']} undecodable) into {out}", err=True)
         return summary

@@ -149,8 +149,10 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
             if not mon.wait_for_server(30.0, server.alive):
                 raise RuntimeError(f"the server did not come up:\n{server.tail()}")
             if cfg.record:  # the file appears once the recorder is on the bus
+                # camera images are the simulator's business (the agents' tag detections are
+                # recorded): leaving them out keeps a run's file small
                 rec = procs.start("recorder", "record", "--out", str(out / "run.mcap"),
-                                  "--connect", endpoint)
+                                  "--connect", endpoint, "--exclude", "mrslam/sim/robot/*/image")
                 until = time.monotonic() + 30.0
                 while rec.alive() and not (out / "run.mcap").exists() and \
                         time.monotonic() < until:

@@ -10,6 +10,7 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,20 +26,31 @@ log = logging.getLogger(__name__)
 def run(out: str | Path, bus: BusConfig | None = None, *, foxglove: bool = False,
         compression: Compression = "zstd", flush_period_s: float = 1.0,
         duration_s: float | None = None, key: str = keys.ALL,
-        stop: threading.Event | None = None) -> dict[str, Any]:
-    """Record until stopped; returns the recorder's counters (also stored in the file)."""
+        exclude: Sequence[str] = (), stop: threading.Event | None = None) -> dict[str, Any]:
+    """Record until stopped; returns the recorder's counters (also stored in the file).
+    Keys matching any of the ``exclude`` key expressions are left out (and counted)."""
     b = bus or BusConfig()
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
-    meta = {"schema_version": str(SCHEMA_VERSION), "key": key,
+    import zenoh
+
+    skip = [zenoh.KeyExpr(e) for e in exclude]
+    excluded = [0]
+    meta = {"schema_version": str(SCHEMA_VERSION), "key": key, "exclude": ",".join(exclude),
             "started_unix_ns": str(time.time_ns())}
     t0 = time.monotonic()
     with Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as session, \
             McapRecorder(out, compression, foxglove, metadata=meta) as rec:
         # the file appears only once the session is up (the demo waits for it)
-        session.subscribe_raw(key, rec.add)
+        def add(k: str, payload: bytes) -> None:
+            if skip and any(e.intersects(zenoh.KeyExpr(k)) for e in skip):
+                excluded[0] += 1
+                return
+            rec.add(k, payload)
+
+        session.subscribe_raw(key, add)
         log.info("recording %s into %s", key, out)
         deadline = None if duration_s is None else t0 + duration_s
         while not stop.wait(flush_period_s):
@@ -46,6 +58,7 @@ def run(out: str | Path, bus: BusConfig | None = None, *, foxglove: bool = False
             if deadline is not None and time.monotonic() >= deadline:
                 break
         session.close()  # no callback runs past this point; then the file is finished
-    summary = {"out": str(out), "wall_s": time.monotonic() - t0, **rec.stats.as_dict()}
+    summary = {"out": str(out), "wall_s": time.monotonic() - t0, "excluded": excluded[0],
+               **rec.stats.as_dict()}
     log.info("recorded %d messages on %d keys", summary["messages"], summary["keys"])
     return summary

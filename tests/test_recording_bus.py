@@ -125,3 +125,34 @@ def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
     assert r.returncode == 2 and "not an MCAP file" in r.stderr
     r = mrslam("merge", "a.mcap", "b.mcap", "--out", str(tmp_path))
     assert r.returncode == 2 and "not implemented yet" in r.stderr
+
+
+def test_recorder_leaves_out_excluded_keys(tmp_path: Path, endpoint: str, router: Bus) -> None:
+    from recording.record import run as record
+
+    out = tmp_path / "run.mcap"
+    stop = threading.Event()
+    result: dict[str, object] = {}
+    t = threading.Thread(target=lambda: result.update(record(
+        out, BusConfig(mode="client", connect=[endpoint]), stop=stop,
+        exclude=("mrslam/robot/*/status",))))
+    t.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not out.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(0.5)
+        with Bus.open("client", connect=[endpoint]) as pub:
+            for k in range(5):
+                pub.publish(keys.robot_scan("r1"), msgspec.structs.replace(
+                    scan("r1", seq=k, seed=k), stamp_ns=10**9 + k * 10**8), block=True)
+                pub.publish(keys.robot_status("r1"), RobotStatus(
+                    robot_id="r1", seq=k, stamp_ns=10**9 + k * 10**8, state="ok"), block=True)
+            time.sleep(1.0)
+    finally:
+        stop.set()
+        t.join(timeout=20)
+    topics = [m.topic for m in read_recording(out).messages]
+    assert topics.count(keys.robot_scan("r1")) == 5
+    assert keys.robot_status("r1") not in topics
+    assert result["excluded"] == 5
