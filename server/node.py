@@ -68,8 +68,13 @@ class ServerNode:
             return
         with self._cv:
             name = f"#tags:{msg.robot_id}"
-            self._queues.setdefault(name, deque()).append(msg)  # type: ignore[arg-type]
-            self._order.append(name)
+            q = self._queues.setdefault(name, deque())
+            if len(q) >= self.cfg.queue_per_robot:
+                q.popleft()  # behind: the oldest sightings go first
+                self.dropped[name] = self.dropped.get(name, 0) + 1
+            else:
+                self._order.append(name)
+            q.append(msg)  # type: ignore[arg-type]
             self._cv.notify()
 
     def _on_alive(self, key: str, alive: bool) -> None:
