@@ -14,6 +14,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+# run as a script, this folder comes first on sys.path and bench/sim.py would hide the
+# simulator package: look in the repository instead
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
+
 GOALS = {"thesis-case-1": {"max_position_error_m": 0.10},
          "thesis-case-3": {"max_position_error_m": 0.30}}
 
