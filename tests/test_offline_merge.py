@@ -88,12 +88,12 @@ def simulate(path: Path) -> None:
     assert not core.merges
 
 
-def split(run: Path, robot_id: str, out: Path) -> Path:
+def split(run: Path, robot_id: str, out: Path, tags: bool = True) -> Path:
     """One robot's messages of a recording, as a session of its own (in chunks of ~1 s, as
     the recorder's periodic flushes leave them)."""
     with McapRecorder(out, chunk_size=16_000) as rec:
         for m in read_recording(run).in_time_order():
-            if keys.robot_id_of(m.topic) == robot_id:
+            if keys.robot_id_of(m.topic) == robot_id and (tags or not m.topic.endswith("/tags")):
                 rec.add(m.topic, m.data)
     return out
 
@@ -102,7 +102,9 @@ def split(run: Path, robot_id: str, out: Path) -> Path:
 def halves(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     d = tmp_path_factory.mktemp("run")
     simulate(d / "run.mcap")
-    return split(d / "run.mcap", "r1", d / "a.mcap"), split(d / "run.mcap", "r2", d / "b.mcap")
+    # A's robot left its tag where B's saw it: only B's sightings are kept
+    return (split(d / "run.mcap", "r1", d / "a.mcap", tags=False),
+            split(d / "run.mcap", "r2", d / "b.mcap"))
 
 
 def error(T: dict[str, float]) -> tuple[float, float]:
@@ -117,7 +119,8 @@ def test_halves_merge_from_the_recorded_sighting(halves: tuple[Path, Path],
     res = CliRunner().invoke(app, ["merge", str(a), str(b), "--out", str(out)])
     assert res.exit_code == 0, res.output
     rep = json.loads((out / "merge_report.json").read_text())
-    assert rep["rendezvous"] == "sightings" and rep["sightings_used"] >= 2
+    assert rep["rendezvous"] == "sightings" and rep["sightings_used"] >= 3
+    assert rep["sessions"]["a"]["tag_messages"] == 0
     et, er = error(rep["transform"])
     dt, dr = error(rep["direct_first_sighting"])
     print(f"offline merge error {et:.4f} m {math.degrees(er):.3f} deg; "
@@ -154,11 +157,13 @@ def test_a_perturbed_marker_is_corrected_on_the_maps(halves: tuple[Path, Path],
 
 
 def test_one_robot_in_both_sessions_is_renamed(halves: tuple[Path, Path]) -> None:
-    a, b = halves
-    A, B = load_session(a), load_session(a)
+    _, b = halves
+    A, B = load_session(b), load_session(b)
     rename_clashes(B, set(A.robots))
-    assert B.robots == ["r1b"] and {m.robot_id for m in B.scans} == {"r1b"}
-    assert all(d.observed_robot_id == "r2" for m in B.tags for d in m.detections)
+    assert B.robots == ["r2b"] and {m.robot_id for m in B.scans} == {"r2b"}
+    assert {m.robot_id for m in B.tags} == {"r2b"}
+    # its sightings of another session's robot keep that robot's id
+    assert B.tags and all(d.observed_robot_id == "r1" for m in B.tags for d in m.detections)
     Bs = load_session(b)
     Bs.tags = [msgspec.structs.replace(m, detections=[
         msgspec.structs.replace(d, observed_robot_id="r2") for d in m.detections])
