@@ -16,8 +16,10 @@ need ``--marker``.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
+import re
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,8 +115,6 @@ def load_session(path: str | Path) -> Session:
 def rename_clashes(b: Session, taken: set[str]) -> None:
     """Give B's robots whose ids A uses new ids (r1 -> r1b), in its scans and in its own
     detections of them; detections of other robots keep their ids (A's robots)."""
-    import re
-
     for rid in b.robots:
         if rid not in taken:
             continue
@@ -252,8 +252,6 @@ def run_merge(first: str | Path, second: str | Path, out: str | Path,
     report = _report(core, A, B, a, b, merge, T_marker, ignored_tags)
     out_dir = Path(out)
     write_outputs(core, out_dir, {"offline_merge": report})
-    import json
-
     (out_dir / "merge_report.json").write_text(json.dumps(report, indent=2))
     return report
 
