@@ -63,6 +63,9 @@ class TeamsConfig(_Model):
                                  "keyframes against the other side's map where they overlap")
     min_map_match_tries: int = Field(3, ge=1, description="where the aligned maps overlap at "
                                      "this many keyframes, at least one must match")
+    look_at_movers: bool = Field(True, description="while robots outside the team remain, "
+                                 "turn toward moving things the LIDAR sees (a robot whose tag "
+                                 "the forward camera would otherwise miss)")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
     coordination: Literal["optimal", "thesis"] = Field(

@@ -35,10 +35,11 @@ from schemas import (
     VelocityCommand,
 )
 from server.config import ServerConfig
-from server.control import PursuitParams, StuckDetector, VfhParams
+from server.control import PursuitParams, StuckDetector, Twist, VfhParams
 from server.coordination import Member, TeamExplorer, drop_target
 from server.exploration import ExplorerParams, VisitedTargets, make_explorer
 from server.exploration.analysis import AnalysisParams
+from server.lookout import Lookout, LookParams
 from server.navigator import DONE, Navigator
 from server.planning import CostParams
 from server.planning import OccupancyGrid as PlanningGrid
@@ -79,6 +80,7 @@ class RobotContext:
     scans: int = 0
     last_stamp_ns: int = 0
     alive: bool = True
+    look: Lookout = field(default_factory=Lookout)
     #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the robot's own map
     #: frame (its first pose is the origin; a merge does not move it)
     online: list[tuple[int, float, float, float]] = field(default_factory=list)
@@ -188,6 +190,11 @@ class ServerCore:
                                    v_mps=0.0, omega_rps=0.0, ttl_s=self.cfg.control.command_ttl_s)
         ok = np.isfinite(ranges)
         pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])], 1)
+        look = self._look(r, scan.stamp_ns * 1e-9, pts)
+        if look is not None:
+            return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=scan.stamp_ns,
+                                   v_mps=look.v_mps, omega_rps=look.omega_rps,
+                                   ttl_s=self.cfg.control.command_ttl_s)
         twist = r.nav.step(scan.stamp_ns * 1e-9, r.pose, r.start_pose, pts,
                            lambda: self.planning_grid(team.team_id), team.visited,
                            self._others_in_robot_frame(r))
@@ -195,6 +202,21 @@ class ServerCore:
                                v_mps=float(np.clip(twist.v_mps, -5, 5)),
                                omega_rps=float(np.clip(twist.omega_rps, -20, 20)),
                                ttl_s=self.cfg.control.command_ttl_s)
+
+    def _look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
+        """Turn toward something that moves while robots outside the team remain."""
+        t = self.cfg.teams
+        if not (t.enabled and t.look_at_movers) or r.nav.mode == DONE or \
+                r.nav.mode == "stuck":
+            r.look.reset()
+            return None
+        if len(self.teams) < 2 and not r.look.active:
+            return None
+        team = self.teams[r.team_id]
+        mates = np.array([self.robots[o].pose[:2] for o in team.robot_ids if o != r.robot_id],
+                         dtype=np.float64).reshape(-1, 2)
+        return r.look.step(now_s, r.pose, points_robot, self.latest_grids.get(r.team_id),
+                           mates)
 
     def _periodic(self, stamp_ns: int) -> None:
         if stamp_ns < self._next_cover_ns:
@@ -237,6 +259,8 @@ class ServerCore:
             self.cfg.explore.replan_period_s)
         team_id = f"team-{robot_id}"
         r = RobotContext(robot_id, RobotSlam(char, self.cfg.slam), nav, team_id)
+        r.look = Lookout(LookParams(max_range_m=self.cfg.teams.max_sighting_range_m,
+                                    omega_rps=min(1.0, c.omega_max_rps)))
         self.robots[robot_id] = r
         self.teams[team_id] = Team(team_id, [robot_id],
                                    VisitedTargets(self.cfg.explore.visited_radius_m),

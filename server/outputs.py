@@ -61,7 +61,7 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
             "loop_closures": r.slam.stats.loop_closures, "distance_m": r.distance_m,
             "mode": r.nav.mode, "finished_reason": r.nav.finished_reason,
             "decisions": r.nav.stats.decisions, "targets_reached": r.nav.stats.targets_reached,
-            "recoveries": r.nav.stats.recoveries,
+            "recoveries": r.nav.stats.recoveries, "looks": r.look.looks,
             "decision_ms_median": float(np.median(ms)) if ms else None,
             "matches": dict(r.slam.stats.matches),
         }

@@ -1,0 +1,67 @@
+"""Looking at what moves: a compact group of returns in known free space turns the robot."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from server.lookout import Lookout, LookParams, moving_object
+from server.planning import OccupancyGrid
+
+
+def free_room() -> OccupancyGrid:
+    data = np.zeros((200, 200), dtype=np.int8)       # 10 × 10 m, 5 cm cells, all free
+    data[:, :3] = data[:, -3:] = data[:3, :] = data[-3:, :] = 100
+    return OccupancyGrid(data, 0.05, (-5.0, -5.0))
+
+
+def blob(x: float, y: float, n: int = 6) -> np.ndarray:
+    a = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    return np.stack([x + 0.13 * np.cos(a), y + 0.13 * np.sin(a)], axis=1)
+
+
+def walls_seen(pose: np.ndarray) -> np.ndarray:
+    """Returns on the room's walls, in the robot frame."""
+    xs = np.linspace(-4.8, 4.8, 60)
+    world = np.concatenate([np.stack([xs, np.full(60, 4.9)], 1),
+                            np.stack([np.full(60, 4.9), xs], 1)])
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return (world - pose[:2]) @ np.array([[c, -s], [s, c]])
+
+
+def test_a_robot_in_free_space_is_found_and_walls_are_not() -> None:
+    pose = np.array([0.0, 0.0, 0.0])
+    g, p = free_room(), LookParams()
+    assert moving_object(walls_seen(pose), pose, g, np.zeros((0, 2)), p) is None
+    pts = np.concatenate([walls_seen(pose), blob(0.0, 2.0)])
+    b = moving_object(pts, pose, g, np.zeros((0, 2)), p)
+    assert b is not None and abs(b - math.pi / 2) < 0.05
+    # a teammate where the blob is: known, not a stranger
+    assert moving_object(pts, pose, g, np.array([[0.0, 2.0]]), p) is None
+    # too far to read a tag
+    assert moving_object(np.concatenate([walls_seen(pose), blob(0.0, 4.2)]), pose, g,
+                         np.zeros((0, 2)), p) is None
+
+
+def test_lookout_turns_holds_then_cools_down() -> None:
+    look = Lookout(LookParams(hold_s=1.0, cooldown_s=10.0))
+    g = free_room()
+    pose = np.array([0.0, 0.0, 0.0])
+    pts = np.concatenate([walls_seen(pose), blob(-2.0, 0.0)])    # behind the robot
+    t = 0.0
+    tw = look.step(t, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and abs(tw.omega_rps) > 0
+    while tw is not None and tw.omega_rps != 0.0 and t < 10:
+        pose = np.add(pose, [0.0, 0.0, 0.1 * tw.omega_rps])
+        t += 0.1
+        tw = look.step(t, pose, pts, g, np.zeros((0, 2)))
+    assert abs(math.remainder(pose[2] - math.pi, 2 * math.pi)) < math.radians(8)
+    assert tw is not None and tw.omega_rps == 0.0 and tw.v_mps == 0.0    # holding
+    assert look.step(t + 1.1, pose, pts, g, np.zeros((0, 2))) is None     # done
+    # the same thing right after: no new look during the cooldown
+    assert look.step(t + 2.0, np.array([0.0, 0.0, 0.0]), pts, g, np.zeros((0, 2))) is None
+    assert look.looks == 1
+    # already in view: nothing to do
+    ahead = np.concatenate([walls_seen(np.zeros(3)), blob(2.0, 0.1)])
+    assert Lookout().step(0.0, np.zeros(3), ahead, g, np.zeros((0, 2))) is None
