@@ -364,7 +364,7 @@ class ServerCore:
             return
         proposal = self.verifier.add(a.team_id, b.team_id, rec)
         if proposal is not None:
-            self._try_merge(proposal, stamp)
+            self.try_merge(proposal, stamp)
 
     def _link(self, rec: SightingRecord) -> Link:
         a, b = self.robots[rec.observer], self.robots[rec.observed]
@@ -372,7 +372,7 @@ class ServerCore:
                               rec.sighting, rec.T_kf_a, rec.T_kf_b, kernel="huber")
         return Link(rec.observer, rec.observed, rec.stamp_ns, FactorRecord(f, "rendezvous"))
 
-    def _try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = ()
+    def try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = ()
                    ) -> None:
         """Verify and commit a merge; ``extra_links`` join the graphs besides the proposal's
         sightings (a marker measured by hand between two recorded sessions)."""

@@ -210,7 +210,7 @@ def merge_by_marker(core: ServerCore, a: str, b: str, T_ab: F64, stamp_ns: int) 
     # would take for disagreement far from the marker: align on the maps' overlap first
     T_checked = prealign(core, ta.robot_ids, tb.robot_ids, T_team)
     # the proposal's transform: B's team frame -> A's team frame
-    core._try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, cov, T_team), stamp_ns,
+    core.try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, cov, T_team), stamp_ns,
                     (link,))
 
 
