@@ -95,6 +95,10 @@ def main() -> None:
         res["merge_error_joint_max_deg"] = max(m["joint_error_deg"] for m in merges)
         res["merge_error_direct_max_m"] = max(m["direct_error_m"] for m in merges)
         res["merge_error_direct_max_deg"] = max(m["direct_error_deg"] for m in merges)
+        meet = [m for m in merges if "meeting_error_m" in m]
+        if meet:
+            res["merge_error_meeting_max_m"] = max(m["meeting_error_m"] for m in meet)
+            res["merge_error_meeting_max_deg"] = max(m["meeting_error_deg"] for m in meet)
         res["joint_better_than_direct"] = sum(
             m["joint_error_m"] <= m["direct_error_m"] for m in merges) / len(merges)
     res["false_merges"] = {k: v["false_merges"] for k, v in c.items()}

@@ -70,10 +70,22 @@ def _transform_error(T: Any, T_true: np.ndarray) -> tuple[float, float]:
     return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
 
 
-def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
-                 ) -> list[dict[str, Any]]:
+def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray | None:
+    if len(stamps) == 0:
+        return None
+    i = int(np.clip(np.searchsorted(stamps, stamp_ns), 0, len(stamps) - 1))
+    j = i - 1 if i > 0 and abs(stamps[i - 1] - stamp_ns) < abs(stamps[i] - stamp_ns) else i
+    return poses[j] if abs(int(stamps[j]) - stamp_ns) <= 200_000_000 else None
+
+
+def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray],
+                 final: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                 truth: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """Each merge's transform (b's team frame -> a's) against the truth: after the joint
-    optimisation, fused sightings, and the direct method on the first sighting."""
+    optimisation, fused sightings, and the direct method on the first sighting. The transform
+    between the two start frames also carries each robot's drift until they met, so
+    ``meeting_error`` adds how well the final joint map places the two robots that met
+    relative to each other at the merge (when they ended in one team)."""
     out = []
     for m in merges:
         a, b = m["robots_a"][0], m["robots_b"][0]
@@ -92,6 +104,16 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
                 row[f"{name}_error_deg"] = round(math.degrees(er), 3)
             row["false"] = (row["joint_error_m"] > FALSE_MERGE_M
                             or math.radians(row["joint_error_deg"]) > FALSE_MERGE_RAD)
+        if final and truth and m["sightings"] and m.get("undone_stamp_ns") is None:
+            o, s, _ = m["sightings"][-1]
+            est = [_pose_at(*final[r], m["stamp_ns"]) if r in final else None for r in (o, s)]
+            tru = [_pose_at(np.asarray(truth[r]["stamps_ns"]), np.asarray(truth[r]["poses"]),
+                            m["stamp_ns"]) if r in truth else None for r in (o, s)]
+            eo, es, to, ts = (*est, *tru)
+            if eo is not None and es is not None and to is not None and ts is not None:
+                et, er = _transform_error(compose(inverse(eo), es), compose(inverse(to), ts))
+                row["meeting_error_m"] = round(et, 4)
+                row["meeting_error_deg"] = round(math.degrees(er), 3)
         out.append(row)
     return out
 
@@ -160,7 +182,10 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
             }
             _plot_data = (err.stamps_ns * 1e-9, err.position_m, err.yaw_rad)
             robots[rid]["_errors"] = _plot_data
-    merges = merge_errors(summary.get("merges", []), own_frames)
+    final_traj = {rid: read_trajectory(server_dir / "trajectories" / f"{rid}_final.csv")
+                  for rid in summary.get("robots", {})
+                  if (server_dir / "trajectories" / f"{rid}_final.csv").exists()}
+    merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth)
     for tid, old in summary.get("merged_teams", {}).items():
         hist = old.get("coverage_history", [])
         teams.setdefault(tid, {"robot_ids": old["robot_ids"], "merged_into": old["merged_into"],

@@ -204,7 +204,7 @@ def test_separated_rule_keeps_goals_two_metres_apart() -> None:
 
 
 def test_team_costs_send_robots_to_different_ends() -> None:
-    ex = VoronoiExplorer()
+    ex = VoronoiExplorer(ExplorerParams(pool_groups=False))
     poses = [LEFT_START, (9.0, 3.75, 0.0)]
     team = ex.team_costs(t_corridor(), poses, poses, VisitedTargets())
     assert team.kind == "voronoi" and team.cost.shape == (2, 2)
@@ -213,3 +213,16 @@ def test_team_costs_send_robots_to_different_ends() -> None:
     assert goals[0] < 2.5 and goals[1] > 9.5
     path = team.path(1, got[1] if got[1] is not None else 0)
     assert np.allclose(path.xy_m[0], poses[1][:2])
+
+
+def test_pooled_team_costs_hold_every_group_and_still_split_the_robots() -> None:
+    ex = VoronoiExplorer(ExplorerParams(lam=1.0))       # λ > 0: groups pooled, as in decide
+    poses = [LEFT_START, (9.0, 3.75, 0.0)]
+    team = ex.team_costs(t_corridor(), poses, poses, VisitedTargets())
+    alone = VoronoiExplorer(ExplorerParams(pool_groups=False)).team_costs(
+        t_corridor(), poses, poses, VisitedTargets())
+    assert team.kind.startswith("voronoi") and team.cost.shape[1] > alone.cost.shape[1]
+    got = assign_optimal(team.cost)
+    assert None not in got and got[0] != got[1]
+    xs = [team.targets_xy[k][0] for k in got if k is not None]
+    assert xs[0] < xs[1]       # the left robot takes a target left of the right robot's

@@ -216,8 +216,8 @@ class Explorer(ABC):
         """Targets and a cost matrix robots × targets for a team sharing ``grid`` (one frame),
         for :func:`server.exploration.assignment.assign_optimal` or ``assign_separated``.
 
-        Uses the first group of targets any robot can reach (rule-1 junctions, then frontier
-        clusters); a robot that cannot be planned from (StartOccupied) gets a row of ∞.
+        Groups of targets (rule-1 junctions, frontier clusters) are pooled or tried in order,
+        as in ``decide``; a robot that cannot be planned from (StartOccupied) gets a row of ∞.
         """
         p = self.params
         robots = np.asarray(robot_poses, np.float64).reshape(-1, 3)[:, :2]
@@ -232,6 +232,7 @@ class Explorer(ABC):
                 fields.append(None)
         none = np.zeros((0, 2))
         placed = self._placed_proposals(analysis, list(robots)) if len(analysis.frontiers) else []
+        groups: list[tuple[NDArray[np.float64], NDArray[np.float64], str]] = []
         for proposal in placed:
             rows: list[list[Target]] = []
             for i, f in enumerate(fields):
@@ -247,8 +248,15 @@ class Explorer(ABC):
                     targets_xy[k] = t.xy
                     if t.status == OK:
                         cost[i, k] = t.cost
-            if np.isfinite(cost).any():
+            if not np.isfinite(cost).any():
+                continue
+            if not p.pooled:  # the first group with a reachable target, as ``decide`` does
                 return TeamCosts(targets_xy, cost, proposal.kind, fields, p.smooth)
+            groups.append((targets_xy, cost, proposal.kind))
+        if groups:  # pooled: every group's targets compete on one cost, as in ``decide``
+            return TeamCosts(np.concatenate([g[0] for g in groups]),
+                             np.concatenate([g[1] for g in groups], axis=1),
+                             "+".join(g[2] for g in groups), fields, p.smooth)
         return TeamCosts(none, np.zeros((len(robots), 0)), "", fields, p.smooth)
 
     def _placed_proposals(self, analysis: MapAnalysis,
