@@ -160,7 +160,7 @@ class ServerCore:
         self.tag_counters: dict[str, int] = dict.fromkeys((
             "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
             "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
-            "map_matches", "too_far"), 0)
+            "map_matches", "too_far", "contradictions_overruled"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -551,6 +551,15 @@ class ServerCore:
         if len(agreeing) >= t.undo_after:
             self._undo(team, rec, pair)
 
+    def _maps_still_match(self, side_a: list[str], side_b: list[str]) -> bool:
+        """Whether keyframes of one side still match the other side's map (within 0.5 m)
+        where they overlap, in the joint estimate."""
+        tried = [0]
+        found = sum(len(cross_matches(self.robots[a].slam, self.robots[b].slam, tried=tried))
+                    for a in side_a for b in side_b)
+        return tried[0] >= self.cfg.teams.min_map_match_tries and \
+            found >= max(1, tried[0] // 4)
+
     def _undo(self, team: Team, rec: SightingRecord, pair: tuple[str, str]) -> None:
         """Split ``team`` back along the latest merge that put ``pair`` together."""
         merge = next((m for m in reversed(self.merges) if m.team_id == team.team_id
@@ -564,6 +573,12 @@ class ServerCore:
             return
         side_b = [r for r in team.robot_ids if r in merge.robots_b]
         side_a = [r for r in team.robot_ids if r not in merge.robots_b]
+        if self.cfg.teams.refine_on_maps and self._maps_still_match(side_a, side_b):
+            # the maps fit where they overlap: more likely a tag misread as a teammate's
+            self.tag_counters["contradictions_overruled"] += 1
+            log.warning("sightings contradict %s and %s in %s, but their maps still match: "
+                        "merge kept", *pair, team.team_id)
+            return
         old = self.retired_teams.pop(merge.joined_team_id)
         b_anchor = self.robots[old.anchor]
         T_team_b = compose(b_anchor.slam.keyframe_pose(0),
