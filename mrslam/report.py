@@ -71,11 +71,9 @@ def _transform_error(T: Any, T_true: np.ndarray) -> tuple[float, float]:
 
 
 def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray | None:
-    if len(stamps) == 0:
-        return None
-    i = int(np.clip(np.searchsorted(stamps, stamp_ns), 0, len(stamps) - 1))
-    j = i - 1 if i > 0 and abs(stamps[i - 1] - stamp_ns) < abs(stamps[i] - stamp_ns) else i
-    return poses[j] if abs(int(stamps[j]) - stamp_ns) <= 200_000_000 else None
+    """The pose nearest to ``stamp_ns`` (within 0.2 s), or None."""
+    idx, found = match_truth([stamp_ns], stamps, poses, tolerance_ns=200_000_000)
+    return found[0] if len(idx) else None
 
 
 def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray],

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from factors.rendezvous import (
     Sighting,
+    between,
     compose,
     direct_transform,
     fuse_transforms,
@@ -402,10 +403,6 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         ka = int(near[np.argmin(d[near])])
         c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        out.append(CrossMatch(ka, kb, between_poses(pa[ka], m.T_map_scan),
+        out.append(CrossMatch(ka, kb, between(pa[ka], m.T_map_scan),
                               R.T @ m.information @ R, m.inlier_fraction))
     return out
-
-
-def between_poses(A: F64, B: F64) -> F64:
-    return compose(inverse(A), B)
