@@ -5,7 +5,7 @@ Reports each case's time to threshold, the team speed-ups (case 1 / case 2, case
 merge transform errors after joint optimisation against the direct method on the same
 sightings, and — with ``--spurious`` — the team cases again with that share of false tag views.
 
-    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--out DIR]
+    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--out DIR]
 """
 
 from __future__ import annotations
@@ -27,13 +27,13 @@ GOALS = {"speedup_case2": 2.5, "speedup_case4": 3.5, "merge_error_m": 0.05,
          "merge_error_deg": 1.0, "max_position_error_m": {"2": 0.15, "4": 0.40}}
 
 
-def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float
-        ) -> dict[str, Any]:
+def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
+        known_starts: bool = False) -> dict[str, Any]:
     from mrslam.demo import run
 
     r = run({"scenario": f"thesis-case-{case}", "seed": seed, "out": str(out),
              "spurious_detections": spurious, "max_sim_time_s": max_sim_time_s,
-             "wall_timeout_s": 5400}, progress=False)
+             "known_starts": known_starts, "wall_timeout_s": 5400}, progress=False)
     robots = r["robots"]
     merges = r.get("merges", [])
     return {
@@ -63,6 +63,9 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=["1", "2", "3", "4"])
     ap.add_argument("--spurious", type=float, default=0.2,
                     help="also run the team cases with this share of false views (0: skip)")
+    ap.add_argument("--known-starts", action="store_true",
+                    help="also run the team cases with the start poses given to the server "
+                    "(one team from the start: what coordination alone gains)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-sim-time", type=float, default=7200.0)
     ap.add_argument("--out", type=Path, default=None)
@@ -76,6 +79,10 @@ def main() -> None:
             print(f"running case {case} with {a.spurious:.0%} false views...", file=sys.stderr)
             res["cases"][f"{case}-spurious"] = one(case, base / f"case-{case}-spurious",
                                                    a.seed, a.spurious, a.max_sim_time)
+        if a.known_starts and case in ("2", "4"):
+            print(f"running case {case} with known start poses...", file=sys.stderr)
+            res["cases"][f"{case}-known-starts"] = one(case, base / f"case-{case}-known-starts",
+                                                       a.seed, 0.0, a.max_sim_time, True)
     c = res["cases"]
 
     def t(k: str) -> float | None:
@@ -89,7 +96,12 @@ def main() -> None:
     res["speedup_case4"] = ratio(t("3"), t("4"))
     res["speedup_case2_first_team"] = ratio(t("1"), first("2"))
     res["speedup_case4_first_team"] = ratio(t("3"), first("4"))
-    merges = [m for k in ("2", "4") if k in c for m in c[k]["merges"] if "joint_error_m" in m]
+    for k in ("2", "4"):
+        if f"{k}-known-starts" in c:
+            res[f"speedup_case{k}_known_starts"] = ratio(t(str(int(k) - 1)),
+                                                         t(f"{k}-known-starts"))
+    merges = [m for k in ("2", "4") if k in c for m in c[k]["merges"] if "joint_error_m" in m
+              and m.get("kind", "tags") == "tags"]
     if merges:
         res["merge_error_joint_max_m"] = max(m["joint_error_m"] for m in merges)
         res["merge_error_joint_max_deg"] = max(m["joint_error_deg"] for m in merges)

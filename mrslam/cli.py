@@ -184,6 +184,9 @@ def demo(
         help="team targets: optimal (assignment on path costs) or thesis")] = "optimal",
     merge: Annotated[bool, typer.Option("--merge/--no-merge",
                                         help="merge maps at rendezvous")] = True,
+    known_starts: Annotated[bool, typer.Option(
+        "--known-starts", help="give the server the robots' start poses: one team from the "
+        "start")] = False,
     record: Annotated[bool, typer.Option("--record/--no-record",
                                          help="record the run into run.mcap")] = True,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
@@ -200,6 +203,7 @@ def demo(
                                 "explorer": explorer, "max_sim_time_s": max_sim_time,
                                 "spurious_detections": spurious_detections,
                                 "coordination": coordination, "merge": merge,
+                                "known_starts": known_starts,
                                 "record": record}
         if world is not None:
             opts.update(world=str(world), scenario=scenario)

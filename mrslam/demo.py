@@ -52,6 +52,8 @@ class DemoConfig(BaseModel):
                                        "the simulator draws false (merge verification test)")
     coordination: Literal["optimal", "thesis"] = "optimal"
     merge: bool = Field(True, description="False: robots never merge their maps")
+    known_starts: bool = Field(False, description="tell the server where the robots start: "
+                               "one team from the first scan (no rendezvous needed)")
     record: bool = Field(True, description="record every bus message into <out>/run.mcap")
     max_sim_time_s: float = Field(3600.0, gt=0)
     wall_timeout_s: float = Field(1800.0, gt=0)
@@ -124,7 +126,10 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
                     "coverage_threshold": plan["threshold"]},
         "control": {"v_mps": plan["v_mps"], "omega_max_rps": plan["omega_max_rps"],
                     "lookahead_m": plan["lookahead_m"]},
-        "teams": {"enabled": cfg.merge, "coordination": cfg.coordination},
+        "teams": {"enabled": cfg.merge, "coordination": cfg.coordination,
+                  "start_poses": ({rid: [float(v) for v in p]
+                                   for rid, p in plan["robots"].items()}
+                                  if cfg.known_starts else {})},
         "out": str(out / "server"),
         "exit_when_done": True,
     }

@@ -90,6 +90,7 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
         row: dict[str, Any] = {"sim_time_s": round(m["stamp_ns"] * 1e-9, 2),
                                "team_id": m["team_id"], "joined_team_id": m["joined_team_id"],
                                "robots": m["robots_a"] + m["robots_b"],
+                               "kind": m.get("kind", "tags"),
                                "sightings": len(m["sightings"]),
                                "undone": m.get("undone_stamp_ns") is not None,
                                "map_agreement": m.get("map_agreement")}

@@ -68,6 +68,13 @@ class TeamsConfig(_Model):
                                  "the forward camera would otherwise miss)")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
+    start_poses: dict[str, tuple[float, float, float]] = Field(
+        default_factory=dict, description="robots placed at known poses (x, y, yaw [rad]) in "
+        "one common frame: they form one team from their first scan, after the map check; "
+        "the others join by rendezvous")
+    start_pose_sigma_m: float = Field(0.05, gt=0.0, description="how well the start poses "
+                                      "are known")
+    start_pose_sigma_deg: float = Field(1.0, gt=0.0)
     coordination: Literal["optimal", "thesis"] = Field(
         "optimal", description="team targets by optimal assignment on path costs, or the "
         "dissertation's rule (each next robot: cheapest target ≥ 2 m from the others' goals)")

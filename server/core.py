@@ -17,12 +17,13 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.noise import NoiseError
+from factors.noise import NoiseError, robust
 from factors.rendezvous import Sighting, rendezvous_factor
-from factors.scan_match import loop_closure_factor, whitened_chi2
+from factors.scan_match import loop_closure_factor, pose2, whitened_chi2
 from schemas import (
     Event,
     MapUpdate,
@@ -81,6 +82,7 @@ class RobotContext:
     last_stamp_ns: int = 0
     alive: bool = True
     look: Lookout = field(default_factory=Lookout)
+    start_checked: bool = False   # a known start pose was used (or there was none to use)
     #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the robot's own map
     #: frame (its first pose is the origin; a merge does not move it)
     online: list[tuple[int, float, float, float]] = field(default_factory=list)
@@ -88,6 +90,12 @@ class RobotContext:
     def team_from_own(self) -> F64:
         """The robot's own map frame in its team's frame (identity until it joins a team)."""
         return self.slam.keyframe_pose(0) if self.slam.keyframes else np.zeros(3)
+
+    def own_frame_in_team(self) -> F64:
+        """The robot's own map frame (its first pose) in its team's frame, exactly: the first
+        keyframe's team pose against where the robot's prior put it."""
+        sl = self.slam
+        return compose(sl.keyframe_pose(0), inverse(sl.trajectory.prior_pose()))
 
 
 @dataclass
@@ -114,6 +122,7 @@ class MergeRecord:
     T_joint: F64                  # after the joint optimisation
     agreement: dict[str, float]
     undone_stamp_ns: int | None = None
+    kind: str = "tags"            # tags | start (known start poses) | marker (given by hand)
 
 
 @dataclass
@@ -169,11 +178,14 @@ class ServerCore:
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles,
                                  scan.range_max_mm / 1000.0)
-        if r.scans:
-            r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
-        else:
+        first = r.scans == 0
+        if first:
             r.start_pose = r.pose.copy()
+        else:
+            r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
         r.scans += 1
+        if not r.start_checked and r.robot_id in self.cfg.teams.start_poses:
+            self._join_known_start(r, scan.stamp_ns)
         r.last_stamp_ns = scan.stamp_ns
         own = r.pose
         if len(self.teams[r.team_id].robot_ids) > 1:
@@ -372,8 +384,44 @@ class ServerCore:
                               rec.sighting, rec.T_kf_a, rec.T_kf_b, kernel="huber")
         return Link(rec.observer, rec.observed, rec.stamp_ns, FactorRecord(f, "rendezvous"))
 
-    def try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = ()
-                   ) -> None:
+    def own_frames_link(self, a: str, b: str, T_own: F64, sigmas: F64, kind: str,
+                        stamp_ns: int) -> tuple[F64, Link]:
+        """A robust between-factor of the robots' first keyframes saying that b's own map
+        frame is ``T_own`` in a's own map frame (known start poses, a marker measured by
+        hand), and what it makes of the team transform (b's team frame -> a's)."""
+        ra, rb = self.robots[a], self.robots[b]
+        T_team = compose(compose(ra.own_frame_in_team(), T_own),
+                         inverse(rb.own_frame_in_team()))
+        T_link = compose(inverse(ra.slam.keyframe_pose(0)),
+                         compose(T_team, rb.slam.keyframe_pose(0)))
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=np.float64))
+        f = gtsam.BetweenFactorPose2(ra.slam.trajectory.key(0), rb.slam.trajectory.key(0),
+                                     pose2(T_link), robust(noise, "huber"))
+        return T_team, Link(a, b, stamp_ns, FactorRecord(f, kind))
+
+    def _join_known_start(self, r: RobotContext, stamp_ns: int) -> None:
+        """A robot placed at a known pose joins the team of the robots already placed so, as
+        soon as it has a keyframe (the merge is still checked on the maps)."""
+        t = self.cfg.teams
+        starts = t.start_poses
+        if not r.slam.keyframes:
+            return  # its first scan was refused: try again with the next
+        r.start_checked = True
+        other = next((o for o in self.robots.values() if o is not r and o.robot_id in starts
+                      and o.slam.keyframes and o.team_id != r.team_id), None)
+        if other is None:
+            return  # the first one placed: the others join it
+        S_a = np.asarray(starts[other.robot_id], dtype=np.float64)
+        S_b = np.asarray(starts[r.robot_id], dtype=np.float64)
+        sig = np.array([t.start_pose_sigma_m, t.start_pose_sigma_m,
+                        math.radians(t.start_pose_sigma_deg)])
+        T_team, link = self.own_frames_link(other.robot_id, r.robot_id,
+                                            compose(inverse(S_a), S_b), sig, "start", stamp_ns)
+        self.try_merge(MergeProposal(other.team_id, r.team_id, (), T_team, np.diag(sig ** 2),
+                                     T_team), stamp_ns, (link,), kind="start")
+
+    def try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = (),
+                  kind: str = "tags") -> None:
         """Verify and commit a merge; ``extra_links`` join the graphs besides the proposal's
         sightings (a marker measured by hand between two recorded sessions)."""
         t = self.cfg.teams
@@ -421,16 +469,16 @@ class ServerCore:
         rec = MergeRecord(stamp, ta.team_id, tb.team_id, [r for r in ta.robot_ids
                                                           if r not in merged_ids], merged_ids,
                           [(r.observer, r.observed, r.stamp_ns) for r in p.records],
-                          p.T_ab, p.cov_ab, p.direct_first, T_joint, info)
+                          p.T_ab, p.cov_ab, p.direct_first, T_joint, info, kind=kind)
         self.merges.append(rec)
         self.tag_counters["merges"] += 1
-        log.info("merged %s into %s from %d sightings: T %s (direct %s)", tb.team_id,
-                 ta.team_id, len(p.records), T_joint.round(3), p.T_ab.round(3))
+        how = f"{len(p.records)} sightings" if kind == "tags" else f"a {kind} link"
+        log.info("merged %s into %s from %s: T %s (before %s)", tb.team_id, ta.team_id, how,
+                 T_joint.round(3), p.T_ab.round(3))
         self._seq += 1
         ev = Event(kind="merge", robot_ids=ta.robot_ids, team_id=ta.team_id,
-                   message=f"{tb.team_id} merged into {ta.team_id} from {len(p.records)} "
-                   f"sightings", transform=(float(T_joint[0]), float(T_joint[1]),
-                                            float(T_joint[2])),
+                   message=f"{tb.team_id} merged into {ta.team_id} from {how}",
+                   transform=(float(T_joint[0]), float(T_joint[1]), float(T_joint[2])),
                    covariance=[float(v) for v in p.cov_ab.reshape(-1)], seq=self._seq,
                    stamp_ns=stamp)
         self.events.append(ev)

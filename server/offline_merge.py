@@ -25,22 +25,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import gtsam
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.noise import robust
 from factors.rendezvous import compose, inverse
-from factors.scan_match import pose2
 from recording.reader import ReadReport, read_recording
 from schemas import Scan, TagDetections, keys
 from schemas.codec import decode
 from schemas.errors import SchemaError
 from schemas.types import ID_PATTERN
 from server.config import ServerConfig
-from server.core import Link, MergeRecord, ServerCore
-from server.slam.backend import FactorRecord
+from server.core import MergeRecord, ServerCore
 from server.teams import MergeProposal, cross_matches
 
 log = logging.getLogger(__name__)
@@ -137,15 +133,10 @@ def rename_clashes(b: Session, taken: set[str]) -> None:
         for m in b.tags]
 
 
-def _own_frame_in_team(core: ServerCore, rid: str) -> F64:
-    """The robot's own map frame (its first pose) in its team's frame."""
-    sl = core.robots[rid].slam
-    return compose(sl.keyframe_pose(0), inverse(sl.trajectory.prior_pose()))
-
-
 def transform_ab(core: ServerCore, a: str, b: str) -> F64:
     """B's own map frame in A's own map frame, from the current (joint) estimate."""
-    return compose(inverse(_own_frame_in_team(core, a)), _own_frame_in_team(core, b))
+    return compose(inverse(core.robots[a].own_frame_in_team()),
+                   core.robots[b].own_frame_in_team())
 
 
 def transform_covariance(core: ServerCore, a: str, b: str) -> F64:
@@ -196,22 +187,14 @@ def merge_by_marker(core: ServerCore, a: str, b: str, T_ab: F64, stamp_ns: int) 
     if ra.team_id == rb.team_id:
         return
     ta, tb = core.teams[ra.team_id], core.teams[rb.team_id]
-    # the marker relates own frames; the link relates the first keyframes in team frames
-    T_team = compose(compose(_own_frame_in_team(core, a), T_ab),
-                     inverse(_own_frame_in_team(core, b)))
-    T_link = compose(inverse(ra.slam.keyframe_pose(0)), compose(T_team, rb.slam.keyframe_pose(0)))
-    noise = gtsam.noiseModel.Diagonal.Sigmas(
-        np.array([MARKER_SIGMA_M, MARKER_SIGMA_M, MARKER_SIGMA_RAD]))
-    f = gtsam.BetweenFactorPose2(ra.slam.trajectory.key(0), rb.slam.trajectory.key(0),
-                                 pose2(T_link), robust(noise, "huber"))
-    link = Link(a, b, stamp_ns, FactorRecord(f, "marker"))
-    cov = np.diag([MARKER_SIGMA_M ** 2, MARKER_SIGMA_M ** 2, MARKER_SIGMA_RAD ** 2])
+    sig = np.array([MARKER_SIGMA_M, MARKER_SIGMA_M, MARKER_SIGMA_RAD])
+    T_team, link = core.own_frames_link(a, b, T_ab, sig, "marker", stamp_ns)
     # a hand-measured marker is off by decimetres and degrees, which the strict map check
     # would take for disagreement far from the marker: align on the maps' overlap first
     T_checked = prealign(core, ta.robot_ids, tb.robot_ids, T_team)
     # the proposal's transform: B's team frame -> A's team frame
-    core.try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, cov, T_team), stamp_ns,
-                    (link,))
+    core.try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, np.diag(sig ** 2),
+                                 T_team), stamp_ns, (link,), kind="marker")
 
 
 def run_merge(first: str | Path, second: str | Path, out: str | Path,

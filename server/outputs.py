@@ -80,7 +80,8 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
                     "robots_b": m.robots_b, "sightings": m.sightings,
                     "T_joint": m.T_joint.tolist(), "T_fused": m.T_fused.tolist(),
                     "cov_fused": m.cov_fused.tolist(), "T_direct_first": m.T_direct_first.tolist(),
-                    "map_agreement": m.agreement, "undone_stamp_ns": m.undone_stamp_ns}
+                    "map_agreement": m.agreement, "undone_stamp_ns": m.undone_stamp_ns,
+                    "kind": m.kind}
                    for m in core.merges],
         "tag_counters": core.tag_counters,
         "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": e.robot_ids,

@@ -156,3 +156,29 @@ def replace_id(d: TagDetection, rid: str) -> TagDetection:
 
     return msgspec.structs.replace(d, observed_robot_id=rid)
 
+
+
+def test_robots_at_known_start_poses_are_one_team_from_their_first_scan() -> None:
+    core, sim = run(40, cfg=config(start_poses={r: list(p) for r, p in SPAWN.items()}))
+    assert len(core.merges) == 1 and core.merges[0].kind == "start"
+    assert core.merges[0].stamp_ns == 0 and len(core.teams) == 1
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+    d = between(T_true, core.merges[0].T_joint)
+    assert math.hypot(d[0], d[1]) < 0.05 and abs(d[2]) < math.radians(1.0)
+    team = next(iter(core.teams.values()))
+    start = np.array(SPAWN[core.robots[team.anchor].robot_id])
+    for rid in SPAWN:
+        truth = np.array(sim.robots[rid].pose)
+        assert math.hypot(*(compose(start, core.robots[rid].pose)[:2] - truth[:2])) < 0.1
+
+
+def test_a_wrong_start_pose_is_refused_by_the_map_check() -> None:
+    wrong = {"r1": list(SPAWN["r1"]), "r2": [-6.0, 8.0, math.pi / 2]}  # turned by 90°
+    core, _ = run(5, cfg=config(start_poses=wrong))
+    assert core.tag_counters["merges_rejected"] >= 1
+    assert any(e.kind == "merge_rejected" and e.stamp_ns == 0 for e in core.event_log)
+    assert all(m.kind == "tags" for m in core.merges)  # they may still meet by their tags
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+    for m in core.merges:
+        d = between(T_true, m.T_joint)
+        assert math.hypot(d[0], d[1]) < 0.1
