@@ -2,7 +2,8 @@
 
 ``Navigator.step`` is called once per scan with the robot's SLAM pose and returns the velocity
 command. It decides a new target when it has none, when the last one was reached, when a
-replanning period has passed (the map has grown since), or after a recovery manoeuvre.
+replanning period has passed (the map has grown since) and the target no longer borders
+unexplored space, or after a recovery manoeuvre. The explorer may ask for a shorter period.
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ class Navigator:
             return self.recovery.command(now_s) or STOP
         if self.path_xy is None:
             self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
-        elif now_s - self._last_decision_s >= self.replan_period_s:
+        elif now_s - self._last_decision_s >= self._recheck_period_s():
             # the map has grown: keep the target while it still borders unexplored space
             # (switching between near-equal targets makes a robot dither), else choose again
             g = grid()
@@ -112,6 +113,11 @@ class Navigator:
             others = others_robot_xy if others_robot_xy is not None else np.zeros((0, 2))
             twist = self.vfh.adjust(twist, follow.heading_error_rad, points_robot_xy, others)
         return twist
+
+    def _recheck_period_s(self) -> float:
+        """The replanning period, or the explorer's shorter one for looking at its target."""
+        own = self.explorer.recheck_period_s
+        return self.replan_period_s if own is None else min(self.replan_period_s, own)
 
     def _decide(self, now_s: float, pose: F64, start_pose: F64, grid: OccupancyGrid,
                 visited: VisitedTargets, reserved_xy: F64 | None) -> None:

@@ -77,6 +77,12 @@ class ExplorerParams:
     def pooled(self) -> bool:
         return self.lam > 0 if self.pool_groups is None else self.pool_groups
     smooth: bool = True
+    # Voronoi explorer: how often [s] the current target is looked at again (kept while
+    # unexplored space still borders it, else a new decision) — about as often as the map is
+    # redrawn. The Voronoi graph changes with the map: a junction in front of an open end moves
+    # on as the sensor sees into it, and the frontier that made a target worth the trip is
+    # often seen from metres away, long before the robot gets there.
+    recheck_period_s: float = 1.0
     # Frontier explorer (explore_lite's defaults): cost = potential·d_robot − gain·size_m.
     potential_scale: float = 3.0
     gain_scale: float = 1.0
@@ -162,6 +168,12 @@ class Explorer(ABC):
         self.params = params or ExplorerParams()
         #: cells once seen occupied, kept off frontiers (see :mod:`server.exploration.walls`)
         self.walls_seen = WallMemory()
+
+    @property
+    def recheck_period_s(self) -> float | None:
+        """How often [s] a navigator should look at its current target again (None: its own
+        replanning period)."""
+        return None
 
     def analyse(self, grid: OccupancyGrid, include_xy: ArrayLike,
                 visited: VisitedTargets | None = None) -> MapAnalysis:
@@ -322,6 +334,10 @@ class VoronoiExplorer(Explorer):
     clusters (same score) when no junction qualifies."""
 
     name = VORONOI
+
+    @property
+    def recheck_period_s(self) -> float | None:
+        return self.params.recheck_period_s
 
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
         res = analysis.layer.geometry.resolution_m
