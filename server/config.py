@@ -66,6 +66,9 @@ class TeamsConfig(_Model):
     look_at_movers: bool = Field(True, description="while robots outside the team remain, "
                                  "turn toward moving things the LIDAR sees (a robot whose tag "
                                  "the forward camera would otherwise miss)")
+    approach_range_m: float = Field(10.0, ge=0.0, description="a moving thing the LIDAR sees "
+                                    "farther than a tag can be read, up to this range, is "
+                                    "approached until its tag can be (0: never)")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
     start_poses: dict[str, tuple[float, float, float]] = Field(

@@ -227,8 +227,17 @@ class ServerCore:
         team = self.teams[r.team_id]
         mates = np.array([self.robots[o].pose[:2] for o in team.robot_ids if o != r.robot_id],
                          dtype=np.float64).reshape(-1, 2)
-        return r.look.step(now_s, r.pose, points_robot, self.latest_grids.get(r.team_id),
-                           mates)
+        twist = r.look.step(now_s, r.pose, points_robot, self.latest_grids.get(r.team_id),
+                            mates)
+        if twist is None:
+            if r.look.moved:  # the approach took the robot off its path: decide afresh
+                r.look.moved = False
+                drop_target(r.nav)
+            return None
+        if twist.v_mps > 0 and r.nav.vfh is not None:
+            twist = r.nav.vfh.adjust(twist, r.look.heading_error, points_robot,
+                                     self._others_in_robot_frame(r))
+        return twist
 
     def _periodic(self, stamp_ns: int) -> None:
         if stamp_ns < self._next_cover_ns:
@@ -271,8 +280,11 @@ class ServerCore:
             self.cfg.explore.replan_period_s)
         team_id = f"team-{robot_id}"
         r = RobotContext(robot_id, RobotSlam(char, self.cfg.slam), nav, team_id)
-        r.look = Lookout(LookParams(max_range_m=self.cfg.teams.max_sighting_range_m,
-                                    omega_rps=min(1.0, c.omega_max_rps)))
+        t = self.cfg.teams
+        r.look = Lookout(LookParams(max_range_m=t.max_sighting_range_m,
+                                    omega_rps=min(1.0, c.omega_max_rps),
+                                    approach_range_m=t.approach_range_m, approach_v_mps=c.v_mps,
+                                    approach_stop_m=min(2.5, 0.7 * t.max_sighting_range_m)))
         self.robots[robot_id] = r
         self.teams[team_id] = Team(team_id, [robot_id],
                                    VisitedTargets(self.cfg.explore.visited_radius_m),

@@ -6,10 +6,17 @@ fall, as a compact group, into space the map knows to be free (with free cells a
 are something that moved there — most likely another robot. While the robot still has robots
 outside its team, it then turns toward that group, holds still a moment so the camera gets a
 few frames, and goes back to its path. A cooldown keeps it from doing this too often.
+
+Farther away than a tag can be read, up to ``approach_range_m``, such a group is something to
+go and see: once it has been seen in a few consecutive scans near one place, the robot drives
+toward it (tracking it scan by scan) until it is close enough to read a tag, then turns toward
+it and holds as above. Both robots usually see each other at once, so they close in together.
+The approach gives up when the thing is lost or takes too long.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 
@@ -20,6 +27,7 @@ from server.control import Twist
 from server.planning import OccupancyGrid
 
 F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -35,47 +43,66 @@ class LookParams:
     max_turn_s: float = 4.0
     cooldown_s: float = 15.0
     free_below: int = 25             # nav2 value under which a cell is free
+    approach_range_m: float = 10.0   # farther than a tag is read, up to here: go closer (0: no)
+    approach_min_points: int = 1     # a robot far away is only a beam or two wide ...
+    approach_confirm: int = 5        # ... so it must be seen in this many scans in a row
+    track_m: float = 0.8             # one scan to the next, a robot moves less than this
+    approach_v_mps: float = 0.3
+    approach_stop_m: float = 2.5     # close enough to read its tag
+    approach_max_s: float = 30.0
+    lost_s: float = 2.0
 
 
-def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
-                  p: LookParams) -> float | None:
-    """Bearing (robot frame) of a compact group of returns inside known free space, or None.
-    Returns near teammates (known positions) do not count."""
+def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
+                   p: LookParams, max_range_m: float) -> list[tuple[F64, int]]:
+    """Compact groups of returns inside known free space within ``max_range_m``, nearest
+    first: (centre in the map frame, number of returns). Returns near teammates (known
+    positions) do not count."""
     pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
-    if len(pts) < p.min_points:
-        return None
     r = np.hypot(pts[:, 0], pts[:, 1])
-    pts = pts[(r >= p.min_range_m) & (r <= p.max_range_m)]
-    if len(pts) < p.min_points:
-        return None
+    pts = pts[(r >= p.min_range_m) & (r <= max_range_m)]
+    if len(pts) == 0:
+        return []
     c, s = math.cos(pose[2]), math.sin(pose[2])
     world = pts @ np.array([[c, s], [-s, c]]) + pose[:2]
     if len(mates_xy):
         d = np.hypot(world[:, None, 0] - mates_xy[None, :, 0],
                      world[:, None, 1] - mates_xy[None, :, 1]).min(axis=1)
-        keep = d > p.cluster_m
-        world, pts = world[keep], pts[keep]
+        world = world[d > p.cluster_m]
     res = grid.resolution_m
     ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
     iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
     h, w = grid.data.shape
     ok = (ix >= 1) & (iy >= 1) & (ix < w - 1) & (iy < h - 1)
     if not ok.any():
-        return None
+        return []
     free = np.zeros(len(world), dtype=bool)
     d = grid.data
     sel = np.flatnonzero(ok)
     block = np.stack([d[iy[sel] + dy, ix[sel] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
     free[sel] = np.all((block >= 0) & (block < p.free_below), axis=0)
-    cand = pts[free]
-    if len(cand) < p.min_points:
-        return None
-    centre = np.median(cand, axis=0)
-    near = cand[np.hypot(*(cand - centre).T) <= p.cluster_m]
-    if len(near) < p.min_points:
-        return None
-    m = near.mean(axis=0)
-    return math.atan2(m[1], m[0])
+    cand = world[free]
+    cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
+    groups: list[tuple[F64, int]] = []
+    while len(cand):
+        near = np.hypot(*(cand - cand[0]).T) <= p.cluster_m
+        groups.append((cand[near].mean(axis=0), int(near.sum())))
+        cand = cand[~near]
+    return groups
+
+
+def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
+                  p: LookParams) -> float | None:
+    """Bearing (robot frame) of the nearest compact group of returns inside known free space
+    within tag-reading range, or None."""
+    for centre, n in moving_objects(points_robot, pose, grid, mates_xy, p, p.max_range_m):
+        if n >= p.min_points:
+            return _bearing(pose, centre)
+    return None
+
+
+def _bearing(pose: F64, xy: F64) -> float:
+    return math.remainder(math.atan2(xy[1] - pose[1], xy[0] - pose[0]) - pose[2], 2 * math.pi)
 
 
 class Lookout:
@@ -88,13 +115,22 @@ class Lookout:
         self.hold_until_s: float | None = None
         self.next_s = -math.inf
         self.looks = 0
+        self.approaches = 0
+        #: the thing followed (map frame), when it was last seen, in how many scans in a row
+        self.track: F64 | None = None
+        self.track_seen_s = 0.0
+        self.track_count = 0
+        self.approaching = False
+        self.heading_error = 0.0             # of the last command (for obstacle avoidance)
+        self.moved = False                   # an approach drove the robot somewhere
 
     @property
     def active(self) -> bool:
-        return self.heading is not None
+        return self.heading is not None or self.approaching
 
     def reset(self) -> None:
         self.heading, self.hold_until_s = None, None
+        self.approaching, self.track, self.track_count = False, None, 0
 
     def step(self, now_s: float, pose: F64, points_robot: F64, grid: OccupancyGrid | None,
              mates_xy: F64) -> Twist | None:
@@ -103,13 +139,28 @@ class Lookout:
         if self.heading is None:
             if now_s < self.next_s or grid is None:
                 return None
-            bearing = moving_object(points_robot, pose, grid, mates_xy, p)
-            if bearing is None or abs(bearing) <= p.half_fov_rad:
+            groups = moving_objects(points_robot, pose, grid, mates_xy, p,
+                                    max(p.max_range_m, p.approach_range_m))
+            if self.approaching:
+                return self._approach(now_s, pose, groups)
+            near = next((c for c, n in groups if n >= p.min_points
+                         and math.hypot(*(c - pose[:2])) <= p.max_range_m), None)
+            if near is None:
+                self._follow(now_s, pose, groups)
+                if self.track_count < p.approach_confirm:
+                    return None
+                self.approaching, self.started_s = True, now_s
+                self.approaches += 1
+                log.info("approaching something that moves at %s (%.1f m away)",
+                         self.track.round(2) if self.track is not None else None,
+                         math.hypot(*(np.asarray(self.track) - pose[:2])))
+                return self._approach(now_s, pose, groups)
+            bearing = _bearing(pose, near)
+            if abs(bearing) <= p.half_fov_rad:
                 return None
-            self.heading = math.remainder(pose[2] + bearing, 2 * math.pi)
-            self.started_s, self.hold_until_s = now_s, None
-            self.looks += 1
+            self._look_toward(now_s, pose, near)
         err = math.remainder(self.heading - pose[2], 2 * math.pi)
+        self.heading_error = err
         if self.hold_until_s is None:
             if abs(err) > p.aligned_rad and now_s - self.started_s < p.max_turn_s:
                 return Twist(0.0, math.copysign(p.omega_rps, err))
@@ -119,3 +170,57 @@ class Lookout:
         self.reset()
         self.next_s = now_s + p.cooldown_s
         return None
+
+    def _look_toward(self, now_s: float, pose: F64, xy: F64) -> None:
+        self.heading = math.remainder(pose[2] + _bearing(pose, xy), 2 * math.pi)
+        self.started_s, self.hold_until_s = now_s, None
+        self.approaching = False
+        self.looks += 1
+
+    def _nearest_to_track(self, groups: list[tuple[F64, int]]) -> F64 | None:
+        track = self.track
+        if track is None:
+            return None
+        best = min(groups, key=lambda g: math.hypot(*(g[0] - track)), default=None)
+        if best is None or math.hypot(*(best[0] - track)) > self.p.track_m:
+            return None
+        return best[0]
+
+    def _follow(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> None:
+        """Count the scans in a row a far group was seen near one place."""
+        p = self.p
+        far = [(c, n) for c, n in groups if n >= p.approach_min_points
+               and p.max_range_m < math.hypot(*(c - pose[:2])) <= p.approach_range_m]
+        if p.approach_range_m <= p.max_range_m or not far:
+            self.track, self.track_count = None, 0
+            return
+        seen = self._nearest_to_track(far)
+        if seen is None:
+            self.track, self.track_count = far[0][0], 1
+        else:
+            self.track, self.track_count = seen, self.track_count + 1
+        self.track_seen_s = now_s
+
+    def _approach(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]
+                  ) -> Twist | None:
+        """Drive toward the followed group; look at it once close."""
+        p = self.p
+        seen = self._nearest_to_track(groups)
+        if seen is not None:
+            self.track, self.track_seen_s = seen, now_s
+        if self.track is None or now_s - self.track_seen_s > p.lost_s or \
+                now_s - self.started_s > p.approach_max_s:
+            log.info("approach given up after %.1f s: %s", now_s - self.started_s,
+                     "too long" if now_s - self.started_s > p.approach_max_s else "lost")
+            self.reset()
+            self.next_s = now_s + p.cooldown_s
+            return None
+        dist = math.hypot(*(self.track - pose[:2]))
+        if dist <= p.approach_stop_m:
+            self._look_toward(now_s, pose, self.track)
+            return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
+        err = _bearing(pose, self.track)
+        self.heading_error = err
+        v = p.approach_v_mps if abs(err) < math.radians(35.0) else 0.0
+        self.moved = self.moved or v > 0
+        return Twist(v, float(np.clip(2.0 * err, -p.omega_rps, p.omega_rps)))

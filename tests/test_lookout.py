@@ -65,3 +65,54 @@ def test_lookout_turns_holds_then_cools_down() -> None:
     # already in view: nothing to do
     ahead = np.concatenate([walls_seen(np.zeros(3)), blob(2.0, 0.1)])
     assert Lookout().step(0.0, np.zeros(3), ahead, g, np.zeros((0, 2))) is None
+
+
+def to_robot(pose: np.ndarray, world: np.ndarray) -> np.ndarray:
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return (world - pose[:2]) @ np.array([[c, -s], [s, c]])
+
+
+def test_a_far_mover_is_approached_until_its_tag_can_be_read() -> None:
+    p = LookParams(approach_range_m=8.0, approach_confirm=3, approach_stop_m=2.5)
+    look, g = Lookout(p), free_room()
+    other = np.array([2.5, 0.0])
+    pose = np.array([-3.5, 0.0, math.pi / 2])           # 6 m away, the mover on its right
+    t, twists = 0.0, []
+    for _ in range(600):
+        pts = np.concatenate([walls_seen(pose), to_robot(pose, blob(*other))])
+        tw = look.step(t, pose, pts, g, np.zeros((0, 2)))
+        twists.append(tw)
+        if tw is None and len(twists) > 3:
+            break
+        if tw is not None:
+            pose = pose + 0.1 * np.array([tw.v_mps * math.cos(pose[2]),
+                                          tw.v_mps * math.sin(pose[2]), tw.omega_rps])
+        t += 0.1
+    assert twists[0] is None and twists[1] is None       # not yet seen in 3 scans in a row
+    assert twists[2] is not None
+    assert any(tw is not None and tw.v_mps > 0 for tw in twists)   # it drove toward it
+    assert look.approaches == 1 and look.looks == 1 and look.moved
+    d = math.hypot(*(other - pose[:2]))
+    assert 1.0 < d <= 2.6                                 # close enough for the camera
+    bearing = math.remainder(math.atan2(other[1] - pose[1], other[0] - pose[0]) - pose[2],
+                             2 * math.pi)
+    assert abs(bearing) < math.radians(10)               # and facing it
+
+
+def test_an_approach_gives_up_when_the_mover_is_lost() -> None:
+    p = LookParams(approach_range_m=8.0, approach_confirm=2, lost_s=1.0, cooldown_s=10.0)
+    look, g = Lookout(p), free_room()
+    pose = np.array([-3.5, 0.0, 0.0])
+    seen = np.concatenate([walls_seen(pose), to_robot(pose, blob(2.5, 0.0))])
+    look.step(0.0, pose, seen, g, np.zeros((0, 2)))
+    tw = look.step(0.1, pose, seen, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps > 0 and look.active
+    empty = walls_seen(pose)
+    assert look.step(0.5, pose, empty, g, np.zeros((0, 2))) is not None   # still going
+    assert look.step(1.2, pose, empty, g, np.zeros((0, 2))) is None       # lost: given up
+    assert not look.active
+    assert look.step(2.0, pose, seen, g, np.zeros((0, 2))) is None        # cooling down
+    # a far group that is a teammate is never approached
+    mates = Lookout(p)
+    for k in range(5):
+        assert mates.step(0.1 * k, pose, seen, g, np.array([[2.5, 0.0]])) is None
