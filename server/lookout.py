@@ -9,9 +9,11 @@ few frames, and goes back to its path. A cooldown keeps it from doing this too o
 
 Farther away than a tag can be read, up to ``approach_range_m``, such a group is something to
 go and see: once it has been seen in a few consecutive scans near one place, the robot drives
-toward it (tracking it scan by scan) until it is close enough to read a tag, then turns toward
-it and holds as above. Both robots usually see each other at once, so they close in together.
-The approach gives up when the thing is lost or takes too long.
+toward it (tracking it scan by scan) until it is close enough to read a tag well, then turns
+toward it and holds as above. "Well" means close: a tag's heading is only informative within a
+metre or so, and without it a merge needs sightings from places a metre apart. Both robots
+usually see each other at once, so they close in together. The approach gives up when the
+thing is lost or takes too long.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ class LookParams:
     approach_confirm: int = 5        # ... so it must be seen in this many scans in a row
     track_m: float = 0.8             # one scan to the next, a robot moves less than this
     approach_v_mps: float = 0.3
-    approach_stop_m: float = 2.5     # close enough to read its tag
+    approach_stop_m: float = 1.2     # close enough to read its tag's heading, not just its place
     approach_max_s: float = 30.0
     lost_s: float = 2.0
 
@@ -142,19 +144,19 @@ class Lookout:
             groups = moving_objects(points_robot, pose, grid, mates_xy, p,
                                     max(p.max_range_m, p.approach_range_m))
             if self.approaching:
-                return self._approach(now_s, pose, groups)
+                return self._approach(now_s, pose, groups, points_robot)
             near = next((c for c, n in groups if n >= p.min_points
                          and math.hypot(*(c - pose[:2])) <= p.max_range_m), None)
             if near is None:
                 self._follow(now_s, pose, groups)
                 if self.track_count < p.approach_confirm:
                     return None
-                self.approaching, self.started_s = True, now_s
-                self.approaches += 1
-                log.info("approaching something that moves at %s (%.1f m away)",
-                         self.track.round(2) if self.track is not None else None,
-                         math.hypot(*(np.asarray(self.track) - pose[:2])))
-                return self._approach(now_s, pose, groups)
+                return self._start_approach(now_s, pose, groups)
+            if p.approach_range_m > p.max_range_m and \
+                    math.hypot(*(near - pose[:2])) > p.approach_stop_m + p.track_m:
+                # in reading range, but only close up does a tag give the other's heading
+                self.track, self.track_seen_s = near, now_s
+                return self._start_approach(now_s, pose, groups)
             bearing = _bearing(pose, near)
             if abs(bearing) <= p.half_fov_rad:
                 return None
@@ -170,6 +172,14 @@ class Lookout:
         self.reset()
         self.next_s = now_s + p.cooldown_s
         return None
+
+    def _start_approach(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]
+                        ) -> Twist | None:
+        self.approaching, self.started_s = True, now_s
+        self.approaches += 1
+        log.info("approaching something that moves at %s (%.1f m away)",
+                 np.asarray(self.track).round(2), math.hypot(*(np.asarray(self.track) - pose[:2])))
+        return self._approach(now_s, pose, groups, np.zeros((0, 2)))
 
     def _look_toward(self, now_s: float, pose: F64, xy: F64) -> None:
         self.heading = math.remainder(pose[2] + _bearing(pose, xy), 2 * math.pi)
@@ -201,11 +211,21 @@ class Lookout:
             self.track, self.track_count = seen, self.track_count + 1
         self.track_seen_s = now_s
 
-    def _approach(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]
-                  ) -> Twist | None:
-        """Drive toward the followed group; look at it once close."""
+    def _approach(self, now_s: float, pose: F64, groups: list[tuple[F64, int]],
+                  points_robot: F64) -> Twist | None:
+        """Drive toward the followed group; look at it once close. Once followed, the thing
+        is tracked on the raw returns too: a robot that stands still for a while is mapped
+        as an obstacle, and would no longer count as something in free space."""
         p = self.p
         seen = self._nearest_to_track(groups)
+        if seen is None and self.track is not None and len(points_robot):
+            c, s = math.cos(pose[2]), math.sin(pose[2])
+            world = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2) @ \
+                np.array([[c, s], [-s, c]]) + pose[:2]
+            d = np.hypot(*(world - self.track).T)
+            if d.min() <= p.track_m:
+                nearest = world[int(np.argmin(d))]
+                seen = world[np.hypot(*(world - nearest).T) <= p.cluster_m].mean(axis=0)
         if seen is not None:
             self.track, self.track_seen_s = seen, now_s
         if self.track is None or now_s - self.track_seen_s > p.lost_s or \

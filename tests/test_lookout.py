@@ -45,7 +45,7 @@ def test_a_robot_in_free_space_is_found_and_walls_are_not() -> None:
 
 
 def test_lookout_turns_holds_then_cools_down() -> None:
-    look = Lookout(LookParams(hold_s=1.0, cooldown_s=10.0))
+    look = Lookout(LookParams(hold_s=1.0, cooldown_s=10.0, approach_range_m=0.0))
     g = free_room()
     pose = np.array([0.0, 0.0, 0.0])
     pts = np.concatenate([walls_seen(pose), blob(-2.0, 0.0)])    # behind the robot
@@ -64,7 +64,8 @@ def test_lookout_turns_holds_then_cools_down() -> None:
     assert look.looks == 1
     # already in view: nothing to do
     ahead = np.concatenate([walls_seen(np.zeros(3)), blob(2.0, 0.1)])
-    assert Lookout().step(0.0, np.zeros(3), ahead, g, np.zeros((0, 2))) is None
+    assert Lookout(LookParams(approach_range_m=0.0)).step(0.0, np.zeros(3), ahead, g,
+                                                          np.zeros((0, 2))) is None
 
 
 def to_robot(pose: np.ndarray, world: np.ndarray) -> np.ndarray:
@@ -73,7 +74,7 @@ def to_robot(pose: np.ndarray, world: np.ndarray) -> np.ndarray:
 
 
 def test_a_far_mover_is_approached_until_its_tag_can_be_read() -> None:
-    p = LookParams(approach_range_m=8.0, approach_confirm=3, approach_stop_m=2.5)
+    p = LookParams(approach_range_m=8.0, approach_confirm=3, approach_stop_m=1.2)
     look, g = Lookout(p), free_room()
     other = np.array([2.5, 0.0])
     pose = np.array([-3.5, 0.0, math.pi / 2])           # 6 m away, the mover on its right
@@ -93,7 +94,7 @@ def test_a_far_mover_is_approached_until_its_tag_can_be_read() -> None:
     assert any(tw is not None and tw.v_mps > 0 for tw in twists)   # it drove toward it
     assert look.approaches == 1 and look.looks == 1 and look.moved
     d = math.hypot(*(other - pose[:2]))
-    assert 1.0 < d <= 2.6                                 # close enough for the camera
+    assert 0.6 < d <= 1.3                                 # close enough to read its heading
     bearing = math.remainder(math.atan2(other[1] - pose[1], other[0] - pose[0]) - pose[2],
                              2 * math.pi)
     assert abs(bearing) < math.radians(10)               # and facing it
@@ -116,3 +117,27 @@ def test_an_approach_gives_up_when_the_mover_is_lost() -> None:
     mates = Lookout(p)
     for k in range(5):
         assert mates.step(0.1 * k, pose, seen, g, np.array([[2.5, 0.0]])) is None
+
+
+def test_a_mover_in_reading_range_but_not_close_is_approached() -> None:
+    look, g = Lookout(LookParams(approach_stop_m=1.2)), free_room()
+    pose = np.zeros(3)
+    pts = np.concatenate([walls_seen(pose), blob(3.0, 0.2)])       # 3 m ahead, in view
+    tw = look.step(0.0, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps > 0 and look.approaching
+    close = np.concatenate([walls_seen(pose), blob(1.0, 0.05)])    # already close, in view
+    assert Lookout(LookParams(approach_stop_m=1.2)).step(0.0, pose, close, g,
+                                                         np.zeros((0, 2))) is None
+
+
+def test_a_followed_mover_that_got_mapped_as_obstacle_is_still_tracked() -> None:
+    p = LookParams(approach_range_m=8.0, approach_confirm=2, lost_s=0.5)
+    look, g = Lookout(p), free_room()
+    pose = np.array([-3.5, 0.0, 0.0])
+    seen = np.concatenate([walls_seen(pose), to_robot(pose, blob(2.5, 0.0))])
+    look.step(0.0, pose, seen, g, np.zeros((0, 2)))
+    assert look.step(0.1, pose, seen, g, np.zeros((0, 2))) is not None and look.approaching
+    g.data[95:106, 145:156] = 100         # it stood still: the map now has it as an obstacle
+    for k in range(2, 12):
+        tw = look.step(0.1 * k, pose, seen, g, np.zeros((0, 2)))
+        assert tw is not None and tw.v_mps > 0         # still going for it
