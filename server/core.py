@@ -178,11 +178,10 @@ class ServerCore:
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles,
                                  scan.range_max_mm / 1000.0)
-        first = r.scans == 0
-        if first:
-            r.start_pose = r.pose.copy()
-        else:
+        if r.scans:
             r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
+        else:
+            r.start_pose = r.pose.copy()
         r.scans += 1
         if not r.start_checked and r.robot_id in self.cfg.teams.start_poses:
             self._join_known_start(r, scan.stamp_ns)
