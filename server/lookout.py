@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from server.control import Twist
 from server.planning import OccupancyGrid
+from server.slam.geometry import transform_points
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -65,8 +66,7 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
     pts = pts[(r >= p.min_range_m) & (r <= max_range_m)]
     if len(pts) == 0:
         return []
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    world = pts @ np.array([[c, s], [-s, c]]) + pose[:2]
+    world = transform_points(pose, pts)
     if len(mates_xy):
         d = np.hypot(world[:, None, 0] - mates_xy[None, :, 0],
                      world[:, None, 1] - mates_xy[None, :, 1]).min(axis=1)
@@ -219,9 +219,7 @@ class Lookout:
         p = self.p
         seen = self._nearest_to_track(groups)
         if seen is None and self.track is not None and len(points_robot):
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            world = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2) @ \
-                np.array([[c, s], [-s, c]]) + pose[:2]
+            world = transform_points(pose, np.asarray(points_robot).reshape(-1, 2))
             d = np.hypot(*(world - self.track).T)
             if d.min() <= p.track_m:
                 nearest = world[int(np.argmin(d))]
