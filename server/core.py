@@ -337,12 +337,34 @@ class ServerCore:
             if det.observed_robot_id == msg.robot_id:
                 self.tag_counters["self"] += 1
                 continue
+            self._call(msg.robot_id, det)
             if det.range_m > self.cfg.teams.max_sighting_range_m:
                 self.tag_counters["too_far"] += 1
                 continue
             self._pending.append((msg.stamp_ns, msg.robot_id, det))
         latest = max((r.last_stamp_ns for r in self.robots.values()), default=0)
         self._process_pending(max(latest, msg.stamp_ns))
+
+    def _call(self, observer: str, det: TagDetection) -> None:
+        """A robot of another team was seen: tell both robots where the other one is, so they
+        close in until the tags can be read well (see server.lookout)."""
+        t = self.cfg.teams
+        a, b = self.robots.get(observer), self.robots.get(det.observed_robot_id)
+        if a is None or b is None or a.team_id == b.team_id or not t.look_at_movers or \
+                t.approach_range_m <= 0 or not a.scans or not b.scans:
+            return
+        if not all(math.isfinite(v) for v in (det.range_m, det.bearing_rad, det.yaw_rad)):
+            return   # counted as bad where the sighting itself is refused
+        rel = np.array([det.range_m * math.cos(det.bearing_rad),
+                        det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
+        now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
+        a.look.hear(now_a, transform_points(a.pose, rel[None, :2])[0],
+                    max(0.5, 0.1 * det.range_m), sure=True)
+        # the reader as the seen robot would place it: through the tag's heading, which is
+        # poor at range, hence the wide tolerance
+        back = inverse(rel)
+        b.look.hear(now_b, transform_points(b.pose, back[None, :2])[0],
+                    max(1.0, 0.35 * det.range_m), sure=False)
 
     def _process_pending(self, now_ns: int) -> None:
         t = self.cfg.teams

@@ -14,6 +14,13 @@ toward it and holds as above. "Well" means close: a tag's heading is only inform
 metre or so, and without it a merge needs sightings from places a metre apart. Both robots
 usually see each other at once, so they close in together. The approach gives up when the
 thing is lost or takes too long.
+
+A tag read from too far to merge on is a call: the server passes it to both robots. The one
+that read it knows where the other is (range and bearing are good even where the tag's heading
+is not) and goes there; the one that was seen learns roughly where the reader stands (through
+the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place, or
+turns to look there when it sees none. Each further sighting keeps the approach alive, so a
+robot that stands still behind the other's LIDAR shadow is not lost.
 """
 
 from __future__ import annotations
@@ -125,10 +132,46 @@ class Lookout:
         self.approaching = False
         self.heading_error = 0.0             # of the last command (for obstacle avoidance)
         self.moved = False                   # an approach drove the robot somewhere
+        #: a tag sighting's word on where another team's robot is: (map xy, tolerance, sure, s)
+        self.call: tuple[F64, float, bool, float] | None = None
+        self.calls = 0
 
     @property
     def active(self) -> bool:
         return self.heading is not None or self.approaching
+
+    def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool) -> None:
+        """A tag sighting places another team's robot at ``xy`` (map frame) within
+        ``tolerance_m``; ``sure``: the place is good enough to drive to without the LIDAR's
+        confirmation. Taken up at the next scan (see the module docstring)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if self.approaching and self.track is not None and \
+                math.hypot(*(xy - self.track)) <= max(tolerance_m, self.p.track_m):
+            self.track_seen_s = now_s    # the followed thing is the robot that was seen
+            if sure:
+                self.track = xy
+            return
+        self.call = (xy, tolerance_m, sure, now_s)
+
+    def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> Twist | None:
+        """Take up the latest call; None when it leads nowhere."""
+        assert self.call is not None
+        xy, tol, sure, t = self.call
+        self.call = None
+        if now_s - t > self.p.lost_s:
+            return None
+        best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
+        target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
+            (xy if sure else None)
+        self.calls += 1
+        if target is None:
+            self._look_toward(now_s, pose, xy)
+            return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
+        if math.hypot(*(target - pose[:2])) <= self.p.approach_stop_m + 0.3:
+            self._look_toward(now_s, pose, target)
+            return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
+        self.track, self.track_seen_s = target, now_s
+        return self._start_approach(now_s, pose, groups)
 
     def reset(self) -> None:
         self.heading, self.hold_until_s = None, None
@@ -145,6 +188,8 @@ class Lookout:
                                     max(p.max_range_m, p.approach_range_m))
             if self.approaching:
                 return self._approach(now_s, pose, groups, points_robot)
+            if self.call is not None and p.approach_range_m > 0:
+                return self._answer(now_s, pose, groups)
             near = next((c for c, n in groups if n >= p.min_points
                          and math.hypot(*(c - pose[:2])) <= p.max_range_m), None)
             if near is None:

@@ -141,3 +141,44 @@ def test_a_followed_mover_that_got_mapped_as_obstacle_is_still_tracked() -> None
     for k in range(2, 12):
         tw = look.step(0.1 * k, pose, seen, g, np.zeros((0, 2)))
         assert tw is not None and tw.v_mps > 0         # still going for it
+
+
+def test_a_sure_call_is_driven_to_even_where_the_lidar_shows_nothing() -> None:
+    """The reader of a far tag knows where the other robot is: it goes there."""
+    look, g = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0)), free_room()
+    pose = np.array([-4.0, 0.0, math.pi])                 # facing away; nothing moves in view
+    look.hear(0.0, np.array([3.0, 0.0]), 0.7, sure=True)
+    tw = look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    assert tw is not None and look.approaching and look.calls == 1
+    assert tw.omega_rps != 0.0                            # turning toward the call
+    # further sightings keep the approach alive with no LIDAR support at all
+    for k in range(1, 30):
+        look.hear(0.1 * k, np.array([3.0, 0.0]), 0.7, sure=True)
+        assert look.step(0.1 * k + 0.05, pose, walls_seen(pose), g, np.zeros((0, 2))) is not None
+    # sightings stop: lost after lost_s
+    assert look.step(4.5, pose, walls_seen(pose), g, np.zeros((0, 2))) is None
+    assert not look.active
+
+
+def test_an_unsure_call_follows_the_nearest_mover_or_looks_there() -> None:
+    """The robot that was seen only roughly knows where the reader is: it takes the moving
+    thing nearest the estimate, and with none in tolerance, turns to look."""
+    g = free_room()
+    pose = np.array([-3.5, 0.0, math.pi / 2])
+    reader = np.array([2.5, 0.5])
+    pts = np.concatenate([walls_seen(pose), to_robot(pose, blob(*reader))])
+    look = Lookout(LookParams(approach_range_m=10.0))
+    look.hear(0.0, np.array([2.0, -1.0]), 2.0, sure=False)   # 1.6 m off, within tolerance
+    tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and look.approaching
+    assert look.track is not None and math.hypot(*(look.track - reader)) < 0.3
+    # estimate too far off any mover: turn toward the estimate without driving
+    look = Lookout(LookParams(approach_range_m=10.0))
+    look.hear(0.0, np.array([-3.5, -3.0]), 1.0, sure=False)
+    tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0 and not look.approaching
+    assert look.looks == 1
+    # a stale call is ignored
+    look = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0))
+    look.hear(0.0, np.array([2.0, -1.0]), 2.0, sure=False)
+    assert look.step(3.0, pose, walls_seen(pose), g, np.zeros((0, 2))) is None

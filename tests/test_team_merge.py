@@ -182,3 +182,33 @@ def test_a_wrong_start_pose_is_refused_by_the_map_check() -> None:
     for m in core.merges:
         d = between(T_true, m.T_joint)
         assert math.hypot(d[0], d[1]) < 0.1
+
+
+def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
+    """Too far to merge on, a sighting still tells the reader where the other robot is and
+    the robot that was seen roughly where the reader stands."""
+    core, _ = run(3, cfg=config(min_sightings=100))          # never merged here
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert r1.team_id != r2.team_id
+    far = TagDetection(tag_id=2, observed_robot_id="r2", range_m=6.0, bearing_rad=0.5,
+                       yaw_rad=math.pi, sigma_range_m=0.2, sigma_bearing_rad=0.02,
+                       sigma_yaw_rad=0.5)
+    core.on_tags(TagDetections(robot_id="r1", seq=9, stamp_ns=r1.last_stamp_ns,
+                               detections=[far]))
+    assert core.tag_counters["too_far"] >= 1                  # no evidence for a merge ...
+    assert r1.look.call is not None and r2.look.call is not None   # ... but a call to both
+    xy, tol, sure, _ = r1.look.call
+    expect = compose(r1.pose, np.array([6.0 * math.cos(0.5), 6.0 * math.sin(0.5), 0.0]))
+    assert sure and math.hypot(*(xy - expect[:2])) < 1e-9 and tol < 1.0
+    xy, tol, sure, _ = r2.look.call
+    back = compose(r2.pose, between(np.array([6.0 * math.cos(0.5), 6.0 * math.sin(0.5),
+                                              math.pi]), np.zeros(3)))
+    assert not sure and math.hypot(*(xy - back[:2])) < 1e-9 and tol >= 2.0
+    # a sighting with a NaN in it calls nobody (and neither does one within a team)
+    import msgspec
+
+    r1.look.call = r2.look.call = None
+    nan = msgspec.structs.replace(far, bearing_rad=float("nan"))
+    core.on_tags(TagDetections(robot_id="r1", seq=10, stamp_ns=r1.last_stamp_ns,
+                               detections=[nan]))
+    assert r1.look.call is None and r2.look.call is None
