@@ -521,6 +521,8 @@ class ServerCore:
         ta, tb = self.teams[p.team_a], self.teams[p.team_b]
         self.verifier.reject(p)
         self.tag_counters["merges_rejected"] += 1
+        log.info("%s not merged into %s: %s (T %s from %d sightings)", tb.team_id, ta.team_id,
+                 why, np.asarray(p.T_ab).round(3), len(p.records))
         self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
                   f"{tb.team_id} not merged into {ta.team_id}: {why}", stamp)
 

@@ -98,8 +98,15 @@ class VerifierParams:
     window_s: float = 60.0          # sightings older than this (scan time) are forgotten
     gate_sigmas: float = 3.0        # a sighting agrees with a transform within this many σ
     gate_floor_m: float = 0.05
-    informative_yaw_rad: float = math.radians(5.0)  # a tag's yaw this good fixes the rotation
+    # a tag's yaw this good fixes the rotation by itself. Views from one spot share their
+    # error (a robot that stopped 1.2 m from another reads its tag's yaw ~2° off, frame after
+    # frame), so only a very close view counts; otherwise two places (or both robots seeing
+    # each other, which puts both robots' positions in the fit) fix it
+    informative_yaw_rad: float = math.radians(2.5)
     min_baseline_m: float = 1.0     # two sightings this far apart fix the rotation
+    # ... well enough only when the fitted rotation is this certain: a degree off at the
+    # meeting point is 0.3 m off 17 m away, where the robots started
+    max_rotation_sigma_rad: float = math.radians(1.0)
     max_pair_hypotheses: int = 300
 
 
@@ -176,14 +183,17 @@ class MergeVerifier:
         if spread < p.min_baseline_m / 2 and not has_yaw:
             return None  # the rotation is not observable yet
         w = 1.0 / sig[idx] ** 2
+        s_t = math.sqrt(1.0 / w.sum())
         if spread >= p.min_baseline_m / 2:
             T = rigid_fit(xY[idx], xX[idx], w)
+            s_r = s_t / spread
         else:
             yaw = [r for r, ok in zip(members, informative[idx], strict=True) if ok]
-            Ty, _ = fuse_transforms([r.T_ab for r in yaw], [r.cov_ab for r in yaw])
+            Ty, Cy = fuse_transforms([r.T_ab for r in yaw], [r.cov_ab for r in yaw])
             T = rigid_fit(xY[idx], xX[idx], w, theta=float(Ty[2]))
-        s_t = math.sqrt(1.0 / w.sum())
-        s_r = s_t / max(spread, 0.1)
+            s_r = math.sqrt(max(float(Cy[2, 2]), 0.0))
+        if s_r > p.max_rotation_sigma_rad:
+            return None  # agreeing, but the rotation is not pinned down yet
         C = np.diag([s_t ** 2, s_t ** 2, s_r ** 2])
         first = min(members, key=lambda r: r.stamp_ns)
         return MergeProposal(key[0], key[1], tuple(members), T, C, first.T_ab.copy())
@@ -274,9 +284,13 @@ class MapAgreement:
 def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
                   tolerance_cells: int = 2) -> MapAgreement:
     """How grid b, moved into a's frame by ``T_ab``, agrees with grid a: an occupied cell of
-    either conflicts when the other grid says free there with no occupied cell within
-    ``tolerance_cells`` (walls are a cell or two thick and alignments are not perfect)."""
-    from scipy.ndimage import maximum_filter
+    either conflicts when the other grid says free there, with no occupied cell within
+    ``tolerance_cells`` (walls are a cell or two thick and alignments are not perfect) and
+    only free cells one more cell around. A wall that beams grazed is partly erased in a map
+    (they cross its cells on their way to hits farther along it), but such free cells still
+    border the unknown behind the wall; a wall put into the middle of a room by a wrong
+    transform has free space all around."""
+    from scipy.ndimage import maximum_filter, minimum_filter
 
     occ_a, free_a = grid_a.occupied_mask(), grid_a.free_mask()
     occ_b, free_b = grid_b.occupied_mask(), grid_b.free_mask()
@@ -285,6 +299,8 @@ def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
     size = 2 * tolerance_cells + 1
     near_a = maximum_filter(occ_a, size=size)
     near_b = maximum_filter(occ_b, size=size)
+    open_a = minimum_filter(free_a, size=size + 2)
+    open_b = minimum_filter(free_b, size=size + 2)
     rb, cb = np.nonzero(occ_b | free_b)
     res_b = grid_b.resolution_m
     pts_b = np.stack([grid_b.origin[0] + (cb + 0.5) * res_b,
@@ -300,8 +316,8 @@ def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
     ia, ja, rb, cb = ia[known_a], ja[known_a], rb[known_a], cb[known_a]
     b_occ, b_free = occ_b[rb, cb], free_b[rb, cb]
     a_occ, a_free = occ_a[ia, ja], free_a[ia, ja]
-    conflicts = int((b_occ & a_free & ~near_a[ia, ja]).sum()
-                    + (a_occ & b_free & ~near_b[rb, cb]).sum())
+    conflicts = int((b_occ & a_free & ~near_a[ia, ja] & open_a[ia, ja]).sum()
+                    + (a_occ & b_free & ~near_b[rb, cb] & open_b[rb, cb]).sum())
     checked = int((b_occ | a_occ).sum())
     return MapAgreement(len(ia), checked, conflicts)
 

@@ -59,9 +59,12 @@ def test_rigid_fit_recovers_a_transform() -> None:
 
 def test_positions_alone_give_the_transform_once_the_robot_moved() -> None:
     v = MergeVerifier(VerifierParams())
-    props = feed(v, 6, np.random.default_rng(1))
+    props = feed(v, 10, np.random.default_rng(1))
     assert props[0] is None and props[1] is None   # one place, useless yaw: not yet
+    # three places a metre apart agree, but leave the rotation a few degrees uncertain
+    assert props[2] is None
     got = next(p for p in props if p is not None)
+    assert math.sqrt(got.cov_ab[2, 2]) <= math.radians(1.0)
     assert got.team_a == "X" and got.team_b == "Y"
     assert math.hypot(*(got.T_ab[:2] - T_XY[:2])) < 0.05
     assert abs(math.remainder(got.T_ab[2] - T_XY[2], 2 * math.pi)) < math.radians(1.5)
@@ -69,7 +72,7 @@ def test_positions_alone_give_the_transform_once_the_robot_moved() -> None:
 
 def test_sightings_from_the_other_side_agree() -> None:
     v = MergeVerifier(VerifierParams())
-    got = [p for p in feed(v, 6, np.random.default_rng(2), reverse=True) if p is not None]
+    got = [p for p in feed(v, 10, np.random.default_rng(2), reverse=True) if p is not None]
     assert got and math.hypot(*(got[-1].T_ab[:2] - T_XY[:2])) < 0.05
 
 
@@ -85,3 +88,40 @@ def test_false_sightings_scattered_in_do_not_pass() -> None:
         rec = make_record(i * 10**9, "a", "b", s, (0, np.zeros(3)), (0, np.zeros(3)), P,
                           np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), 0.0]), SIG)
         assert v.add("X", "Y", rec) is None
+
+
+def _grid(free: np.ndarray, occ: np.ndarray) -> object:
+    from server.slam.grid import GridParams, OccupancyGrid
+
+    g = OccupancyGrid(GridParams(resolution_m=0.05), (0.0, 0.0), free.shape)
+    g.observed[:] = free | occ
+    g.log_odds[free] = -2.0
+    g.log_odds[occ] = 3.0
+    return g
+
+
+def test_map_check_ignores_grazed_walls_but_not_walls_in_a_room() -> None:
+    from server.teams import map_agreement
+
+    h = w = 80
+    room = np.zeros((h, w), dtype=bool)
+    room[10:70, 10:70] = True                      # a 3 × 3 m room, seen free
+    wall = np.zeros((h, w), dtype=bool)
+    wall[40, 10:70] = True                         # b saw a wall across it
+    b_free = room & ~wall
+    b_free[41:70] = False                          # ... and nothing behind the wall
+    b = _grid(b_free, wall)
+    # a saw the same room, its side of the wall erased by grazing beams: the free cells there
+    # border what a never saw beyond the wall
+    a_free = room.copy()
+    a_free[42:70] = False
+    a_occ = np.zeros((h, w), dtype=bool)
+    a_occ[40, 10:30] = True                        # only part of the wall kept
+    a_free &= ~a_occ
+    a = _grid(a_free, a_occ)
+    same = map_agreement(a, b, np.zeros(3))
+    assert same.conflicts == 0
+    # a wrong transform puts b's wall in the middle of a room a saw free all around
+    open_room = _grid(room, np.zeros((h, w), dtype=bool))
+    wrong = map_agreement(open_room, b, np.array([0.0, -0.5, 0.0]))
+    assert wrong.conflicts >= 40 and wrong.conflict_ratio > 0.5
