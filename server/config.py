@@ -51,7 +51,7 @@ class TeamsConfig(_Model):
     pose_sigma_m: float = Field(0.03, gt=0.0, description="each robot's own pose uncertainty "
                                 "at a sighting (weighs sightings against each other)")
     pose_sigma_deg: float = Field(0.5, gt=0.0)
-    max_sighting_range_m: float = Field(3.5, gt=0.0, description="farther tag sightings are "
+    max_sighting_range_m: float = Field(2.0, gt=0.0, description="farther tag sightings are "
                                         "not used (their range is biased, their yaw unreliable)")
     sighting_tolerance_s: float = Field(0.15, gt=0.0, description="a robot's nearest scan "
                                         "must be this close to the sighting's time")

@@ -116,7 +116,8 @@ def test_team_poses_stay_on_the_truth(met: tuple[ServerCore, Simulator]) -> None
 
 
 def test_sightings_that_place_the_robot_wrongly_do_not_merge() -> None:
-    core, _ = run(250, falsify=True)
+    # (read as far as 5 m, so that the false views, placed 1.5 m too far, are all weighed)
+    core, _ = run(250, falsify=True, cfg=config(max_sighting_range_m=5.0))
     assert core.tag_counters["used"] > 10
     assert not core.merges
     assert len(core.teams) == 2
@@ -125,7 +126,7 @@ def test_sightings_that_place_the_robot_wrongly_do_not_merge() -> None:
 def test_a_wrong_merge_contradicted_by_later_sightings_is_undone() -> None:
     """Without the map check, false sightings merge the robots wrongly; the true sightings
     that follow disagree with the joint graph, and the merge is taken back."""
-    core, _ = run(400, false_until=40, cfg=config(max_conflict_ratio=1.0))
+    core, _ = run(400, false_until=40, cfg=config(max_conflict_ratio=1.0, max_sighting_range_m=5.0))
     assert core.merges and core.merges[0].undone_stamp_ns is not None
     assert core.tag_counters["merges_undone"] >= 1
     assert any(e.kind == "merge_undone" for e in core.event_log)
