@@ -20,7 +20,9 @@ that read it knows where the other is (range and bearing are good even where the
 is not) and goes there; the one that was seen learns roughly where the reader stands (through
 the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place, or
 turns to look there when it sees none. Each further sighting keeps the approach alive, so a
-robot that stands still behind the other's LIDAR shadow is not lost.
+robot that stands still behind the other's LIDAR shadow is not lost. A call from within tag
+range cuts short whatever else the robot was looking at or driving to: it faces the other robot
+and both hold still a few seconds, so that each reads the other's tag.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class LookParams:
     aligned_rad: float = math.radians(6.0)
     omega_rps: float = 1.0
     hold_s: float = 1.0
+    meet_hold_s: float = 3.0         # face a robot known to be close this long: both cameras
+                                     # read tags, and two robots' views fix the rotation
     max_turn_s: float = 4.0
     cooldown_s: float = 15.0
     free_below: int = 25             # nav2 value under which a cell is free
@@ -122,6 +126,7 @@ class Lookout:
         self.heading: float | None = None    # where to look, map frame
         self.started_s = 0.0
         self.hold_until_s: float | None = None
+        self.hold_for_s = self.p.hold_s
         self.next_s = -math.inf
         self.looks = 0
         self.approaches = 0
@@ -153,6 +158,16 @@ class Lookout:
             return
         self.call = (xy, tolerance_m, sure, now_s)
 
+    def _near_call(self, pose: F64) -> bool:
+        """A call from within tag range, not already faced, outside the cooldown."""
+        if self.call is None or self.call[3] < self.next_s:
+            return False
+        xy = self.call[0]
+        if math.hypot(*(xy - pose[:2])) > self.p.max_range_m + 0.5:
+            return False
+        # not while already meeting someone
+        return self.heading is None or self.hold_for_s != self.p.meet_hold_s
+
     def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> Twist | None:
         """Take up the latest call; None when it leads nowhere."""
         assert self.call is not None
@@ -164,11 +179,12 @@ class Lookout:
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure else None)
         self.calls += 1
+        near = math.hypot(*(xy - pose[:2])) <= self.p.max_range_m + 0.5
         if target is None:
-            self._look_toward(now_s, pose, xy)
+            self._look_toward(now_s, pose, xy, self.p.meet_hold_s if near else self.p.hold_s)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         if math.hypot(*(target - pose[:2])) <= self.p.approach_stop_m + 0.3:
-            self._look_toward(now_s, pose, target)
+            self._look_toward(now_s, pose, target, self.p.meet_hold_s)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         self.track, self.track_seen_s = target, now_s
         return self._start_approach(now_s, pose, groups)
@@ -181,6 +197,11 @@ class Lookout:
              mates_xy: F64) -> Twist | None:
         """A command while looking, else None (the navigator drives)."""
         p = self.p
+        if self._near_call(pose):
+            self.reset()
+            groups = [] if grid is None else moving_objects(
+                points_robot, pose, grid, mates_xy, p, p.max_range_m + 1.0)
+            return self._answer(now_s, pose, groups)
         if self.heading is None:
             if now_s < self.next_s or grid is None:
                 return None
@@ -211,7 +232,7 @@ class Lookout:
         if self.hold_until_s is None:
             if abs(err) > p.aligned_rad and now_s - self.started_s < p.max_turn_s:
                 return Twist(0.0, math.copysign(p.omega_rps, err))
-            self.hold_until_s = now_s + p.hold_s
+            self.hold_until_s = now_s + self.hold_for_s
         if now_s < self.hold_until_s:
             return Twist(0.0, 0.0)
         self.reset()
@@ -226,8 +247,10 @@ class Lookout:
                  np.asarray(self.track).round(2), math.hypot(*(np.asarray(self.track) - pose[:2])))
         return self._approach(now_s, pose, groups, np.zeros((0, 2)))
 
-    def _look_toward(self, now_s: float, pose: F64, xy: F64) -> None:
+    def _look_toward(self, now_s: float, pose: F64, xy: F64, hold_s: float | None = None
+                     ) -> None:
         self.heading = math.remainder(pose[2] + _bearing(pose, xy), 2 * math.pi)
+        self.hold_for_s = self.p.hold_s if hold_s is None else hold_s
         self.started_s, self.hold_until_s = now_s, None
         self.approaching = False
         self.looks += 1
@@ -280,7 +303,7 @@ class Lookout:
             return None
         dist = math.hypot(*(self.track - pose[:2]))
         if dist <= p.approach_stop_m:
-            self._look_toward(now_s, pose, self.track)
+            self._look_toward(now_s, pose, self.track, p.meet_hold_s)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         err = _bearing(pose, self.track)
         self.heading_error = err

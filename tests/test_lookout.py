@@ -182,3 +182,32 @@ def test_an_unsure_call_follows_the_nearest_mover_or_looks_there() -> None:
     look = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0))
     look.hear(0.0, np.array([2.0, -1.0]), 2.0, sure=False)
     assert look.step(3.0, pose, walls_seen(pose), g, np.zeros((0, 2))) is None
+
+
+def test_a_call_from_close_by_cuts_an_approach_short_and_holds_to_meet() -> None:
+    p = LookParams(approach_range_m=10.0, approach_confirm=2, max_range_m=2.0, hold_s=1.0,
+                   meet_hold_s=3.0)
+    look, g = Lookout(p), free_room()
+    pose = np.array([-3.5, 0.0, 0.0])
+    far = np.concatenate([walls_seen(pose), to_robot(pose, blob(3.0, 0.0))])
+    look.step(0.0, pose, far, g, np.zeros((0, 2)))
+    assert look.step(0.1, pose, far, g, np.zeros((0, 2))) is not None and look.approaching
+    # a robot of another team read our tag from 1.3 m, behind us: face it and hold
+    look.hear(0.2, np.array([-4.8, 0.0]), 1.0, sure=False)
+    tw = look.step(0.25, pose, far, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and not look.approaching and look.calls == 1
+    t = 0.25
+    while tw is not None and tw.omega_rps != 0.0 and t < 10:
+        pose = np.add(pose, [0.0, 0.0, 0.1 * tw.omega_rps])
+        t += 0.1
+        tw = look.step(t, pose, far, g, np.zeros((0, 2)))
+    assert abs(math.remainder(pose[2] - math.pi, 2 * math.pi)) < math.radians(8)
+    # further calls while meeting change nothing; the hold lasts meet_hold_s, not hold_s
+    look.hear(t + 1.0, np.array([-4.8, 0.0]), 1.0, sure=False)
+    held = look.step(t + 2.0, pose, far, g, np.zeros((0, 2)))
+    assert held is not None and held.v_mps == 0.0 and held.omega_rps == 0.0
+    assert look.calls == 1
+    assert look.step(t + 3.2, pose, far, g, np.zeros((0, 2))) is None     # done, cooling down
+    # a call heard during the cooldown is not taken up
+    look.hear(t + 4.0, np.array([-4.8, 0.0]), 1.0, sure=False)
+    assert look.step(t + 4.1, pose, far, g, np.zeros((0, 2))) is None
