@@ -175,11 +175,15 @@ class Lookout:
         self.call = None
         if now_s - t > self.p.lost_s:
             return None
+        # close by, even a rough place is worth driving to: tags are read only within
+        # max_range_m, and the other robot is looking for this one too
+        near = math.hypot(*(xy - pose[:2])) <= self.p.max_range_m + 0.5
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
-            (xy if sure else None)
+            (xy if sure or near else None)
         self.calls += 1
-        near = math.hypot(*(xy - pose[:2])) <= self.p.max_range_m + 0.5
+        log.info("answering a call from %.1f m away (%s): %s", math.hypot(*(xy - pose[:2])),
+                 "sure" if sure else "rough", "look" if target is None else "go and look")
         if target is None:
             self._look_toward(now_s, pose, xy, self.p.meet_hold_s if near else self.p.hold_s)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))

@@ -173,7 +173,7 @@ def test_an_unsure_call_follows_the_nearest_mover_or_looks_there() -> None:
     assert tw is not None and look.approaching
     assert look.track is not None and math.hypot(*(look.track - reader)) < 0.3
     # estimate too far off any mover: turn toward the estimate without driving
-    look = Lookout(LookParams(approach_range_m=10.0))
+    look = Lookout(LookParams(approach_range_m=10.0, max_range_m=2.0))
     look.hear(0.0, np.array([-3.5, -3.0]), 1.0, sure=False)
     tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0 and not look.approaching
