@@ -113,6 +113,12 @@ def main() -> None:
             res["merge_error_meeting_max_deg"] = max(m["meeting_error_deg"] for m in meet)
         res["joint_better_than_direct"] = sum(
             m["joint_error_m"] <= m["direct_error_m"] for m in merges) / len(merges)
+        fin = [m for m in merges if "final_error_m" in m]
+        if fin:  # the start-frame transform as the final joint map has it
+            res["merge_error_final_max_m"] = max(m["final_error_m"] for m in fin)
+            res["merge_error_final_max_deg"] = max(m["final_error_deg"] for m in fin)
+            res["final_better_than_direct"] = sum(
+                m["final_error_m"] <= m["direct_error_m"] for m in fin) / len(fin)
     res["false_merges"] = {k: v["false_merges"] for k, v in c.items()}
     print(json.dumps(res, indent=2))
 

@@ -78,12 +78,17 @@ def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray
 
 def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray],
                  final: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
-                 truth: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+                 truth: dict[str, Any] | None = None,
+                 first_online: dict[str, np.ndarray] | None = None,
+                 final_team: dict[str, str] | None = None) -> list[dict[str, Any]]:
     """Each merge's transform (b's team frame -> a's) against the truth: after the joint
     optimisation, fused sightings, and the direct method on the first sighting. The transform
     between the two start frames also carries each robot's drift until they met, so
     ``meeting_error`` adds how well the final joint map places the two robots that met
-    relative to each other at the merge (when they ended in one team)."""
+    relative to each other at the merge (when they ended in one team), and ``final_error``
+    the same start-frame transform as the final joint map has it: the joint optimisation goes
+    on after the merge (matches of each robot's scans against the other's map), and this is
+    what it made of the transform in the end."""
     out = []
     for m in merges:
         a, b = m["robots_a"][0], m["robots_b"][0]
@@ -103,6 +108,17 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
                 row[f"{name}_error_deg"] = round(math.degrees(er), 3)
             row["false"] = (row["joint_error_m"] > FALSE_MERGE_M
                             or math.radians(row["joint_error_deg"]) > FALSE_MERGE_RAD)
+        if final and first_online and final_team and a in own_frames and b in own_frames \
+                and a in final and b in final and a in first_online and b in first_online \
+                and final_team.get(a) is not None and final_team.get(a) == final_team.get(b) \
+                and m.get("undone_stamp_ns") is None and len(final[a][1]) and len(final[b][1]):
+            # each own frame in the final team frame: first final pose ∘ first online pose⁻¹
+            Fa = compose(final[a][1][0], inverse(first_online[a]))
+            Fb = compose(final[b][1][0], inverse(first_online[b]))
+            et, er = _transform_error(compose(inverse(Fa), Fb),
+                                      compose(inverse(own_frames[a]), own_frames[b]))
+            row["final_error_m"] = round(et, 4)
+            row["final_error_deg"] = round(math.degrees(er), 3)
         if final and truth and m["sightings"] and m.get("undone_stamp_ns") is None:
             o, s, _ = m["sightings"][-1]
             est = [_pose_at(*final[r], m["stamp_ns"]) if r in final else None for r in (o, s)]
@@ -129,6 +145,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     teams: dict[str, Any] = {}
     traj_world: dict[str, np.ndarray] = {}
     own_frames: dict[str, np.ndarray] = {}
+    first_online: dict[str, np.ndarray] = {}
+    final_team: dict[str, str] = {}
     for team_id, team in summary["teams"].items():
         anchor = team["robot_ids"][0]
         a_stamps, a_online = read_trajectory(server_dir / "trajectories" / f"{anchor}_online.csv")
@@ -161,6 +179,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                 continue
             # online poses are in the robot's own map frame (its first pose is the origin)
             T_world_own = own_frames[rid] = _own_frame(stamps, online, t)
+            if len(online):
+                first_online[rid] = np.asarray(online[0], dtype=np.float64)
+                final_team[rid] = team_id
             err = pose_errors(stamps, online, T_world_own, t["stamps_ns"], t["poses"])
             traj_world[rid] = err.stamps_ns
             srv = summary["robots"].get(rid, {})
@@ -184,7 +205,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     final_traj = {rid: read_trajectory(server_dir / "trajectories" / f"{rid}_final.csv")
                   for rid in summary.get("robots", {})
                   if (server_dir / "trajectories" / f"{rid}_final.csv").exists()}
-    merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth)
+    merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth,
+                          first_online, final_team)
     for tid, old in summary.get("merged_teams", {}).items():
         hist = old.get("coverage_history", [])
         teams.setdefault(tid, {"robot_ids": old["robot_ids"], "merged_into": old["merged_into"],
