@@ -18,8 +18,10 @@ thing is lost or takes too long.
 A tag read from too far to merge on is a call: the server passes it to both robots. The one
 that read it knows where the other is (range and bearing are good even where the tag's heading
 is not) and goes there; the one that was seen learns roughly where the reader stands (through
-the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place, or
-turns to look there when it sees none. Each further sighting keeps the approach alive, so a
+the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place.
+When it sees none there, the place is no guide (past 3 m a tag's heading is off by tens of
+degrees), so it stops and turns once on the spot: the reader is coming, and once its tag is in
+view the robot knows where the reader is, too. Each further sighting keeps the approach alive, so a
 robot that stands still behind the other's LIDAR shadow is not lost. A call from within tag
 range cuts short whatever else the robot was looking at or driving to: it faces the other robot
 and both hold still a few seconds, so that each reads the other's tag.
@@ -139,11 +141,12 @@ class Lookout:
         self.moved = False                   # an approach drove the robot somewhere
         #: a tag sighting's word on where another team's robot is: (map xy, tolerance, sure, s)
         self.call: tuple[F64, float, bool, float] | None = None
+        self.spin_until_s: float | None = None   # turning on the spot to find a reader
         self.calls = 0
 
     @property
     def active(self) -> bool:
-        return self.heading is not None or self.approaching
+        return self.heading is not None or self.approaching or self.spin_until_s is not None
 
     def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool) -> None:
         """A tag sighting places another team's robot at ``xy`` (map frame) within
@@ -185,8 +188,8 @@ class Lookout:
         log.info("answering a call from %.1f m away (%s): %s", math.hypot(*(xy - pose[:2])),
                  "sure" if sure else "rough", "look" if target is None else "go and look")
         if target is None:
-            self._look_toward(now_s, pose, xy, self.p.meet_hold_s if near else self.p.hold_s)
-            return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
+            self.spin_until_s = now_s + 2 * math.pi / self.p.omega_rps
+            return Twist(0.0, self.p.omega_rps)
         if math.hypot(*(target - pose[:2])) <= self.p.approach_stop_m + 0.3:
             self._look_toward(now_s, pose, target, self.p.meet_hold_s)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
@@ -194,7 +197,7 @@ class Lookout:
         return self._start_approach(now_s, pose, groups)
 
     def reset(self) -> None:
-        self.heading, self.hold_until_s = None, None
+        self.heading, self.hold_until_s, self.spin_until_s = None, None, None
         self.approaching, self.track, self.track_count = False, None, 0
 
     def step(self, now_s: float, pose: F64, points_robot: F64, grid: OccupancyGrid | None,
@@ -206,6 +209,17 @@ class Lookout:
             groups = [] if grid is None else moving_objects(
                 points_robot, pose, grid, mates_xy, p, p.max_range_m + 1.0)
             return self._answer(now_s, pose, groups)
+        if self.spin_until_s is not None:
+            if self.call is not None and self.call[2]:    # it read the reader's tag
+                self.reset()
+                groups = [] if grid is None else moving_objects(
+                    points_robot, pose, grid, mates_xy, p, max(p.max_range_m, p.approach_range_m))
+                return self._answer(now_s, pose, groups)
+            if now_s < self.spin_until_s:
+                return Twist(0.0, p.omega_rps)
+            self.reset()
+            self.next_s = now_s + p.cooldown_s
+            return None
         if self.heading is None:
             if now_s < self.next_s or grid is None:
                 return None

@@ -160,9 +160,10 @@ def test_a_sure_call_is_driven_to_even_where_the_lidar_shows_nothing() -> None:
     assert not look.active
 
 
-def test_an_unsure_call_follows_the_nearest_mover_or_looks_there() -> None:
+def test_an_unsure_call_follows_the_nearest_mover_or_turns_to_find_the_reader() -> None:
     """The robot that was seen only roughly knows where the reader is: it takes the moving
-    thing nearest the estimate, and with none in tolerance, turns to look."""
+    thing nearest the estimate; with none in tolerance, it turns once on the spot until it
+    reads the reader's tag (a sure call), then goes there."""
     g = free_room()
     pose = np.array([-3.5, 0.0, math.pi / 2])
     reader = np.array([2.5, 0.5])
@@ -172,12 +173,25 @@ def test_an_unsure_call_follows_the_nearest_mover_or_looks_there() -> None:
     tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
     assert tw is not None and look.approaching
     assert look.track is not None and math.hypot(*(look.track - reader)) < 0.3
-    # estimate too far off any mover: turn toward the estimate without driving
-    look = Lookout(LookParams(approach_range_m=10.0, max_range_m=2.0))
+    # estimate far off any mover: turn on the spot, without driving
+    p = LookParams(approach_range_m=10.0, max_range_m=2.0, omega_rps=1.0, cooldown_s=10.0)
+    look = Lookout(p)
     look.hear(0.0, np.array([-3.5, -3.0]), 1.0, sure=False)
     tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
-    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0 and not look.approaching
-    assert look.looks == 1
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps > 0 and look.active
+    assert not look.approaching and look.spin_until_s is not None
+    tw = look.step(3.0, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps > 0      # still turning
+    # the reader's tag came into view: now it knows where the reader is and goes
+    look.hear(3.1, reader, 0.5, sure=True)
+    tw = look.step(3.15, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and look.approaching and look.spin_until_s is None
+    # a full turn without seeing anyone ends the search
+    look = Lookout(p)
+    look.hear(0.0, np.array([-3.5, -3.0]), 1.0, sure=False)
+    look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    assert look.step(6.5, pose, walls_seen(pose), g, np.zeros((0, 2))) is None
+    assert not look.active
     # a stale call is ignored
     look = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0))
     look.hear(0.0, np.array([2.0, -1.0]), 2.0, sure=False)
