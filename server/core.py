@@ -215,10 +215,10 @@ class ServerCore:
                                ttl_s=self.cfg.control.command_ttl_s)
 
     def _look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
-        """Turn toward something that moves while robots outside the team remain."""
+        """Turn toward something that moves while robots outside the team remain. A robot
+        whose team is done keeps doing so: a robot still alone must be able to join it."""
         t = self.cfg.teams
-        if not (t.enabled and t.look_at_movers) or r.nav.mode == DONE or \
-                r.nav.mode == "stuck":
+        if not (t.enabled and t.look_at_movers) or r.nav.mode == "stuck":
             r.look.reset()
             return None
         if len(self.teams) < 2 and not r.look.active:

@@ -213,3 +213,16 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
     core.on_tags(TagDetections(robot_id="r1", seq=10, stamp_ns=r1.last_stamp_ns,
                                detections=[nan]))
     assert r1.look.call is None and r2.look.call is None
+
+
+def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
+    core, _ = run(3, cfg=config(min_sightings=100))
+    r1 = core.robots["r1"]
+    r1.nav.finish("team coverage reached")
+    assert r1.nav.mode == "done"
+    r1.look.call = None
+    r1.look.next_s = -math.inf
+    r1.look.hear(r1.last_stamp_ns * 1e-9, compose(r1.pose, np.array([-1.5, 0.0, 0.0]))[:2],
+                 1.0, sure=False)                           # someone just behind it
+    tw = core._look(r1, r1.last_stamp_ns * 1e-9 + 0.05, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps != 0.0   # turning to face it
