@@ -56,6 +56,8 @@ class LookParams:
     hold_s: float = 1.0
     meet_hold_s: float = 3.0         # face a robot known to be close this long: both cameras
                                      # read tags, and two robots' views fix the rotation
+    meet_cooldown_s: float = 10.0    # after meeting, close calls wait this long (others wait
+                                     # cooldown_s; close calls ignore that one)
     max_turn_s: float = 4.0
     cooldown_s: float = 15.0
     free_below: int = 25             # nav2 value under which a cell is free
@@ -130,6 +132,7 @@ class Lookout:
         self.hold_until_s: float | None = None
         self.hold_for_s = self.p.hold_s
         self.next_s = -math.inf
+        self.meet_next_s = -math.inf
         self.looks = 0
         self.approaches = 0
         #: the thing followed (map frame), when it was last seen, in how many scans in a row
@@ -162,8 +165,10 @@ class Lookout:
         self.call = (xy, tolerance_m, sure, now_s)
 
     def _near_call(self, pose: F64) -> bool:
-        """A call from within tag range, not already faced, outside the cooldown."""
-        if self.call is None or self.call[3] < self.next_s:
+        """A call from within tag range, not already faced, not right after a meeting. The
+        other robot is reading this one's tag now: facing it may be all a merge still needs,
+        so the cooldown of other looks does not hold it back."""
+        if self.call is None or self.call[3] < self.meet_next_s:
             return False
         xy = self.call[0]
         if math.hypot(*(xy - pose[:2])) > self.p.max_range_m + 0.5:
@@ -253,6 +258,8 @@ class Lookout:
             self.hold_until_s = now_s + self.hold_for_s
         if now_s < self.hold_until_s:
             return Twist(0.0, 0.0)
+        if self.hold_for_s == p.meet_hold_s:
+            self.meet_next_s = now_s + p.meet_cooldown_s
         self.reset()
         self.next_s = now_s + p.cooldown_s
         return None

@@ -225,3 +225,14 @@ def test_a_call_from_close_by_cuts_an_approach_short_and_holds_to_meet() -> None
     # a call heard during the cooldown is not taken up
     look.hear(t + 4.0, np.array([-4.8, 0.0]), 1.0, sure=False)
     assert look.step(t + 4.1, pose, far, g, np.zeros((0, 2))) is None
+
+
+def test_a_close_call_is_taken_up_during_the_cooldown_of_an_ordinary_look() -> None:
+    look = Lookout(LookParams(hold_s=0.5, cooldown_s=15.0, approach_range_m=0.0,
+                              max_range_m=2.0))
+    look.next_s = 10.0                       # an ordinary look ended a moment ago
+    pose = np.zeros(3)
+    assert look.step(1.0, pose, walls_seen(pose), free_room(), np.zeros((0, 2))) is None
+    look.hear(1.0, np.array([0.0, 1.3]), 1.0, sure=False)    # someone 1.3 m to the left
+    tw = look.step(1.05, pose, walls_seen(pose), free_room(), np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps > 0
