@@ -130,7 +130,7 @@ class Lookout:
         self.heading: float | None = None    # where to look, map frame
         self.started_s = 0.0
         self.hold_until_s: float | None = None
-        self.hold_for_s = self.p.hold_s
+        self.meeting = False                 # facing a robot known to be close
         self.next_s = -math.inf
         self.meet_next_s = -math.inf
         self.looks = 0
@@ -173,8 +173,7 @@ class Lookout:
         xy = self.call[0]
         if math.hypot(*(xy - pose[:2])) > self.p.max_range_m + 0.5:
             return False
-        # not while already meeting someone
-        return self.heading is None or self.hold_for_s != self.p.meet_hold_s
+        return not (self.heading is not None and self.meeting)
 
     def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> Twist | None:
         """Take up the latest call; None when it leads nowhere."""
@@ -196,13 +195,14 @@ class Lookout:
             self.spin_until_s = now_s + 2 * math.pi / self.p.omega_rps
             return Twist(0.0, self.p.omega_rps)
         if math.hypot(*(target - pose[:2])) <= self.p.approach_stop_m + 0.3:
-            self._look_toward(now_s, pose, target, self.p.meet_hold_s)
+            self._look_toward(now_s, pose, target, meet=True)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         self.track, self.track_seen_s = target, now_s
         return self._start_approach(now_s, pose, groups)
 
     def reset(self) -> None:
         self.heading, self.hold_until_s, self.spin_until_s = None, None, None
+        self.meeting = False
         self.approaching, self.track, self.track_count = False, None, 0
 
     def step(self, now_s: float, pose: F64, points_robot: F64, grid: OccupancyGrid | None,
@@ -255,10 +255,10 @@ class Lookout:
         if self.hold_until_s is None:
             if abs(err) > p.aligned_rad and now_s - self.started_s < p.max_turn_s:
                 return Twist(0.0, math.copysign(p.omega_rps, err))
-            self.hold_until_s = now_s + self.hold_for_s
+            self.hold_until_s = now_s + (p.meet_hold_s if self.meeting else p.hold_s)
         if now_s < self.hold_until_s:
             return Twist(0.0, 0.0)
-        if self.hold_for_s == p.meet_hold_s:
+        if self.meeting:
             self.meet_next_s = now_s + p.meet_cooldown_s
         self.reset()
         self.next_s = now_s + p.cooldown_s
@@ -272,10 +272,9 @@ class Lookout:
                  np.asarray(self.track).round(2), math.hypot(*(np.asarray(self.track) - pose[:2])))
         return self._approach(now_s, pose, groups, np.zeros((0, 2)))
 
-    def _look_toward(self, now_s: float, pose: F64, xy: F64, hold_s: float | None = None
-                     ) -> None:
+    def _look_toward(self, now_s: float, pose: F64, xy: F64, meet: bool = False) -> None:
         self.heading = math.remainder(pose[2] + _bearing(pose, xy), 2 * math.pi)
-        self.hold_for_s = self.p.hold_s if hold_s is None else hold_s
+        self.meeting = meet
         self.started_s, self.hold_until_s = now_s, None
         self.approaching = False
         self.looks += 1
@@ -328,7 +327,7 @@ class Lookout:
             return None
         dist = math.hypot(*(self.track - pose[:2]))
         if dist <= p.approach_stop_m:
-            self._look_toward(now_s, pose, self.track, p.meet_hold_s)
+            self._look_toward(now_s, pose, self.track, meet=True)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         err = _bearing(pose, self.track)
         self.heading_error = err
