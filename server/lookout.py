@@ -170,10 +170,19 @@ class Lookout:
         so the cooldown of other looks does not hold it back."""
         if self.call is None or self.call[3] < self.meet_next_s:
             return False
-        xy = self.call[0]
-        if math.hypot(*(xy - pose[:2])) > self.p.max_range_m + 0.5:
-            return False
-        return not (self.heading is not None and self.meeting)
+        return self._close(self.call[0], pose) and not (self.heading is not None and self.meeting)
+
+    def _close(self, xy: F64, pose: F64) -> bool:
+        """Within (about) tag-reading range of the robot."""
+        return math.hypot(*(xy - pose[:2])) <= self.p.max_range_m + 0.5
+
+    def _answer_now(self, now_s: float, pose: F64, points_robot: F64,
+                    grid: OccupancyGrid | None, mates_xy: F64, range_m: float) -> Twist | None:
+        """Drop whatever the robot was doing and take up the call."""
+        self.reset()
+        groups = [] if grid is None else moving_objects(points_robot, pose, grid, mates_xy,
+                                                        self.p, range_m)
+        return self._answer(now_s, pose, groups)
 
     def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> Twist | None:
         """Take up the latest call; None when it leads nowhere."""
@@ -184,7 +193,7 @@ class Lookout:
             return None
         # close by, even a rough place is worth driving to: tags are read only within
         # max_range_m, and the other robot is looking for this one too
-        near = math.hypot(*(xy - pose[:2])) <= self.p.max_range_m + 0.5
+        near = self._close(xy, pose)
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure or near else None)
@@ -210,16 +219,12 @@ class Lookout:
         """A command while looking, else None (the navigator drives)."""
         p = self.p
         if self._near_call(pose):
-            self.reset()
-            groups = [] if grid is None else moving_objects(
-                points_robot, pose, grid, mates_xy, p, p.max_range_m + 1.0)
-            return self._answer(now_s, pose, groups)
+            return self._answer_now(now_s, pose, points_robot, grid, mates_xy,
+                                    p.max_range_m + 1.0)
         if self.spin_until_s is not None:
             if self.call is not None and self.call[2]:    # it read the reader's tag
-                self.reset()
-                groups = [] if grid is None else moving_objects(
-                    points_robot, pose, grid, mates_xy, p, max(p.max_range_m, p.approach_range_m))
-                return self._answer(now_s, pose, groups)
+                return self._answer_now(now_s, pose, points_robot, grid, mates_xy,
+                                        max(p.max_range_m, p.approach_range_m))
             if now_s < self.spin_until_s:
                 return Twist(0.0, p.omega_rps)
             self.reset()

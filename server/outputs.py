@@ -62,7 +62,7 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
             "mode": r.nav.mode, "finished_reason": r.nav.finished_reason,
             "decisions": r.nav.stats.decisions, "targets_reached": r.nav.stats.targets_reached,
             "recoveries": r.nav.stats.recoveries, "looks": r.look.looks,
-            "approaches": r.look.approaches,
+            "approaches": r.look.approaches, "calls": r.look.calls,
             "decision_ms_median": float(np.median(ms)) if ms else None,
             "matches": dict(r.slam.stats.matches),
         }
