@@ -17,6 +17,10 @@ class _Model(BaseModel):
 class ExploreConfig(_Model):
     explorer: Literal["voronoi", "frontier"] = "voronoi"
     lam: float = Field(1.0, ge=0.0, le=1.0, description="C = λ·d_robot + (1−λ)·d_origin")
+    seek_lam: float | None = Field(
+        1.0, ge=0.0, le=1.0, description="λ while robots outside the robot's team remain: "
+        "nearest targets first, no pull back to the start, so robots that have not met range "
+        "out sooner (None: lam throughout)")
     total_area_m2: float | None = Field(
         None, gt=0.0, description="area to cover; unknown: stop when no frontier is reachable")
     coverage_threshold: float = Field(0.98, gt=0.0, le=1.0)

@@ -12,6 +12,7 @@ stamps, not the wall clock, so a lockstep simulation gives the same run every ti
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
@@ -255,6 +256,22 @@ class ServerCore:
             elif not team.finished and all(
                     self.robots[rid].nav.mode == DONE for rid in team.robot_ids):
                 self._finish_team(team, stamp_ns, "no reachable frontier left")
+        self._set_lambda()
+
+    def _set_lambda(self) -> None:
+        """λ of every robot's explorer: ``seek_lam`` while a robot that is alive is outside its
+        team (the others are somewhere away from this robot's start; ranging out meets them
+        sooner), ``lam`` once the team holds every robot."""
+        e = self.cfg.explore
+        alive_teams = {r.team_id for r in self.robots.values() if r.alive}
+        for r in self.robots.values():
+            lam = (e.seek_lam if e.seek_lam is not None and alive_teams - {r.team_id}
+                   else e.lam)
+            base = r.nav.explorer.base if isinstance(r.nav.explorer, TeamExplorer) \
+                else r.nav.explorer
+            params = getattr(base, "params", None)
+            if isinstance(params, ExplorerParams) and params.lam != lam:
+                base.params = dataclasses.replace(params, lam=lam)
 
     def _finish_team(self, team: Team, stamp_ns: int, why: str) -> None:
         team.finished, team.finished_stamp_ns = True, stamp_ns

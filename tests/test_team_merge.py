@@ -226,3 +226,23 @@ def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
                  1.0, sure=False)                           # someone just behind it
     tw = core._look(r1, r1.last_stamp_ns * 1e-9 + 0.05, np.zeros((0, 2)))
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps != 0.0   # turning to face it
+
+
+def test_robots_range_out_until_every_robot_is_in_their_team() -> None:
+    """λ is ``seek_lam`` (nearest targets first) while a robot that is alive is outside the
+    team, and the configured λ once none is (here: the other robot vanished)."""
+    cfg = config(min_sightings=100)
+    cfg = cfg.model_copy(update={"explore": cfg.explore.model_copy(
+        update={"lam": 0.3, "seek_lam": 0.9})})
+    core, _ = run(12, cfg=cfg)
+
+    def lam(rid: str) -> float:
+        return float(core.robots[rid].nav.explorer.params.lam)  # type: ignore[attr-defined]
+
+    assert len(core.teams) == 2 and lam("r1") == lam("r2") == 0.9
+    core.set_alive("r2", False)
+    core._set_lambda()
+    assert lam("r1") == 0.3
+    core.set_alive("r2", True)
+    core._set_lambda()
+    assert lam("r1") == 0.9
