@@ -237,7 +237,7 @@ def test_robots_range_out_until_every_robot_is_in_their_team() -> None:
     core, _ = run(12, cfg=cfg)
 
     def lam(rid: str) -> float:
-        return float(core.robots[rid].nav.explorer.params.lam)  # type: ignore[attr-defined]
+        return float(core.robots[rid].nav.explorer.params.lam)
 
     assert len(core.teams) == 2 and lam("r1") == lam("r2") == 0.9
     core.set_alive("r2", False)
