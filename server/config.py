@@ -65,6 +65,10 @@ class TeamsConfig(_Model):
                                    "rendezvous factor per robot pair this often")
     refine_on_maps: bool = Field(True, description="after a merge, match each robot's "
                                  "keyframes against the other side's map where they overlap")
+    team_match_every: int = Field(2, ge=0, description="within a team, every this many new "
+                                  "keyframes of a robot are matched against its teammates' "
+                                  "maps where they overlap, so the joint map keeps fitting "
+                                  "together as the robots go on (0: never)")
     min_map_match_tries: int = Field(3, ge=1, description="where the aligned maps overlap at "
                                      "this many keyframes, at least one must match")
     look_at_movers: bool = Field(True, description="while robots outside the team remain, "

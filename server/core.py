@@ -177,12 +177,15 @@ class ServerCore:
         r = self.robots.get(scan.robot_id) or self._add_robot(scan.robot_id)
         prev = r.pose.copy()
         ranges, angles = scan.ranges_m(), scan.angles_rad()
+        keyframes = len(r.slam.keyframes)
         r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles,
                                  scan.range_max_mm / 1000.0)
         if r.scans:
             r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
         else:
             r.start_pose = r.pose.copy()
+        if keyframes and len(r.slam.keyframes) > keyframes:
+            self._match_teammates(r)
         r.scans += 1
         if not r.start_checked and r.robot_id in self.cfg.teams.start_poses:
             self._join_known_start(r, scan.stamp_ns)
@@ -543,11 +546,25 @@ class ServerCore:
         self.emit("merge_rejected", ta.robot_ids + tb.robot_ids, ta.team_id,
                   f"{tb.team_id} not merged into {ta.team_id}: {why}", stamp)
 
-    def _refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link]
-                        ) -> int:
-        """Match each joining robot's keyframes against the other side's map where they
-        overlap, and add the matches as robust between-factors (``links`` gets them); those
-        still inconsistent after optimisation are taken out. Returns how many were kept."""
+    def _match_teammates(self, r: RobotContext) -> None:
+        """Every ``team_match_every`` new keyframes of a robot in a team of several: match the
+        newest against its teammates' maps where they overlap. Without this, each robot's map
+        would drift on its own after the merge, and the joint map would come apart where two
+        robots went past the same walls at different times."""
+        every = self.cfg.teams.team_match_every
+        team = self.teams[r.team_id]
+        k = len(r.slam.keyframes) - 1
+        if every <= 0 or len(team.robot_ids) < 2 or k % every:
+            return
+        mates = [o for o in team.robot_ids if o != r.robot_id]
+        self._refine_on_maps(mates, [r.robot_id], team.links, only=[k])
+
+    def _refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link],
+                        only: list[int] | None = None) -> int:
+        """Match each joining robot's keyframes (or the ones in ``only``) against the other
+        side's map where they overlap, and add the matches as robust between-factors (``links``
+        gets them); those still inconsistent after optimisation are taken out. Returns how
+        many were kept."""
         if not self.cfg.teams.refine_on_maps:
             return 0
         g = self.cfg.slam.graph
@@ -560,7 +577,7 @@ class ServerCore:
             for rb in side_b:
                 a, b = self.robots[ra].slam, self.robots[rb].slam
                 graph = a.graph
-                for m in cross_matches(a, b):
+                for m in cross_matches(a, b, only=only):
                     f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
                                             m.T_ka_kb, m.information, loop.sigma_scale ** 2,
                                             floor, "huber", loop.huber_k)

@@ -379,11 +379,12 @@ class CrossMatch:
 def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
                   min_inlier_fraction: float = 0.5, max_correction_m: float = 0.5,
                   max_correction_rad: float = math.radians(5.0),
-                  T_ab: F64 | None = None, tried: list[int] | None = None
-                  ) -> list[CrossMatch]:
-    """Scan-to-map matches of b's keyframes (every ``every``-th) against a's keyframes within
-    ``radius_m``, both placed by the current joint estimate (or b's by ``T_ab``): the overlap
-    of the two maps says how they fit together, far more precisely than tag sightings.
+                  T_ab: F64 | None = None, tried: list[int] | None = None,
+                  only: list[int] | None = None) -> list[CrossMatch]:
+    """Scan-to-map matches of b's keyframes (every ``every``-th, or those in ``only``) against
+    a's keyframes within ``radius_m``, both placed by the current joint estimate (or b's by
+    ``T_ab``): the overlap of the two maps says how they fit together, far more precisely than
+    tag sightings.
     Matches that moved the keyframe implausibly far, matched poorly or were degenerate are left
     out; ``tried[0]`` is increased for every keyframe that had a map to match against."""
     from server.slam.frontend import icp_params
@@ -398,7 +399,9 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     params = icp_params(a.cfg.matcher)
     out: list[CrossMatch] = []
     last = len(b.keyframes) - 1
-    for kb in sorted({*range(0, last, max(1, every)), last}):  # the newest: where they met
+    picked = (sorted({*range(0, last, max(1, every)), last}) if only is None  # newest: the meeting
+              else sorted(k for k in set(only) if 0 <= k <= last))
+    for kb in picked:
         d = np.hypot(pa[:, 0] - pb[kb, 0], pa[:, 1] - pb[kb, 1])
         near = np.flatnonzero(d <= radius_m)
         scan = b.keyframes[kb].matchable

@@ -246,3 +246,14 @@ def test_robots_range_out_until_every_robot_is_in_their_team() -> None:
     core.set_alive("r2", True)
     core._set_lambda()
     assert lam("r1") == 0.9
+
+
+def test_a_team_keeps_matching_each_robots_new_keyframes_against_the_others_maps(
+        met: tuple[ServerCore, Simulator]) -> None:
+    core, _ = met
+    team = next(iter(core.teams.values()))
+    cross = [ln for ln in team.links if ln.record.kind == "cross"]
+    at_merge = int(core.merges[0].agreement["map_matches"])
+    assert len(cross) > at_merge       # more matches came after the merge, as the robots went on
+    assert all(ln.record.index is not None for ln in cross)
+    assert {ln.b for ln in cross[at_merge:]} <= {"r1", "r2"}
