@@ -88,10 +88,6 @@ class RobotContext:
     #: frame (its first pose is the origin; a merge does not move it)
     online: list[tuple[int, float, float, float]] = field(default_factory=list)
 
-    def team_from_own(self) -> F64:
-        """The robot's own map frame in its team's frame (identity until it joins a team)."""
-        return self.slam.keyframe_pose(0) if self.slam.keyframes else np.zeros(3)
-
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first
         keyframe's team pose against where the robot's prior put it."""
@@ -192,7 +188,7 @@ class ServerCore:
         r.last_stamp_ns = scan.stamp_ns
         own = r.pose
         if len(self.teams[r.team_id].robot_ids) > 1:
-            own = compose(inverse(r.team_from_own()), r.pose)
+            own = compose(inverse(r.own_frame_in_team()), r.pose)
         r.online.append((scan.stamp_ns, float(own[0]), float(own[1]), float(own[2])))
         if self._pending:
             self._process_pending(scan.stamp_ns)
