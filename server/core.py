@@ -299,7 +299,8 @@ class ServerCore:
         r.look = Lookout(LookParams(max_range_m=t.max_sighting_range_m,
                                     omega_rps=min(1.0, c.omega_max_rps),
                                     approach_range_m=t.approach_range_m, approach_v_mps=c.v_mps,
-                                    approach_stop_m=min(1.2, 0.7 * t.max_sighting_range_m)))
+                                    approach_stop_m=min(1.2, 0.7 * t.max_sighting_range_m)),
+                         robot_id)
         self.robots[robot_id] = r
         self.teams[team_id] = Team(team_id, [robot_id],
                                    VisitedTargets(self.cfg.explore.visited_radius_m),

@@ -125,8 +125,9 @@ def _bearing(pose: F64, xy: F64) -> float:
 class Lookout:
     """One robot's turns toward moving things (see the module docstring)."""
 
-    def __init__(self, params: LookParams | None = None) -> None:
+    def __init__(self, params: LookParams | None = None, name: str = "") -> None:
         self.p = params or LookParams()
+        self.name = name                     # the robot's id, for log lines
         self.heading: float | None = None    # where to look, map frame
         self.started_s = 0.0
         self.hold_until_s: float | None = None
@@ -198,8 +199,9 @@ class Lookout:
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure or near else None)
         self.calls += 1
-        log.info("answering a call from %.1f m away (%s): %s", math.hypot(*(xy - pose[:2])),
-                 "sure" if sure else "rough", "look" if target is None else "go and look")
+        log.info("%s: answering a call from %.1f m away (%s): %s", self.name,
+                 math.hypot(*(xy - pose[:2])), "sure" if sure else "rough",
+                 "look" if target is None else "go and look")
         if target is None:
             self.spin_until_s = now_s + 2 * math.pi / self.p.omega_rps
             return Twist(0.0, self.p.omega_rps)
@@ -273,7 +275,7 @@ class Lookout:
                         ) -> Twist | None:
         self.approaching, self.started_s = True, now_s
         self.approaches += 1
-        log.info("approaching something that moves at %s (%.1f m away)",
+        log.info("%s: approaching something that moves at %s (%.1f m away)", self.name,
                  np.asarray(self.track).round(2), math.hypot(*(np.asarray(self.track) - pose[:2])))
         return self._approach(now_s, pose, groups, np.zeros((0, 2)))
 
@@ -325,7 +327,7 @@ class Lookout:
             self.track, self.track_seen_s = seen, now_s
         if self.track is None or now_s - self.track_seen_s > p.lost_s or \
                 now_s - self.started_s > p.approach_max_s:
-            log.info("approach given up after %.1f s: %s", now_s - self.started_s,
+            log.info("%s: approach given up after %.1f s: %s", self.name, now_s - self.started_s,
                      "too long" if now_s - self.started_s > p.approach_max_s else "lost")
             self.reset()
             self.next_s = now_s + p.cooldown_s

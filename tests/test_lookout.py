@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
+import pytest
 
 from server.lookout import Lookout, LookParams, moving_object
 from server.planning import OccupancyGrid
@@ -143,13 +145,16 @@ def test_a_followed_mover_that_got_mapped_as_obstacle_is_still_tracked() -> None
         assert tw is not None and tw.v_mps > 0         # still going for it
 
 
-def test_a_sure_call_is_driven_to_even_where_the_lidar_shows_nothing() -> None:
+def test_a_sure_call_is_driven_to_even_where_the_lidar_shows_nothing(
+        caplog: pytest.LogCaptureFixture) -> None:
     """The reader of a far tag knows where the other robot is: it goes there."""
-    look, g = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0)), free_room()
+    look, g = Lookout(LookParams(approach_range_m=10.0, lost_s=1.0), "r7"), free_room()
     pose = np.array([-4.0, 0.0, math.pi])                 # facing away; nothing moves in view
     look.hear(0.0, np.array([3.0, 0.0]), 0.7, sure=True)
-    tw = look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    with caplog.at_level(logging.INFO, logger="server.lookout"):
+        tw = look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
     assert tw is not None and look.approaching and look.calls == 1
+    assert "r7: answering a call from 7.0 m away (sure)" in caplog.text  # names the robot
     assert tw.omega_rps != 0.0                            # turning toward the call
     # further sightings keep the approach alive with no LIDAR support at all
     for k in range(1, 30):
