@@ -5,7 +5,12 @@ Reports each case's time to threshold, the team speed-ups (case 1 / case 2, case
 merge transform errors after joint optimisation against the direct method on the same
 sightings, and — with ``--spurious`` — the team cases again with that share of false tag views.
 
-    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--out DIR]
+    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--runs N]
+                          [--out DIR]
+
+Runs with several robots are not exactly repeatable (the server's timing feeds back into the
+simulation), so ``--runs N`` runs each team case N times and adds every run's speed-up and
+their median; merge figures then cover all runs.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ import sys
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 # run as a script, this folder comes first on sys.path and bench/sim.py would hide the
 # simulator package: look in the repository instead
@@ -67,6 +74,9 @@ def main() -> None:
                     help="also run the team cases with the start poses given to the server "
                     "(one team from the start: what coordination alone gains)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--runs", type=int, default=1,
+                    help="run each team case (2, 4) this many times (single robots repeat "
+                    "exactly and run once)")
     ap.add_argument("--max-sim-time", type=float, default=7200.0)
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
@@ -75,6 +85,10 @@ def main() -> None:
     for case in a.cases:
         print(f"running case {case}...", file=sys.stderr)
         res["cases"][case] = one(case, base / f"case-{case}", a.seed, 0.0, a.max_sim_time)
+        for k in range(2, a.runs + 1 if case in ("2", "4") else 1):
+            print(f"running case {case} again ({k} of {a.runs})...", file=sys.stderr)
+            res["cases"][f"{case}#{k}"] = one(case, base / f"case-{case}-run{k}", a.seed, 0.0,
+                                              a.max_sim_time)
         if a.spurious > 0 and case in ("2", "4"):
             print(f"running case {case} with {a.spurious:.0%} false views...", file=sys.stderr)
             res["cases"][f"{case}-spurious"] = one(case, base / f"case-{case}-spurious",
@@ -96,12 +110,17 @@ def main() -> None:
     res["speedup_case4"] = ratio(t("3"), t("4"))
     res["speedup_case2_first_team"] = ratio(t("1"), first("2"))
     res["speedup_case4_first_team"] = ratio(t("3"), first("4"))
+    for k, single in (("2", "1"), ("4", "3")):
+        runs = [ratio(t(single), t(key)) for key in c if key.split("#")[0] == k]
+        if len(runs) > 1 and None not in runs:
+            res[f"speedup_case{k}_runs"] = runs
+            res[f"speedup_case{k}_median"] = float(np.median(np.asarray(runs, dtype=float)))
     for k in ("2", "4"):
         if f"{k}-known-starts" in c:
             res[f"speedup_case{k}_known_starts"] = ratio(t(str(int(k) - 1)),
                                                          t(f"{k}-known-starts"))
-    merges = [m for k in ("2", "4") if k in c for m in c[k]["merges"] if "joint_error_m" in m
-              and m.get("kind", "tags") == "tags"]
+    merges = [m for k in c if k.split("#")[0] in ("2", "4") for m in c[k]["merges"]
+              if "joint_error_m" in m and m.get("kind", "tags") == "tags"]
     if merges:
         res["merge_error_joint_max_m"] = max(m["joint_error_m"] for m in merges)
         res["merge_error_joint_max_deg"] = max(m["joint_error_deg"] for m in merges)
