@@ -53,6 +53,11 @@ def redirect(nav: Navigator, target_xy: tuple[float, float], path_xy: F64) -> No
     nav.mode = EXPLORING
 
 
+def own_explorer(nav: Navigator) -> Explorer:
+    """The robot's own explorer, under the team's when it is in a team of several."""
+    return nav.explorer.base if isinstance(nav.explorer, TeamExplorer) else nav.explorer
+
+
 def drop_target(nav: Navigator) -> None:
     """Forget the current target and path (e.g. the map frame changed under them)."""
     nav.target_xy = None

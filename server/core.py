@@ -38,7 +38,7 @@ from schemas import (
 )
 from server.config import ServerConfig
 from server.control import PursuitParams, StuckDetector, Twist, VfhParams
-from server.coordination import Member, TeamExplorer, drop_target
+from server.coordination import Member, TeamExplorer, drop_target, own_explorer
 from server.exploration import ExplorerParams, VisitedTargets, make_explorer
 from server.exploration.analysis import AnalysisParams
 from server.lookout import Lookout, LookParams
@@ -266,11 +266,9 @@ class ServerCore:
         for r in self.robots.values():
             lam = (e.seek_lam if e.seek_lam is not None and alive_teams - {r.team_id}
                    else e.lam)
-            base = r.nav.explorer.base if isinstance(r.nav.explorer, TeamExplorer) \
-                else r.nav.explorer
-            params = getattr(base, "params", None)
-            if isinstance(params, ExplorerParams) and params.lam != lam:
-                base.params = dataclasses.replace(params, lam=lam)
+            base = own_explorer(r.nav)
+            if base.params.lam != lam:
+                base.params = dataclasses.replace(base.params, lam=lam)
 
     def _finish_team(self, team: Team, stamp_ns: int, why: str) -> None:
         team.finished, team.finished_stamp_ns = True, stamp_ns
@@ -615,7 +613,7 @@ class ServerCore:
         """Robots of a team of several decide together (see ``server.coordination``)."""
         for rid in team.robot_ids:
             nav = self.robots[rid].nav
-            base = nav.explorer.base if isinstance(nav.explorer, TeamExplorer) else nav.explorer
+            base = own_explorer(nav)
             if len(team.robot_ids) > 1:
                 nav.explorer = TeamExplorer(  # type: ignore[assignment]
                     base, rid, functools.partial(self._members, team.team_id),
