@@ -108,10 +108,11 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
                 row[f"{name}_error_deg"] = round(math.degrees(er), 3)
             row["false"] = (row["joint_error_m"] > FALSE_MERGE_M
                             or math.radians(row["joint_error_deg"]) > FALSE_MERGE_RAD)
-        if final and first_online and final_team and a in own_frames and b in own_frames \
-                and a in final and b in final and a in first_online and b in first_online \
-                and final_team.get(a) is not None and final_team.get(a) == final_team.get(b) \
-                and m.get("undone_stamp_ns") is None and len(final[a][1]) and len(final[b][1]):
+        both = {a, b}
+        if final and first_online and final_team and both <= own_frames.keys() \
+                and both <= first_online.keys() and both <= final_team.keys() \
+                and final_team[a] == final_team[b] and m.get("undone_stamp_ns") is None \
+                and len(final.get(a, ((), ()))[1]) and len(final.get(b, ((), ()))[1]):
             # each own frame in the final team frame: first final pose ∘ first online pose⁻¹
             Fa = compose(final[a][1][0], inverse(first_online[a]))
             Fb = compose(final[b][1][0], inverse(first_online[b]))
