@@ -4,11 +4,14 @@
 that robot needs a target, teammates still heading for an open target keep it (their goals are
 reserved); the robot and every teammate without a target are assigned jointly:
 
-- ``optimal``: minimum total path cost over the team's cost matrix (Hungarian method);
+- ``optimal``: minimum total path cost over the team's cost matrix (Hungarian method), with
+  the robots' targets kept the reserve radius apart while each has another to go to;
 - ``thesis``: the dissertation's rule — the robot takes its cheapest target at least the
   reserve radius (2 m) from the others' goals.
 
-Teammates that received a target this way are redirected at once.
+Teammates that received a target this way are redirected at once. A robot left without a
+target of its own goes where a teammate goes rather than stand idle: the space behind one
+frontier can be a whole room, and the team is not done until its coverage is reached.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from server.exploration import (
     ExplorerParams,
     Finished,
     VisitedTargets,
-    assign_optimal,
+    assign_spread,
 )
 from server.navigator import EXPLORING, Navigator
 from server.planning import OccupancyGrid
@@ -97,23 +100,23 @@ class TeamExplorer:
         committed = np.array([m.nav.target_xy for m in others if m.nav.target_xy is not None],
                              dtype=np.float64).reshape(-1, 2)
         if self.mode == "thesis":
-            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
         free = [i for i, m in enumerate(team)
                 if i == me or (m.nav.target_xy is None and m.nav.mode != "done")]
         tc = self.base.team_costs(grid, [team[i].pose for i in free],
                                   [team[i].start_pose for i in free], visited)
         if tc.cost.shape[1] == 0:
-            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
         cost = tc.cost.copy()
         if len(committed):
             r = self.params.reserve_radius_m
             near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],
                             tc.targets_xy[:, None, 1] - committed[None, :, 1]).min(axis=1) < r
             cost[:, near] = np.inf
-        assignment = assign_optimal(cost)
+        assignment = assign_spread(cost, tc.targets_xy, self.params.reserve_radius_m)
         mine = assignment[free.index(me)]
         if mine is None:
-            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
         self.assignments += 1
         for row, i in enumerate(free):
             k = assignment[row]
@@ -129,3 +132,13 @@ class TeamExplorer:
         xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
         return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
                         (), None)
+
+    def _alone(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
+               visited: VisitedTargets, committed: F64) -> Decision | Finished:
+        """The robot's own decision away from its teammates' goals, or next to one of them
+        when that is all there is."""
+        out = self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+        if isinstance(out, Finished) and len(committed) and not (
+                out.coverage is not None and out.coverage >= self.params.coverage_threshold):
+            out = self.base.decide(grid, robot_pose, start_pose, visited)
+        return out

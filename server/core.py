@@ -608,6 +608,7 @@ class ServerCore:
             r.slam.rebind(graph)
             r.pose = r.slam.pose
             drop_target(r.nav)
+            r.look.forget()
 
     def _coordinate(self, team: Team) -> None:
         """Robots of a team of several decide together (see ``server.coordination``)."""

@@ -211,6 +211,12 @@ class Lookout:
         self.track, self.track_seen_s = target, now_s
         return self._start_approach(now_s, pose, groups)
 
+    def forget(self) -> None:
+        """Drop what the robot was looking at and any call: the map frame changed under them
+        (a merge), and the robot that called may now be a teammate."""
+        self.reset()
+        self.call = None
+
     def reset(self) -> None:
         self.heading, self.hold_until_s, self.spin_until_s = None, None, None
         self.meeting = False

@@ -7,7 +7,7 @@
 """
 
 from server.exploration.analysis import AnalysisParams, MapAnalysis, analyse
-from server.exploration.assignment import assign_optimal, assign_separated
+from server.exploration.assignment import assign_optimal, assign_separated, assign_spread
 from server.exploration.candidates import rule1_candidates, rule1_junctions
 from server.exploration.coverage import coverage, coverage_reached, explored_area_m2
 from server.exploration.explorer import (
@@ -47,6 +47,7 @@ __all__ = [
     "analyse",
     "assign_optimal",
     "assign_separated",
+    "assign_spread",
     "cluster_frontiers",
     "coverage",
     "coverage_reached",

@@ -55,3 +55,43 @@ def assign_separated(cost: ArrayLike, targets_xy: ArrayLike,
         out.append(best)
         taken.append(best)
     return out
+
+
+def assign_spread(cost: ArrayLike, targets_xy: ArrayLike,
+                  min_separation_m: float = 2.0) -> list[int | None]:
+    """Minimum total cost assignment in which no two robots take targets closer than
+    ``min_separation_m`` while each could take another: two targets that close open onto
+    the same unexplored space, and robots sent there together find little more than one
+    robot would. Where two assigned targets clash, the robot whose giving way costs the
+    team less takes its best target elsewhere; a robot with nothing elsewhere shares."""
+    c = np.array(cost, dtype=np.float64)
+    xy: NDArray[np.float64] = np.asarray(targets_xy, dtype=np.float64).reshape(-1, 2)
+    if c.ndim != 2 or c.shape[1] != len(xy):
+        raise ValueError(f"cost {c.shape} does not match {len(xy)} targets")
+    near = np.hypot(xy[:, None, 0] - xy[None, :, 0],
+                    xy[:, None, 1] - xy[None, :, 1]) < min_separation_m
+    out = assign_optimal(c)
+    shared: set[tuple[int, int]] = set()
+    for _ in range(c.shape[0] * c.shape[0]):
+        taken = [(i, k) for i, k in enumerate(out) if k is not None]
+        clash = next(((a, b) for n, a in enumerate(taken) for b in taken[n + 1:]
+                      if near[a[1], b[1]] and (a[0], b[0]) not in shared), None)
+        if clash is None:
+            break
+        options = []
+        for (i, _), (_, k_keep) in (clash, clash[::-1]):
+            trial = c.copy()
+            trial[i, near[k_keep]] = np.inf
+            if not np.isfinite(trial[i]).any():
+                continue
+            alt = assign_optimal(trial)
+            if alt[i] is None:
+                continue
+            got = [(r, k) for r, k in enumerate(alt) if k is not None]
+            options.append(((-len(got), sum(trial[r, k] for r, k in got)), i, k_keep, alt))
+        if not options:
+            shared.add((clash[0][0], clash[1][0]))
+            continue
+        _, i, k_keep, out = min(options, key=lambda o: o[0])
+        c[i, near[k_keep]] = np.inf
+    return out

@@ -1,0 +1,96 @@
+"""Team coordination: spread assignment, and no robot left idle while its team explores."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from server.control import PursuitParams, StuckDetector
+from server.coordination import Member, TeamExplorer
+from server.exploration import (
+    Decision,
+    ExplorerParams,
+    Finished,
+    VisitedTargets,
+    VoronoiExplorer,
+    assign_optimal,
+    assign_spread,
+)
+from server.navigator import Navigator
+from server.planning import OccupancyGrid
+from tests.test_exploration_skeleton import t_corridor
+
+
+def test_spread_assignment_keeps_goals_apart_while_others_exist() -> None:
+    targets = np.array([[0.0, 0.0], [1.0, 0.0], [8.0, 0.0]])
+    cost = np.array([[1.0, 2.0, 9.0],
+                     [2.0, 1.0, 8.0]])
+    assert assign_optimal(cost) == [0, 1]          # 1 m apart: both look into the same space
+    # robot 1 giving way costs 9 in all, robot 0 giving way 10
+    assert assign_spread(cost, targets, 2.0) == [0, 2]
+    assert assign_spread(cost, targets, 0.5) == [0, 1]
+    # nothing elsewhere: the robots share rather than one standing idle
+    assert assign_spread(cost[:, :2], targets[:2], 2.0) == [0, 1]
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_spread_assignment_is_the_cheapest_separated_one(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    R, K = 3, 7
+    xy = rng.uniform(0, 6, (K, 2))
+    cost = rng.uniform(0, 10, (R, K))
+    got = assign_spread(cost, xy, 2.0)
+    assert None not in got and len(set(got)) == R
+    far = lambda a, b: np.hypot(*(xy[a] - xy[b])) >= 2.0  # noqa: E731
+    separated = [cols for cols in itertools.permutations(range(K), R)
+                 if all(far(a, b) for a, b in itertools.combinations(cols, 2))]
+    if separated and all(far(a, b) for a, b in itertools.combinations(got, 2)):
+        best = min(sum(cost[r, c] for r, c in enumerate(cols)) for cols in separated)
+        total = sum(cost[r, c] for r, c in enumerate(got) if c is not None)
+        assert total <= best * 1.5   # greedy giving-way: near the best separated total
+    elif separated:
+        pytest.fail(f"a separated assignment exists but {got} clashes")
+
+
+def one_open_end() -> OccupancyGrid:
+    """The T corridor with its left end walled off: only the right end leads anywhere."""
+    g = t_corridor()
+    g.data[29:46, 10] = 100
+    return g
+
+
+def team(mode: str) -> tuple[TeamExplorer, list[Member]]:
+    def nav() -> Navigator:
+        return Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
+                         StuckDetector(), 4.0)
+
+    a = np.array([3.0, 3.75, 0.0])
+    b = np.array([4.0, 3.75, 0.0])
+    members = [Member("r1", a, a, nav()), Member("r2", b, b, nav())]
+    return TeamExplorer(VoronoiExplorer(ExplorerParams(lam=1.0)), "r2", lambda: members,
+                        mode), members
+
+
+@pytest.mark.parametrize("mode", ["optimal", "thesis"])
+def test_a_robot_whose_only_target_is_a_teammates_goes_there_too(mode: str) -> None:
+    grid = one_open_end()
+    ex, members = team(mode)
+    alone = ex.base.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets())
+    assert isinstance(alone, Decision) and alone.target_xy[0] > 9.5
+    members[0].nav.target_xy = alone.target_xy        # r1 is already on its way there
+    reserved = ex.base.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets(),
+                              reserved_xy=[alone.target_xy])
+    assert isinstance(reserved, Finished)             # nothing else is open ...
+    got = ex.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets())
+    assert isinstance(got, Decision) and got.target_xy[0] > 9.5   # ... so r2 follows
+
+
+def test_a_team_with_nothing_open_is_finished() -> None:
+    grid = one_open_end()
+    grid.data[29:46, 110] = 100                       # both ends walled
+    ex, members = team("optimal")
+    members[0].nav.target_xy = (10.5, 3.75)
+    got = ex.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets())
+    assert isinstance(got, Finished)
