@@ -259,3 +259,81 @@ def in_line_of_sight(range_m: float, bearing_rad: float, ranges_m: np.ndarray,
     off = np.abs(np.remainder(a - bearing_rad + math.pi, 2 * math.pi) - math.pi)
     near = (off <= half_width_rad) & np.isfinite(r)
     return not bool(np.any(r[near] < range_m - margin_m))
+
+
+@dataclass(frozen=True)
+class LidarFix:
+    """The observed robot's centre from the LIDAR returns off its body."""
+
+    range_m: float
+    bearing_rad: float
+    sigma_range_m: float
+    sigma_bearing_rad: float
+    beams: int
+    rms_m: float
+
+
+def lidar_fix(range_m: float, bearing_rad: float, ranges_m: np.ndarray, angles_rad: np.ndarray,
+              body_radius_m: float, sigma_m: float = 0.01, floor_m: float = 0.02,
+              across_tolerance_m: float = 0.2, min_beams: int = 2) -> LidarFix | None:
+    """Range and bearing of a robot seen at (``range_m``, ``bearing_rad``) by its tag, from
+    the scan: past a couple of metres a tag's range is biased (the marker is a few pixels
+    wide) and its centre is off by up to the mast's width across the line of sight (the
+    tag's heading is unreliable), while the LIDAR hits the robot's round body to the
+    centimetre. The returns near the tag's bearing that lie where the body's front should be
+    (within a tolerance that grows with range) are fitted with a circle of the body's radius.
+
+    None when fewer than ``min_beams`` returns fit, when the circle does not fit them
+    (residual over 3σ), or when the fitted centre is farther than ``across_tolerance_m``
+    across the line of sight from the tag's: then the tag saw something the LIDAR does not
+    confirm, and its own estimate stands. σ: from the fit, floored at ``floor_m`` (body
+    shape, the scan's timing)."""
+    rho = float(body_radius_m)
+    if rho <= 0 or not (math.isfinite(range_m) and math.isfinite(bearing_rad)) or range_m <= rho:
+        return None
+    r = np.asarray(ranges_m, dtype=np.float64)
+    a = np.asarray(angles_rad, dtype=np.float64)
+    along = 0.1 + 0.15 * range_m                      # covers the tag's range bias
+    half = math.atan2(rho + across_tolerance_m, range_m)
+    off = np.remainder(a - bearing_rad + math.pi, 2 * math.pi) - math.pi
+    front = range_m - rho
+    sel = (np.abs(off) <= half) & np.isfinite(r) & (np.abs(r - front) <= along)
+    if sel.sum() < min_beams:
+        return None
+    r, a = r[sel], a[sel]
+    keep = r <= r.min() + rho                         # one body: its returns span ≤ ρ in depth
+    r, a = r[keep], a[keep]
+    if len(r) < min_beams:
+        return None
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    u = pts.mean(axis=0) / np.linalg.norm(pts.mean(axis=0))
+    c = pts.mean(axis=0) + rho * u                    # start on the far side of the returns
+    J = np.zeros((len(pts), 2))
+    for _ in range(20):
+        d = c - pts
+        n = np.linalg.norm(d, axis=1)
+        if np.any(n < 1e-9):
+            return None
+        res = n - rho
+        J = d / n[:, None]
+        step, *_ = np.linalg.lstsq(J, -res, rcond=None)
+        c = c + step
+        if np.linalg.norm(step) < 1e-6:
+            break
+    n = np.linalg.norm(c - pts, axis=1)
+    rms = float(np.sqrt(np.mean((n - rho) ** 2)))
+    if rms > 3 * sigma_m or float(np.dot(c - pts.mean(axis=0), u)) <= 0:
+        return None
+    rng, brg = float(np.hypot(*c)), float(math.atan2(c[1], c[0]))
+    if abs(rng - range_m) > along or abs(math.remainder(brg - bearing_rad, 2 * math.pi)) * \
+            range_m > across_tolerance_m + 0.1 * rho:
+        return None
+    JtJ = J.T @ J
+    if np.linalg.cond(JtJ) > 1e8:
+        return None
+    cov = np.linalg.inv(JtJ) * sigma_m ** 2
+    radial = c / rng
+    tangential = np.array([-radial[1], radial[0]])
+    s_r = math.hypot(math.sqrt(max(float(radial @ cov @ radial), 0.0)), floor_m)
+    s_t = math.hypot(math.sqrt(max(float(tangential @ cov @ tangential), 0.0)), floor_m)
+    return LidarFix(rng, brg, s_r, s_t / rng, len(pts), rms)

@@ -32,6 +32,14 @@ class DetectorConfig(_Model):
     los_margin_m: float = Field(0.4, ge=0.0, description="returns this much nearer than the "
                                 "tag are not the observed robot itself")
     los_max_age_s: float = Field(0.3, gt=0.0, description="the scan must be this recent")
+    lidar_fix: bool = Field(True, description="take a sighted robot's range and bearing from "
+                            "the LIDAR returns off its body when they confirm the tag (past "
+                            "~2 m a tag's range is biased, its centre uncertain across)")
+    body_radius_m: float = Field(0.13, ge=0.0, le=2.0, description="radius of the robots' "
+                                 "(round) bodies at the LIDAR's height; 0: no LIDAR fix")
+    lidar_sigma_m: float = Field(0.01, gt=0.0, le=0.5, description="σ of one LIDAR range")
+    lidar_fix_max_age_s: float = Field(0.05, gt=0.0, description="a sweep this close to the "
+                                       "frame's time; else the next sweep is awaited")
 
 
 class LockstepConfig(_Model):

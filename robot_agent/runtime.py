@@ -27,10 +27,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from mrslam.config import load_config
-from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight
+from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight, lidar_fix
 from robot_agent.backend import Backend, Frame, Sweep
 from robot_agent.config import AgentConfig
 from robot_agent.watchdog import Watchdog
@@ -60,6 +61,9 @@ class Agent:
         self.seq: Counter[str] = Counter()
         self.last_sweep_wall = 0.0
         self.last_sweep: Sweep | None = None
+        self.prev_sweep: Sweep | None = None
+        #: a frame's sightings waiting for the sweep of their moment (stamp, sightings)
+        self.pending_sightings: tuple[int, list[Sighting]] | None = None
         self._status_cpu = (time.monotonic(), time.process_time())
 
     def start(self) -> None:
@@ -102,7 +106,13 @@ class Agent:
                 range_max_mm=sweep.range_max_mm, ranges_mm=sweep.ranges_mm))
             self.counters["scans_sent"] += 1
         self.last_sweep_wall = time.monotonic()
-        self.last_sweep = sweep
+        self.prev_sweep, self.last_sweep = self.last_sweep, sweep
+        if self.pending_sightings is not None:
+            stamp, sightings = self.pending_sightings
+            self.pending_sightings = None
+            near = min((s for s in (self.prev_sweep, sweep) if s is not None),
+                       key=lambda s: abs(s.stamp_ns - stamp))
+            self._publish_sightings(stamp, sightings, near)
         sync = self.backend.sync
         if sweep.step is not None and sync is not None and sync.lockstep():
             self._wait_for_command(sweep.stamp_ns)
@@ -135,36 +145,78 @@ class Agent:
             log.warning("tag detection failed: %s: %s", type(e).__name__, e)
             return
         self.counters["tags_rejected"] += len(found.rejected)
-        sightings = [s for s in found.sightings if self._in_sight(s, frame.stamp_ns)]
-        self.counters["tags_occluded"] += len(found.sightings) - len(sightings)
-        if not sightings:
+        if not found.sightings:
             return
-        dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
-                             bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
-                             sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
-                             sigma_yaw_rad=s.sigma_yaw_rad,
-                             reprojection_error_px=s.reprojection_error_px)
-                for s in sightings[:64]]
+        d, sweep = self.cfg.detector, self.last_sweep
+        if d.lidar_fix and d.body_radius_m > 0 and (
+                sweep is None or frame.stamp_ns - sweep.stamp_ns > d.lidar_fix_max_age_s * 1e9):
+            # the sweep of this moment is still to come (a simulator sends a step's frames
+            # before its sweep; a LIDAR may lag the camera): finish the frame with it
+            if self.pending_sightings is not None:
+                self._publish_sightings(*self.pending_sightings, sweep)
+            self.pending_sightings = (frame.stamp_ns, found.sightings)
+            return
+        self._publish_sightings(frame.stamp_ns, found.sightings, sweep)
+
+    def _publish_sightings(self, stamp_ns: int, found: list[Sighting],
+                           sweep: Sweep | None) -> None:
+        # the LIDAR fix first: past ~5 m a tag's biased range puts the robot's own body
+        # closer than the tag, and the line-of-sight check would take it for a wall
+        located = [self._detection(s, stamp_ns, sweep) for s in found[:64]]
+        dets = [d for d in located if self._in_sight(d.range_m, d.bearing_rad, stamp_ns, sweep)]
+        self.counters["tags_occluded"] += len(located) - len(dets)
+        if not dets:
+            return
         self.publish(keys.robot_tags(self.rid), TagDetections(
-            robot_id=self.rid, seq=self._next("tags"), stamp_ns=frame.stamp_ns, detections=dets))
+            robot_id=self.rid, seq=self._next("tags"), stamp_ns=stamp_ns, detections=dets))
         self.counters["tag_detections"] += len(dets)
 
-    def _in_sight(self, s: Sighting, stamp_ns: int) -> bool:
-        """The line-of-sight check against the latest scan (turned by odometry to the frame's
-        time); without a recent scan the sighting is kept (the server verifies it too)."""
+    def _detection(self, s: Sighting, stamp_ns: int, sweep: Sweep | None) -> TagDetection:
+        """The sighting as sent; range and bearing from the LIDAR where it confirms them."""
+        det = TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
+                           bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
+                           sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
+                           sigma_yaw_rad=s.sigma_yaw_rad,
+                           reprojection_error_px=s.reprojection_error_px)
         d = self.cfg.detector
-        sweep = self.last_sweep
+        if not d.lidar_fix or d.body_radius_m <= 0 or sweep is None or \
+                abs(sweep.stamp_ns - stamp_ns) > d.lidar_fix_max_age_s * 1e9:
+            return det
+        turn = self._turn_since(sweep, stamp_ns)
+        ranges = ranges_from_mm(sweep.ranges_mm)
+        angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
+        fix = lidar_fix(s.range_m, s.bearing_rad + turn, ranges, angles, d.body_radius_m,
+                        d.lidar_sigma_m)
+        if fix is None:
+            self.counters["tags_not_lidar_fixed"] += 1
+            return det
+        self.counters["tags_lidar_fixed"] += 1
+        return msgspec.structs.replace(
+            det, range_m=fix.range_m, bearing_rad=math.remainder(fix.bearing_rad - turn,
+                                                                 2 * math.pi),
+            sigma_range_m=fix.sigma_range_m, sigma_bearing_rad=fix.sigma_bearing_rad,
+            located_by="lidar")
+
+    def _turn_since(self, sweep: Sweep, stamp_ns: int) -> float:
+        """How far the robot turned from the sweep's time to ``stamp_ns`` (odometry)."""
+        at_frame = self.backend.base.odometry_at(stamp_ns)
+        at_sweep = self.backend.base.odometry_at(sweep.stamp_ns)
+        if at_frame is None or at_sweep is None:
+            return 0.0
+        return float(at_frame.pose[2] - at_sweep.pose[2])
+
+    def _in_sight(self, range_m: float, bearing_rad: float, stamp_ns: int,
+                  sweep: Sweep | None) -> bool:
+        """The line-of-sight check against the scan (turned by odometry to the frame's time);
+        without a recent scan the sighting is kept (the server verifies it too)."""
+        d = self.cfg.detector
         if not d.line_of_sight or sweep is None or \
                 abs(sweep.stamp_ns - stamp_ns) > d.los_max_age_s * 1e9:
             return True
-        turn = 0.0
-        at_frame = self.backend.base.odometry_at(stamp_ns)
-        at_sweep = self.backend.base.odometry_at(sweep.stamp_ns)
-        if at_frame is not None and at_sweep is not None:
-            turn = at_frame.pose[2] - at_sweep.pose[2]
+        turn = self._turn_since(sweep, stamp_ns)
         ranges = ranges_from_mm(sweep.ranges_mm)
         angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
-        return in_line_of_sight(s.range_m, s.bearing_rad + turn, ranges, angles,
+        return in_line_of_sight(range_m, bearing_rad + turn, ranges, angles,
                                 math.radians(d.los_half_width_deg), d.los_margin_m)
 
     def _queue_frame(self, frame: Frame) -> None:

@@ -139,6 +139,9 @@ class TagDetection(msgspec.Struct, kw_only=True):
     sigma_bearing_rad: Sigma
     sigma_yaw_rad: Sigma
     reprojection_error_px: Annotated[float, msgspec.Meta(ge=0.0, le=1e4)] = 0.0
+    located_by: Annotated[Literal["tag", "lidar"], msgspec.Meta(
+        description="where range and bearing come from: the tag's pose, or the LIDAR returns "
+                    "off the observed robot's body (the tag then names the robot)")] = "tag"
 
 
 class TagDetections(Message, kw_only=True):

@@ -57,6 +57,9 @@ class TeamsConfig(_Model):
     pose_sigma_deg: float = Field(0.5, gt=0.0)
     max_sighting_range_m: float = Field(2.0, gt=0.0, description="farther tag sightings are "
                                         "not used (their range is biased, their yaw unreliable)")
+    max_lidar_sighting_range_m: float = Field(
+        8.0, ge=0.0, description="sightings whose range and bearing the agent took from the "
+        "LIDAR (located_by: lidar) are used up to this range (0: like any other)")
     sighting_tolerance_s: float = Field(0.15, gt=0.0, description="a robot's nearest scan "
                                         "must be this close to the sighting's time")
     max_pending_s: float = Field(3.0, gt=0.0, description="wait this long for the scans "

@@ -166,7 +166,7 @@ class ServerCore:
         self.tag_counters: dict[str, int] = dict.fromkeys((
             "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
             "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
-            "map_matches", "too_far", "contradictions_overruled"), 0)
+            "map_matches", "too_far", "contradictions_overruled", "merges_deferred"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -353,12 +353,20 @@ class ServerCore:
                 self.tag_counters["self"] += 1
                 continue
             self._call(msg.robot_id, det)
-            if det.range_m > self.cfg.teams.max_sighting_range_m:
+            if det.range_m > self._usable_range_m(det):
                 self.tag_counters["too_far"] += 1
                 continue
             self._pending.append((msg.stamp_ns, msg.robot_id, det))
         latest = max((r.last_stamp_ns for r in self.robots.values()), default=0)
         self._process_pending(max(latest, msg.stamp_ns))
+
+    def _usable_range_m(self, det: TagDetection) -> float:
+        """How far a sighting may be to count: a tag's own range and centre are good only
+        close up, the LIDAR's off the robot's body much farther."""
+        t = self.cfg.teams
+        if det.located_by == "lidar":
+            return max(t.max_sighting_range_m, t.max_lidar_sighting_range_m)
+        return t.max_sighting_range_m
 
     def _call(self, observer: str, det: TagDetection) -> None:
         """A robot of another team was seen: tell both robots where the other one is, so they
@@ -490,6 +498,12 @@ class ServerCore:
         if tried[0] >= t.min_map_match_tries and found == 0:
             self._refuse(p, f"no part of the maps matches within 0.5 m ({tried[0]} tried)",
                          stamp)
+            return
+        far = max((r.sighting.range_m for r in p.records), default=0.0)
+        if far > t.max_sighting_range_m and found == 0 and kind == "tags":
+            # sightings from afar (located by the LIDAR): a small error across the line of
+            # sight turns the maps by a degree; wait until a map match confirms them
+            self.tag_counters["merges_deferred"] += 1
             return
         b_anchor = self.robots[tb.anchor]
         b_origin_before = b_anchor.slam.keyframe_pose(0)

@@ -198,6 +198,15 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
                                detections=[far]))
     assert core.tag_counters["too_far"] >= 1                  # no evidence for a merge ...
     assert r1.look.call is not None and r2.look.call is not None   # ... but a call to both
+    # located by the LIDAR off r2's body, the same sighting is good evidence at 6 m
+    import msgspec
+
+    too_far, used = core.tag_counters["too_far"], core.tag_counters["used"]
+    fixed = msgspec.structs.replace(far, located_by="lidar", sigma_range_m=0.02,
+                                    sigma_bearing_rad=0.004)
+    core.on_tags(TagDetections(robot_id="r1", seq=10, stamp_ns=r1.last_stamp_ns,
+                               detections=[fixed]))
+    assert core.tag_counters["too_far"] == too_far and core.tag_counters["used"] == used + 1
     xy, tol, sure, _ = r1.look.call
     expect = compose(r1.pose, np.array([6.0 * math.cos(0.5), 6.0 * math.sin(0.5), 0.0]))
     assert sure and math.hypot(*(xy - expect[:2])) < 1e-9 and tol < 1.0
@@ -206,8 +215,6 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
                                               math.pi]), np.zeros(3)))
     assert not sure and math.hypot(*(xy - back[:2])) < 1e-9 and tol >= 2.0
     # a sighting with a NaN in it calls nobody (and neither does one within a team)
-    import msgspec
-
     r1.look.call = r2.look.call = None
     nan = msgspec.structs.replace(far, bearing_rad=float("nan"))
     core.on_tags(TagDetections(robot_id="r1", seq=10, stamp_ns=r1.last_stamp_ns,
