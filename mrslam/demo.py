@@ -118,6 +118,8 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
 
 
 def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) -> None:
+    from sim.config import SimConfig
+
     server = {
         "bus": {"mode": "router", "listen": [endpoint], "connect": []},
         "robots": sorted(plan["robots"]),
@@ -135,7 +137,9 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
     }
     (out / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
     for rid in plan["robots"]:
-        agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000}}
+        agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000},
+                 # the simulated robots' bodies, for the LIDAR fix of tag sightings
+                 "detector": {"body_radius_m": SimConfig().drive.radius_m}}
         (out / f"agent_{rid}.yaml").write_text(yaml.safe_dump(agent, sort_keys=False))
     sim = {"camera": {"spurious_rate": cfg.spurious_detections}}
     (out / "sim.yaml").write_text(yaml.safe_dump(sim, sort_keys=False))
