@@ -41,6 +41,10 @@ from schemas.messages import RobotState, ranges_from_mm
 
 log = logging.getLogger(__name__)
 
+#: frames with sightings held for the next sweep at most (a camera may run faster than the
+#: LIDAR); past this the oldest is sent with what the last sweep can tell
+MAX_PENDING_FRAMES = 8
+
 
 class Agent:
     def __init__(self, cfg: AgentConfig, bus: Bus, backend: Backend) -> None:
@@ -62,8 +66,8 @@ class Agent:
         self.last_sweep_wall = 0.0
         self.last_sweep: Sweep | None = None
         self.prev_sweep: Sweep | None = None
-        #: a frame's sightings waiting for the sweep of their moment (stamp, sightings)
-        self.pending_sightings: tuple[int, list[Sighting]] | None = None
+        #: frames' sightings waiting for the sweep of their moment (stamp, sightings)
+        self.pending_sightings: list[tuple[int, list[Sighting]]] = []
         self._status_cpu = (time.monotonic(), time.process_time())
 
     def start(self) -> None:
@@ -107,9 +111,8 @@ class Agent:
             self.counters["scans_sent"] += 1
         self.last_sweep_wall = time.monotonic()
         self.prev_sweep, self.last_sweep = self.last_sweep, sweep
-        if self.pending_sightings is not None:
-            stamp, sightings = self.pending_sightings
-            self.pending_sightings = None
+        pending, self.pending_sightings = self.pending_sightings, []
+        for stamp, sightings in pending:
             near = min((s for s in (self.prev_sweep, sweep) if s is not None),
                        key=lambda s: abs(s.stamp_ns - stamp))
             self._publish_sightings(stamp, sightings, near)
@@ -152,9 +155,9 @@ class Agent:
                 sweep is None or frame.stamp_ns - sweep.stamp_ns > d.lidar_fix_max_age_s * 1e9):
             # the sweep of this moment is still to come (a simulator sends a step's frames
             # before its sweep; a LIDAR may lag the camera): finish the frame with it
-            if self.pending_sightings is not None:
-                self._publish_sightings(*self.pending_sightings, sweep)
-            self.pending_sightings = (frame.stamp_ns, found.sightings)
+            if len(self.pending_sightings) >= MAX_PENDING_FRAMES:   # no sweeps coming
+                self._publish_sightings(*self.pending_sightings.pop(0), sweep)
+            self.pending_sightings.append((frame.stamp_ns, found.sightings))
             return
         self._publish_sightings(frame.stamp_ns, found.sightings, sweep)
 
