@@ -97,6 +97,8 @@ class LoopClosureConfig(_Model):
     ambiguity_ratio: float = Field(0.9, gt=0, le=1,
                                    description="reject if a distinct pose scores this × best")
     confirm_correction_m: float = Field(0.5, gt=0, description="larger jumps need a second closure")
+    confirm_min_score: float = Field(0.7, gt=0, le=1, description="... and both must score this "
+                                     "well (a place that repeats itself scores ~0.6 offset)")
     pending_keyframes: int = Field(40, ge=1, description="an unconfirmed closure expires after")
     confirm_tolerance_m: float = Field(0.3, gt=0)
     confirm_tolerance_deg: float = Field(3.0, gt=0)

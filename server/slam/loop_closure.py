@@ -9,8 +9,8 @@ recent keyframes against older submaps.
   enough for the drift, right after a closure it is small.
 - Verification: branch-and-bound correlative search in the window (global within it), then
   point-to-line ICP; a match must score high, have enough inliers and not be degenerate.
-  A closure that would move the robot by more than ``confirm_correction_m`` waits until a
-  second closure agrees with it.
+  A closure that would move the robot by more than ``confirm_correction_m`` must score at
+  least ``confirm_min_score`` and waits until a second one agrees with it.
 """
 
 from __future__ import annotations
@@ -68,6 +68,7 @@ class LoopStats:
     rejected_icp: int = 0
     rejected_degenerate: int = 0
     rejected_ambiguous: int = 0
+    rejected_weak: int = 0           # a large correction scoring under confirm_min_score
     pending: int = 0
     rejected_unconfirmed: int = 0
     removed_inconsistent: int = 0
@@ -236,6 +237,9 @@ class LoopCloser:
         for lc in found:
             if lc.correction_m <= c.confirm_correction_m:
                 out.append(lc)
+                continue
+            if lc.score < c.confirm_min_score:
+                self.stats.rejected_weak += 1
                 continue
             partner = next((p for p in self._pending if self._consistent(p, lc, poses)), None)
             if partner is None:
