@@ -428,6 +428,11 @@ class ServerCore:
                           self._pose_sigmas)
         self.tag_counters["used"] += 1
         if a.team_id == b.team_id:
+            if det.range_m > self.cfg.teams.max_sighting_range_m:
+                # from afar (located by the LIDAR) a sighting helps find a team; within one,
+                # the maps matched against each other say more
+                self.tag_counters["within_team"] += 1
+                return
             self._within_team(rec)
             return
         proposal = self.verifier.add(a.team_id, b.team_id, rec)
