@@ -9,6 +9,8 @@ from typing import Protocol
 
 import numpy as np
 
+from schemas.messages import ranges_from_mm
+
 Pose = tuple[float, float, float]
 
 
@@ -23,6 +25,11 @@ class Sweep:
     range_max_mm: int
     ranges_mm: bytes                 # uint16 little-endian, 0 = no return
     step: int | None = None          # the simulator's step (lockstep only)
+
+    def polar(self) -> tuple[np.ndarray, np.ndarray]:
+        """Ranges [m] (inf: no return) and beam angles [rad]."""
+        ranges = ranges_from_mm(self.ranges_mm)
+        return ranges, self.angle_min_rad + self.angle_increment_rad * np.arange(len(ranges))
 
 
 @dataclass(frozen=True)

@@ -11,16 +11,12 @@ import queue
 import sys
 from typing import TextIO
 
-import numpy as np
-
 from robot_agent.backend import Sweep
 from robot_agent.drivers.rplidar import LidarTimeout, RplidarSource
-from schemas.messages import ranges_from_mm
 
 
 def format_sweep(sweep: Sweep) -> str:
-    ranges = ranges_from_mm(sweep.ranges_mm)
-    angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
+    ranges, angles = sweep.polar()
     pairs = " ".join(f"{a:.5f} {r:.3f}" for a, r in zip(angles, ranges, strict=True))
     return f"{sweep.stamp_ns} {len(ranges)} {pairs}"
 

@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
-import numpy as np
 
 from mrslam.config import load_config
 from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight, lidar_fix
@@ -37,7 +36,7 @@ from robot_agent.config import AgentConfig
 from robot_agent.watchdog import Watchdog
 from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus
-from schemas.messages import RobotState, ranges_from_mm
+from schemas.messages import RobotState
 
 log = logging.getLogger(__name__)
 
@@ -186,8 +185,7 @@ class Agent:
                 abs(sweep.stamp_ns - stamp_ns) > d.lidar_fix_max_age_s * 1e9:
             return det
         turn = self._turn_since(sweep, stamp_ns)
-        ranges = ranges_from_mm(sweep.ranges_mm)
-        angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
+        ranges, angles = sweep.polar()
         fix = lidar_fix(s.range_m, s.bearing_rad + turn, ranges, angles, d.body_radius_m,
                         d.lidar_sigma_m)
         if fix is None:
@@ -217,8 +215,7 @@ class Agent:
                 abs(sweep.stamp_ns - stamp_ns) > d.los_max_age_s * 1e9:
             return True
         turn = self._turn_since(sweep, stamp_ns)
-        ranges = ranges_from_mm(sweep.ranges_mm)
-        angles = sweep.angle_min_rad + sweep.angle_increment_rad * np.arange(len(ranges))
+        ranges, angles = sweep.polar()
         return in_line_of_sight(range_m, bearing_rad + turn, ranges, angles,
                                 math.radians(d.los_half_width_deg), d.los_margin_m)
 
