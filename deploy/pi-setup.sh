@@ -62,8 +62,10 @@ hardware:
   lidar: {port: /dev/rplidar, baud: 115200, beams: 360, mount_yaw_rad: 0.0}
   base: {port: /dev/mrslam-base, track_m: 0.30, wheel_radius_m: 0.05, ticks_per_rev: 1000}
   camera: {enabled: true, device: 0, calibration: /etc/mrslam/camera.yaml, rate_hz: 5}
+detector: {body_radius_m: 0.13}
 YAML
-  echo "wrote /etc/mrslam/agent.yaml: measure track_m, wheel_radius_m, ticks_per_rev and add" \
+  echo "wrote /etc/mrslam/agent.yaml: measure track_m, wheel_radius_m, ticks_per_rev and the" \
+    "other robots' body radius at LIDAR height (detector.body_radius_m; 0: tags alone), and add" \
     "/etc/mrslam/camera.yaml (K, dist) before driving" >&2
 fi
 

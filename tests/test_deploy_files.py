@@ -42,3 +42,17 @@ def test_the_sketch_uses_the_drivers_constants() -> None:
         "T_SPEED": proto.SPEED, "T_STOP": proto.STOP, "T_ENCODERS": proto.ENCODERS}
     assert "0x07" in ino and "0xAA" in ino and "0x55" in ino
     assert f"uint8_t f[6 + {len(proto.Encoders(0, 0, 0, 0).encode(0)) - 6}]" in ino
+
+
+def test_the_agent_config_pi_setup_writes_is_valid() -> None:
+    import yaml
+
+    from robot_agent.config import AgentConfig
+
+    script = (DEPLOY / "pi-setup.sh").read_text()
+    body = re.search(r"<<YAML\n(.*?)\nYAML\n", script, re.S)
+    assert body is not None
+    text = (body.group(1).replace("$rid", "r1").replace("$endpoint", "tls/server:7447")
+            .replace("$zenoh_config", "/etc/mrslam/zenoh-agent.json5"))
+    cfg = AgentConfig.model_validate(yaml.safe_load(text))
+    assert cfg.robot_id == "r1" and cfg.detector.body_radius_m > 0
