@@ -103,7 +103,9 @@ def test_same_place_is_accepted_by_verification() -> None:
     assert abs(lc.T_anchor_kf[2] - truth[2]) < math.radians(0.5)
 
 
-def test_large_correction_waits_for_confirmation() -> None:
+def revisit_after_drift(min_score: float = 0.7) -> tuple[LoopCloser, list[Keyframe], np.ndarray]:
+    """A room seen from six keyframes, then again after the odometry drifted 0.9 m / 6°; the
+    first six form a submap."""
     room = room_world()
     poses_a = np.array([[1.5 + 0.3 * i, 2.0, 0.1 * i] for i in range(6)])
     drift = np.array([0.8, -0.4, math.radians(6.0)])
@@ -111,10 +113,16 @@ def test_large_correction_waits_for_confirmation() -> None:
     kfs = keyframes_from(room, poses_a) + keyframes_from(room, poses_b_true, 6)
     poses = np.concatenate([poses_a, compose(np.broadcast_to(drift, (12, 3)), poses_b_true)])
     cfg = LoopClosureConfig(block_keyframes=6, min_graph_distance_m=0.0, query_keyframes=3,
-                            radius_base_m=1.5, confirm_correction_m=0.5)
+                            radius_base_m=1.5, confirm_correction_m=0.5,
+                            confirm_min_score=min_score)
     closer = LoopCloser(cfg, IcpParams())
     chain(closer, poses)
     closer.maybe_close_submap(kfs[:6], poses[:6])
+    return closer, kfs, poses
+
+
+def test_large_correction_waits_for_confirmation() -> None:
+    closer, kfs, poses = revisit_after_drift()
     assert closer.search(10, kfs[:11], poses[:11]) == []  # one sighting: pending
     assert closer.stats.pending == 1
     confirmed = closer.search(17, kfs, poses)  # a later, independent one agrees
@@ -125,19 +133,8 @@ def test_a_large_correction_needs_a_strong_match() -> None:
     """A place that repeats itself (a row of like rooms) matches an old submap a few metres
     off at a middling score, and keeps doing so as the robot goes on: a large correction
     must score well before it may wait for confirmation at all."""
-    room = room_world()
-    poses_a = np.array([[1.5 + 0.3 * i, 2.0, 0.1 * i] for i in range(6)])
-    drift = np.array([0.8, -0.4, math.radians(6.0)])
-    poses_b_true = np.array([[2.0 + 0.2 * i, 2.3, 0.2] for i in range(12)])
-    kfs = keyframes_from(room, poses_a) + keyframes_from(room, poses_b_true, 6)
-    poses = np.concatenate([poses_a, compose(np.broadcast_to(drift, (12, 3)), poses_b_true)])
     for min_score, weak in ((0.7, 0), (0.999, 2)):
-        cfg = LoopClosureConfig(block_keyframes=6, min_graph_distance_m=0.0, query_keyframes=3,
-                                radius_base_m=1.5, confirm_correction_m=0.5,
-                                confirm_min_score=min_score)
-        closer = LoopCloser(cfg, IcpParams())
-        chain(closer, poses)
-        closer.maybe_close_submap(kfs[:6], poses[:6])
+        closer, kfs, poses = revisit_after_drift(min_score)
         closer.search(10, kfs[:11], poses[:11])
         confirmed = closer.search(17, kfs, poses)
         assert closer.stats.rejected_weak == weak
