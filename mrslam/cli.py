@@ -169,7 +169,9 @@ def demo(
     world: Annotated[Path | None, typer.Option(help="world file instead of a scenario")] = None,
     robot: Annotated[list[str] | None, typer.Option(
         help="robot spawn ID:X,Y,YAW (repeatable)")] = None,
-    area: Annotated[float | None, typer.Option(help="free area to cover [m²]")] = None,
+    area: Annotated[float | None, typer.Option(
+        help="area to cover [m²]: free space plus the wall faces bounding it; default: the "
+        "world's")] = None,
     coverage: Annotated[float | None, typer.Option(help="coverage threshold (0..1]")] = None,
     seed: Annotated[int, typer.Option(help="random seed")] = 0,
     lockstep: Annotated[bool, typer.Option(
@@ -406,7 +408,8 @@ def world_map(
         from sim.world_map import run
 
         fig = run(world, resolution, out)
-        typer.echo(f"free area {fig['free_area_m2']:.2f} m² (largest region "
+        typer.echo(f"free area {fig['free_area_m2']:.2f} m², with wall faces "
+                   f"{fig['explorable_area_m2']:.2f} m² (largest region "
                    f"{fig['largest_region_m2']:.2f} m², bounding box {fig['bbox_m2']:.2f} m²) "
                    f"-> {fig['map']}")
         return fig

@@ -34,7 +34,8 @@ class DemoConfig(BaseModel):
     world: str | None = None
     robots: dict[str, Pose] = Field(default_factory=dict)
     area_m2: float | None = Field(
-        None, gt=0, description="free area to cover; default: the world's, from its geometry")
+        None, gt=0, description="area to cover (free space and the wall faces bounding it, "
+        "as coverage counts both); default: the world's, from its geometry")
     coverage: float | None = Field(None, gt=0, le=1, description="default: the scenario's")
     seed: int = 0
     lockstep: bool = True
@@ -98,7 +99,7 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
                             if cfg.scenario else {})
     cells = cfg.cells_per_m or float(case.get("grid_cells_per_m", 15))
     truth_grid, figures = world_map(world, 1.0 / cells)
-    area = cfg.area_m2 or float(figures["free_area_m2"])
+    area = cfg.area_m2 or float(figures["explorable_area_m2"])
     return {
         "title": cfg.scenario or str(world),
         "world": str(world),

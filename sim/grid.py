@@ -106,6 +106,15 @@ def free_regions(grid: OccupancyGrid) -> list[float]:
     return sorted((float(c) * grid.resolution_m ** 2 for c in counts), reverse=True)
 
 
+def wall_face_area_m2(grid: OccupancyGrid) -> float:
+    """Area [m²] of the occupied cells that touch (8-neighbourhood) a free cell: the walls as a
+    LIDAR sees them from the free space. A map being explored marks these cells too, and
+    exploration coverage counts them (explored = free or occupied)."""
+    free = (grid.cells == FREE).astype(np.uint8)
+    near_free = cv2.dilate(free, np.ones((3, 3), np.uint8)).astype(bool)
+    return float(np.count_nonzero(near_free & (grid.cells == OCCUPIED))) * grid.resolution_m ** 2
+
+
 # -- nav2 map files ----------------------------------------------------------------------------
 def write_nav2(grid: OccupancyGrid, out_dir: str | Path, name: str = "map") -> Path:
     """Write ``name.pgm``, ``name.png`` and ``name.yaml`` (trinary) into ``out_dir``."""

@@ -77,3 +77,53 @@ def test_two_robots_merge_over_the_wire(tmp_path: Path) -> None:
     # arrive, and here r2's drift along the rooms' axis peaked between 0.01 and 0.105 m in 9 runs
     for r in report["robots"].values():
         assert r["collisions"] == 0 and r["max_position_error_m"] < 0.15
+
+
+def office_of_identical_rooms(folder: Path) -> Path:
+    """A 15 m × 12 m office: a 3 m corridor between two rows of three rooms that look alike (same
+    size, same table, door at the same place), so a map match can fit a room onto the wrong one;
+    walls 0.1 m thick (a nav2 map)."""
+    res = 0.05
+    w, h, t = 15.0, 12.0, 0.1
+    img = np.full((round(h / res), round(w / res)), 254, np.uint8)
+
+    def box(x0: float, y0: float, x1: float, y1: float, value: int = 0) -> None:
+        img[round(y0 / res):round(y1 / res), round(x0 / res):round(x1 / res)] = value
+
+    box(0, 0, w, t), box(0, h - t, w, h), box(0, 0, t, h), box(w - t, 0, w, h)
+    for y0, y1, door_y in ((0.0, 4.5, 4.5 - t), (7.5, h, 7.5)):
+        box(0, door_y, w, door_y + t)                      # corridor wall
+        for i in range(3):
+            x = i * w / 3
+            if i:
+                box(x, y0, x + t, y1)                      # between rooms
+            box(x + 1.0, door_y, x + 2.0, door_y + t, 254)  # door
+            ty = (y0 + y1) / 2 - 0.4
+            box(x + 2.5, ty, x + 3.7, ty + 0.8)            # table
+    cv2.imwrite(str(folder / "office.pgm"), img[::-1])
+    meta = {"image": "office.pgm", "resolution": res, "origin": [0.0, 0.0, 0.0], "negate": 0,
+            "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
+    path = folder / "office.yaml"
+    path.write_text(yaml.safe_dump(meta))
+    return path
+
+
+def test_three_robots_merge_correctly_among_identical_rooms(tmp_path: Path) -> None:
+    """A world none of the tuning saw, with rooms that repeat and a fifth of the tag views drawn
+    false: the team still forms from correct merges only and explores the office."""
+    world = office_of_identical_rooms(tmp_path)
+    report = run({"scenario": None, "world": str(world),
+                  "robots": {"r1": (1.0, 6.0, 0.0), "r2": (14.0, 6.0, 3.1),
+                             "r3": (6.0, 2.0, 1.57)},
+                  "coverage": 0.95, "cells_per_m": 15, "spurious_detections": 0.2,
+                  "max_sim_time_s": 600, "wall_timeout_s": 400,
+                  "out": str(tmp_path / "run")}, progress=False)
+    assert report["end"] == "finished", report["end"]
+    assert report["false_merges"] == 0
+    assert report["reached"] and report["true_coverage"] >= 0.85
+    merges = [m for m in report["merges"] if not m["undone"]]
+    assert merges, "no merge"
+    for m in merges:
+        assert m["joint_error_m"] <= 0.1 and m["joint_error_deg"] <= 1.0, m
+    for r in report["robots"].values():
+        assert r["collisions"] == 0 and r["max_position_error_m"] < 0.15

@@ -10,8 +10,18 @@ import pytest
 from typer.testing import CliRunner
 
 from mrslam.cli import app
+from mrslam.demo import DemoConfig, plan_run
 from sim.errors import WorldError
-from sim.grid import FREE, OCCUPIED, UNKNOWN, rasterise, read_nav2, write_nav2
+from sim.grid import (
+    FREE,
+    OCCUPIED,
+    UNKNOWN,
+    OccupancyGrid,
+    rasterise,
+    read_nav2,
+    wall_face_area_m2,
+    write_nav2,
+)
 from sim.loader import load_world
 from sim.raycast import RayCaster
 from sim.world_map import world_map
@@ -165,3 +175,27 @@ def test_world_map_free_area_of_the_large_world(tmp_path: Path) -> None:
     back = read_nav2(tmp_path / "map.yaml")
     assert np.count_nonzero(back.cells == FREE) * 0.01 == pytest.approx(fig["free_area_m2"])
     assert np.count_nonzero(back.cells == OCCUPIED) > 0
+
+
+def test_wall_face_area_counts_the_walls_as_seen_from_the_free_space() -> None:
+    """A 4 m × 3 m room inside 0.3 m walls (cells of 0.1 m): only the walls' inner faces, one
+    cell thick, count — not the wall's thickness behind them, not the outside."""
+    cells = np.full((40, 50), UNKNOWN, np.int8)      # 5 m × 4 m
+    cells[2:38, 2:48] = OCCUPIED                    # walls 0.3 m thick around the room
+    cells[5:35, 5:45] = FREE                        # the room: 4 m × 3 m
+    grid = OccupancyGrid(cells, 0.1, (0.0, 0.0, 0.0))
+    # the ring of cells round the room: (40 + 2) × (30 + 2) − 40 × 30 cells
+    assert wall_face_area_m2(grid) == pytest.approx((42 * 32 - 40 * 30) * 0.01)
+    cells[20, 5:45] = OCCUPIED                      # a partition: seen from both sides
+    assert wall_face_area_m2(grid) == pytest.approx((42 * 32 - 40 * 30 + 40) * 0.01)
+
+
+def test_default_area_to_cover_adds_the_wall_faces_to_the_free_area() -> None:
+    """Coverage counts free and occupied cells as explored, so the demo's default area does
+    too: otherwise a threshold is met with part of the free space unseen."""
+    _, fig = world_map(THESIS / "house_small.world", 1 / 15)
+    assert fig["explorable_area_m2"] == pytest.approx(
+        fig["free_area_m2"] + fig["wall_face_area_m2"], abs=1e-3)
+    assert 0.0 < fig["wall_face_area_m2"] < fig["occupied_area_m2"]
+    plan = plan_run(DemoConfig(scenario="thesis-case-1"))
+    assert plan["area_m2"] == pytest.approx(fig["explorable_area_m2"])
