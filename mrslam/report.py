@@ -257,11 +257,16 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
 def print_summary(report: dict[str, Any], console: Any) -> None:
     from rich.table import Table
 
-    table = Table(title=f"{report['scenario']}: "
-                        f"{'reached' if report['reached'] else 'did NOT reach'} "
-                        f"{report['threshold']:.0%} "
-                        f"in {report['sim_time_to_threshold_s'] or float('nan'):.0f} s sim "
-                        f"({report['wall_time_s']:.0f} s wall)")
+    if report["reached"]:
+        outcome = (f"reached {report['threshold']:.0%} in "
+                   f"{report['sim_time_to_threshold_s']:.0f} s sim")
+    else:  # name the teams that fell short: a robot may never have met the others
+        short = ", ".join(f"{tid} ({'+'.join(t['robot_ids'])}) {t['coverage'] or 0.0:.0%}"
+                          for tid, t in report["teams"].items()
+                          if not t.get("merged_into") and not t["reached"])
+        outcome = (f"did NOT reach {report['threshold']:.0%} in {report['sim_time_s']:.0f} s "
+                   f"sim: {short}")
+    table = Table(title=f"{report['scenario']}: {outcome} ({report['wall_time_s']:.0f} s wall)")
     for col in ("robot", "distance m", "max pos err m", "max yaw err rad", "ATE m",
                 "collisions", "bytes sent"):
         table.add_column(col)

@@ -40,3 +40,35 @@ def test_final_start_frame_error_is_read_from_the_final_joint_map() -> None:
     rows = merge_errors([_merge(T_true)], own, final, None, first_online,
                         {"a": "t-a", "b": "t-b"})
     assert "final_error_m" not in rows[0] and rows[0]["joint_error_m"] < 1e-9
+
+
+def _summary(report: dict) -> str:
+    import io
+
+    from rich.console import Console
+
+    from mrslam.report import print_summary
+
+    buf = io.StringIO()
+    print_summary(report, Console(file=buf, width=200))
+    return buf.getvalue()
+
+
+def test_summary_names_the_team_that_fell_short() -> None:
+    """A robot that never met the others (here shut in a room) keeps the run from its threshold;
+    the summary says which team and how far it got, not a time of nan."""
+    robot = {"distance_m": 0.0, "max_position_error_m": 0.004, "max_yaw_error_rad": 0.002,
+             "ate_rmse_m": 0.001, "collisions": 0, "bytes_sent": 10}
+    teams = {"team-r1": {"robot_ids": ["r1", "r2"], "coverage": 0.97, "reached": True},
+             "team-r2": {"robot_ids": ["r2"], "coverage": 0.6, "reached": False,
+                         "merged_into": "team-r1"},
+             "team-r3": {"robot_ids": ["r3"], "coverage": 0.04, "reached": False}}
+    report = {"scenario": "w", "reached": False, "threshold": 0.95, "teams": teams,
+              "sim_time_to_threshold_s": None, "sim_time_s": 86.0, "wall_time_s": 25.0,
+              "robots": {"r1": robot, "r2": robot, "r3": robot}, "true_coverage": 0.04,
+              "phantom_area_m2": 0.0, "end": "finished"}
+    text = _summary(report)
+    assert "did NOT reach 95% in 86 s sim: team-r3 (r3) 4%" in text
+    assert "team-r2" not in text and "nan" not in text
+    report.update(reached=True, sim_time_to_threshold_s=70.0, teams={"team-r1": teams["team-r1"]})
+    assert "reached 95% in 70 s sim" in _summary(report)
