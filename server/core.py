@@ -746,6 +746,8 @@ class ServerCore:
         self._coordinate(old)
         merge.undone_stamp_ns = rec.stamp_ns
         self.tag_counters["merges_undone"] += 1
+        log.warning("%s split from %s: sightings between %s and %s contradict the merge",
+                    old.team_id, team.team_id, *pair)
         self.emit("merge_undone", side_a + side_b, team.team_id,
                   f"{old.team_id} split from {team.team_id}: sightings contradict the merge",
                   rec.stamp_ns)
