@@ -120,7 +120,9 @@ def test_three_robots_merge_correctly_among_identical_rooms(tmp_path: Path) -> N
                   "out": str(tmp_path / "run")}, progress=False)
     assert report["end"] == "finished", report["end"]
     assert report["false_merges"] == 0
-    assert report["reached"] and report["true_coverage"] >= 0.85
+    # the threshold is 95 % of free space and wall faces: free space itself is about as well
+    # seen (0.96 in two runs; against free space alone, 0.95 left ~0.89 seen)
+    assert report["reached"] and report["true_coverage"] >= 0.92
     merges = [m for m in report["merges"] if not m["undone"]]
     assert merges, "no merge"
     for m in merges:
