@@ -103,3 +103,35 @@ def test_wall_memory_round_trip_and_suppresses_faded_walls() -> None:
     # another resolution starts afresh
     mem.update(OccupancyGrid(np.zeros((5, 5), np.int8), 0.05, (0.0, 0.0)))
     assert len(mem) == 0
+
+
+def hall_open_along_one_side() -> OccupancyGrid:
+    """An 8 × 2 m hall (x 1–9, y 1–3) whose upper side has not been seen: one frontier 8 m
+    long, like the edge of what grazing beams showed of a long room."""
+    d = np.full((60, 110), -1, np.int8)
+    d[10:30, 10:90] = 0
+    d[9, 9:91] = 100
+    d[9:31, 9] = 100
+    d[9:31, 90] = 100
+    return OccupancyGrid(d, RES, (0.0, 0.0))
+
+
+def test_one_robot_looks_across_a_long_frontier_from_its_near_end() -> None:
+    g = hall_open_along_one_side()
+    robot = np.array([1.6, 1.6])
+    a = analyse(g, AnalysisParams())
+    assert len(a.frontiers) == 1
+    reach = reachable_mask(a.layer, [robot], escape_radius_m=0.5)
+    placer = TargetPlacer(a.layer, reach, a.grid.occupied)
+    geo = a.grid.geometry
+    middle = placer.frontiers(a.frontiers, 1.0)[0]
+    near = placer.frontiers(a.frontiers, 1.0, geo.world_to_cell(robot).astype(float))[0]
+    assert middle is not None and near is not None
+    x_mid = geo.cell_to_world(np.array([middle]))[0, 0]
+    x_near = geo.cell_to_world(np.array([near]))[0, 0]
+    assert 4.0 < x_mid < 6.0 and x_near < 3.0
+    # the Voronoi explorer, deciding for one robot, goes to the near end: a few steps there
+    # show the whole hall, where its middle is a 4 m drive
+    out = VoronoiExplorer(ExplorerParams(lam=1.0)).decide(g, (*robot, 0.0), (*robot, 0.0),
+                                                          VisitedTargets())
+    assert isinstance(out, Decision) and out.target_xy[0] < 3.0

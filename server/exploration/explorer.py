@@ -130,9 +130,10 @@ class _Proposal:
     # Per target: the reachable cell the robot goes to (None: there is none near it).
     snapped: list[tuple[int, int] | None] = field(default_factory=list)
 
-    def place(self, placer: TargetPlacer, params: ExplorerParams) -> _Proposal:
+    def place(self, placer: TargetPlacer, params: ExplorerParams,
+              toward_rc: NDArray[np.float64] | None = None) -> _Proposal:
         if self.frontiers is not None:
-            self.snapped = placer.frontiers(self.frontiers, params.approach_radius_m)
+            self.snapped = placer.frontiers(self.frontiers, params.approach_radius_m, toward_rc)
         else:
             self.snapped = placer.points(self.rc, params.snap_radius_m)
         return self
@@ -168,6 +169,10 @@ class Explorer(ABC):
         self.params = params or ExplorerParams()
         #: cells once seen occupied, kept off frontiers (see :mod:`server.exploration.walls`)
         self.walls_seen = WallMemory()
+
+    # Look across a frontier cluster from near its end closest to the robot (one robot
+    # deciding), rather than from near its middle.
+    near_end_of_frontiers = False
 
     @property
     def recheck_period_s(self) -> float | None:
@@ -275,7 +280,9 @@ class Explorer(ABC):
                           robots_xy: list[NDArray[np.float64]]) -> list[_Proposal]:
         reach = reachable_mask(analysis.layer, robots_xy, self.params.escape_radius_m)
         placer = TargetPlacer(analysis.layer, reach, analysis.grid.occupied)
-        return [pr.place(placer, self.params) for pr in self._proposals(analysis)]
+        toward = (analysis.layer.geometry.world_to_cell(robots_xy[0]).astype(np.float64)
+                  if self.near_end_of_frontiers and len(robots_xy) == 1 else None)
+        return [pr.place(placer, self.params, toward) for pr in self._proposals(analysis)]
 
     @abstractmethod
     def _proposals(self, analysis: MapAnalysis) -> list[_Proposal]:
@@ -334,6 +341,7 @@ class VoronoiExplorer(Explorer):
     clusters (same score) when no junction qualifies."""
 
     name = VORONOI
+    near_end_of_frontiers = True
 
     @property
     def recheck_period_s(self) -> float | None:

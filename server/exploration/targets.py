@@ -83,15 +83,20 @@ class TargetPlacer:
         k = radius_m / self.layer.geometry.resolution_m
         return [self._nearest(int(r), int(c), k) for r, c in rc]
 
-    def frontiers(self, fr: Frontiers, radius_m: float) -> list[tuple[int, int] | None]:
-        """Per frontier cluster: where to stand to look across it (None: out of reach)."""
+    def frontiers(self, fr: Frontiers, radius_m: float, toward_rc: NDArray[np.float64] | None = None
+                  ) -> list[tuple[int, int] | None]:
+        """Per frontier cluster: where to stand to look across it (None: out of reach): near
+        its middle, or with ``toward_rc`` (a cell, e.g. the robot's) near its end closest to
+        that cell."""
         out: list[tuple[int, int] | None] = [None] * len(fr)
         if not self.any or len(fr) == 0:
             return out
         k = radius_m / self.layer.geometry.resolution_m
         cells = fr.cells_rc
         near_ok = self._dist_cells[cells[:, 0], cells[:, 1]] <= k
-        d2 = np.sum((cells - fr.centroid_rc[fr.cell_cluster]) ** 2, axis=1)
+        ref = (fr.centroid_rc[fr.cell_cluster] if toward_rc is None
+               else np.asarray(toward_rc, np.float64).reshape(1, 2))
+        d2 = np.sum((cells - ref) ** 2, axis=1)
         order = np.lexsort((d2, fr.cell_cluster))
         order = order[near_ok[order]]
         clusters = fr.cell_cluster[order]
