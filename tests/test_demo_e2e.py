@@ -11,6 +11,16 @@ import yaml
 from mrslam.demo import run
 
 
+def write_map(folder: Path, name: str, img: np.ndarray, res: float) -> Path:
+    """A nav2 map (``name``.pgm and .yaml) of ``img``, whose row 0 is the world's bottom."""
+    cv2.imwrite(str(folder / f"{name}.pgm"), img[::-1])  # the image's first row is the top
+    meta = {"image": f"{name}.pgm", "resolution": res, "origin": [0.0, 0.0, 0.0], "negate": 0,
+            "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
+    path = folder / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(meta))
+    return path
+
+
 def three_rooms(folder: Path) -> Path:
     """A 10 m × 6 m flat of three rooms whose doors are out of each other's sight; walls
     0.15 m thick (a nav2 map)."""
@@ -27,12 +37,7 @@ def three_rooms(folder: Path) -> Path:
     box(4.5, 1.0, 4.5 + t, 2.0, 254)          # door A-B, low on the wall
     box(4.5, 3.5, 10.5, 3.5 + t, 0)           # B / C
     box(9.0, 3.5, 10.0, 3.5 + t, 254)         # door B-C, far right
-    cv2.imwrite(str(folder / "flat.pgm"), img[::-1])  # the image's first row is the top
-    meta = {"image": "flat.pgm", "resolution": res, "origin": [0.0, 0.0, 0.0], "negate": 0,
-            "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
-    path = folder / "flat.yaml"
-    path.write_text(yaml.safe_dump(meta))
-    return path
+    return write_map(folder, "flat", img, res)
 
 
 def test_one_robot_explores_three_rooms_accurately(tmp_path: Path) -> None:
@@ -100,12 +105,7 @@ def office_of_identical_rooms(folder: Path) -> Path:
             box(x + 1.0, door_y, x + 2.0, door_y + t, 254)  # door
             ty = (y0 + y1) / 2 - 0.4
             box(x + 2.5, ty, x + 3.7, ty + 0.8)            # table
-    cv2.imwrite(str(folder / "office.pgm"), img[::-1])
-    meta = {"image": "office.pgm", "resolution": res, "origin": [0.0, 0.0, 0.0], "negate": 0,
-            "occupied_thresh": 0.65, "free_thresh": 0.196, "mode": "trinary"}
-    path = folder / "office.yaml"
-    path.write_text(yaml.safe_dump(meta))
-    return path
+    return write_map(folder, "office", img, res)
 
 
 def test_three_robots_merge_correctly_among_identical_rooms(tmp_path: Path) -> None:
