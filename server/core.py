@@ -439,20 +439,10 @@ class ServerCore:
         if proposal is not None:
             self.try_merge(proposal, stamp)
 
-    def _link(self, rec: SightingRecord, share: int = 1) -> Link:
-        """The factor of one sighting. ``share``: how many sightings of one meeting it is among.
-        Those share their errors (one spot, one view of the tag, one body outline in the scan),
-        so each is weighted as 1/share of a sighting: together they count as one, and where the
-        maps overlap, their match decides the transform rather than a bias the sightings share."""
+    def _link(self, rec: SightingRecord) -> Link:
         a, b = self.robots[rec.observer], self.robots[rec.observed]
-        s = rec.sighting
-        if share > 1:
-            k = math.sqrt(share)
-            s = dataclasses.replace(s, sigma_range_m=s.sigma_range_m * k,
-                                    sigma_bearing_rad=s.sigma_bearing_rad * k,
-                                    sigma_yaw_rad=s.sigma_yaw_rad * k)
         f = rendezvous_factor(a.slam.trajectory.key(rec.kf_a), b.slam.trajectory.key(rec.kf_b),
-                              s, rec.T_kf_a, rec.T_kf_b, kernel="huber")
+                              rec.sighting, rec.T_kf_a, rec.T_kf_b, kernel="huber")
         return Link(rec.observer, rec.observed, rec.stamp_ns, FactorRecord(f, "rendezvous"))
 
     def own_frames_link(self, a: str, b: str, T_own: F64, sigmas: F64, kind: str,
@@ -522,7 +512,7 @@ class ServerCore:
             return
         b_anchor = self.robots[tb.anchor]
         b_origin_before = b_anchor.slam.keyframe_pose(0)
-        links = [self._link(r, share=len(p.records)) for r in p.records] + list(extra_links)
+        links = [self._link(r) for r in p.records] + list(extra_links)
         self._rebuild(ta, [(rid, np.zeros(3)) for rid in ta.robot_ids]
                       + [(rid, p.T_ab) for rid in tb.robot_ids],
                       ta.links + tb.links + links)
