@@ -27,6 +27,9 @@ class ExploreConfig(_Model):
     replan_period_s: float = Field(4.0, gt=0.0, description="re-decide the target this often")
     visited_radius_m: float = Field(1.0, gt=0.0, description="targets this close count as visited")
     unknown_as_obstacle: bool = Field(True, description="plan only through observed free space")
+    frontier_view: Literal["near_end", "middle"] = Field(
+        "near_end", description="Voronoi explorer, one robot deciding: look across a frontier "
+        "from near its end closest to the robot, or from near its middle (teams: the middle)")
 
 
 class ControlConfig(_Model):

@@ -748,7 +748,8 @@ class ServerCore:
         analysis = AnalysisParams(cost=CostParams(robot_radius_m=c.robot_radius_m,
                                                   unknown_is_obstacle=e.unknown_as_obstacle))
         return ExplorerParams(analysis=analysis, lam=e.lam, total_area_m2=e.total_area_m2,
-                              coverage_threshold=e.coverage_threshold)
+                              coverage_threshold=e.coverage_threshold,
+                              frontier_view=e.frontier_view)
 
     # -- outputs ---------------------------------------------------------------------------
     @property

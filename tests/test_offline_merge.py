@@ -44,9 +44,12 @@ STEPS = 300
 
 
 def config(**teams: object) -> ServerConfig:
+    # (frontiers are looked across from their middle: the robots' first moves then keep r1 in
+    # r2's view long enough for a rendezvous; from the near end, r2 turns away at once)
     return ServerConfig.model_validate({
         "slam": {"grid": {"resolution_m": 1 / 15}},
-        "explore": {"total_area_m2": 2500, "coverage_threshold": 0.9},
+        "explore": {"total_area_m2": 2500, "coverage_threshold": 0.9,
+                    "frontier_view": "middle"},
         "teams": teams,
     })
 

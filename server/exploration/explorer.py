@@ -72,6 +72,10 @@ class ExplorerParams:
     # is, and pooled frontier clusters — they line the whole known region — would send it to
     # and fro between edges about as far from the start; junctions first damp that.
     pool_groups: bool | None = None
+    # Voronoi explorer, one robot deciding: look across a frontier cluster from near its end
+    # closest to the robot ("near_end"; a long frontier, e.g. a corridor seen at a grazing
+    # angle, is resolved by a few steps there) or from near its middle ("middle").
+    frontier_view: str = "near_end"
 
     @property
     def pooled(self) -> bool:
@@ -170,9 +174,8 @@ class Explorer(ABC):
         #: cells once seen occupied, kept off frontiers (see :mod:`server.exploration.walls`)
         self.walls_seen = WallMemory()
 
-    # Look across a frontier cluster from near its end closest to the robot (one robot
-    # deciding), rather than from near its middle.
-    near_end_of_frontiers = False
+    # Whether ``params.frontier_view`` applies (the frontier baseline keeps the middle).
+    views_frontiers_from_near_end = False
 
     @property
     def recheck_period_s(self) -> float | None:
@@ -281,7 +284,8 @@ class Explorer(ABC):
         reach = reachable_mask(analysis.layer, robots_xy, self.params.escape_radius_m)
         placer = TargetPlacer(analysis.layer, reach, analysis.grid.occupied)
         toward = (analysis.layer.geometry.world_to_cell(robots_xy[0]).astype(np.float64)
-                  if self.near_end_of_frontiers and len(robots_xy) == 1 else None)
+                  if self.views_frontiers_from_near_end and self.params.frontier_view == "near_end"
+                  and len(robots_xy) == 1 else None)
         return [pr.place(placer, self.params, toward) for pr in self._proposals(analysis)]
 
     @abstractmethod
@@ -341,7 +345,7 @@ class VoronoiExplorer(Explorer):
     clusters (same score) when no junction qualifies."""
 
     name = VORONOI
-    near_end_of_frontiers = True
+    views_frontiers_from_near_end = True
 
     @property
     def recheck_period_s(self) -> float | None:
