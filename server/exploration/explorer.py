@@ -21,6 +21,7 @@ import logging
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -75,7 +76,7 @@ class ExplorerParams:
     # Voronoi explorer, one robot deciding: look across a frontier cluster from near its end
     # closest to the robot ("near_end"; a long frontier, e.g. a corridor seen at a grazing
     # angle, is resolved by a few steps there) or from near its middle ("middle").
-    frontier_view: str = "near_end"
+    frontier_view: Literal["near_end", "middle"] = "near_end"
 
     @property
     def pooled(self) -> bool:
