@@ -166,7 +166,8 @@ class ServerCore:
         self.tag_counters: dict[str, int] = dict.fromkeys((
             "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
             "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
-            "map_matches", "too_far", "contradictions_overruled", "merges_deferred"), 0)
+            "map_matches", "too_far", "contradictions_overruled", "merges_deferred",
+            "misread"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -427,7 +428,16 @@ class ServerCore:
         rec = make_record(stamp, a.robot_id, b.robot_id, s, at_a, at_b, P_a, P_b,
                           self._pose_sigmas)
         self.tag_counters["used"] += 1
-        if a.team_id == b.team_id:
+        same_team = a.team_id == b.team_id
+        if not (same_team and self._agrees(rec)):
+            mate = self._teammate_there(a, rec)
+            if mate is not None:
+                # two robots are never in one place: the tag is the teammate's, misread
+                self.tag_counters["misread"] += 1
+                log.info("sighting of %s by %s at %s's place: taken for a misread tag",
+                         b.robot_id, a.robot_id, mate)
+                return
+        if same_team:
             if det.range_m > self.cfg.teams.max_sighting_range_m:
                 # from afar (located by the LIDAR) a sighting helps find a team; within one,
                 # the maps matched against each other say more
@@ -656,13 +666,7 @@ class ServerCore:
         self.tag_counters["within_team"] += 1
         team = self.teams[self.robots[rec.observer].team_id]
         pair = (min(rec.observer, rec.observed), max(rec.observer, rec.observed))
-        vp = self.verifier.p
-        miss = float(np.hypot(*(rec.p_seen_a - rec.p_own_b)))
-        agrees = miss <= vp.gate_sigmas * rec.sigma_p_m + vp.gate_floor_m
-        if agrees and rec.sighting.sigma_yaw_rad <= vp.informative_yaw_rad:
-            agrees = abs(math.remainder(rec.T_ab[2], 2 * math.pi)) <= \
-                vp.gate_sigmas * math.sqrt(rec.cov_ab[2, 2]) + math.radians(2)
-        if agrees:
+        if self._agrees(rec):
             self._contradictions.pop(pair, None)
             last = max((ln.stamp_ns for ln in team.links if {ln.a, ln.b} == set(pair)),
                        default=None)
@@ -682,6 +686,35 @@ class ServerCore:
                     if chi2_between(r.T_ab, r.cov_ab, rec.T_ab, rec.cov_ab) <= CHI2_3DOF_99]
         if len(agreeing) >= t.undo_after:
             self._undo(team, rec, pair)
+
+    def _agrees(self, rec: SightingRecord) -> bool:
+        """Whether a sighting between teammates agrees with where the team's graph has them."""
+        vp = self.verifier.p
+        miss = float(np.hypot(*(rec.p_seen_a - rec.p_own_b)))
+        agrees = miss <= vp.gate_sigmas * rec.sigma_p_m + vp.gate_floor_m
+        if agrees and rec.sighting.sigma_yaw_rad <= vp.informative_yaw_rad:
+            agrees = abs(math.remainder(rec.T_ab[2], 2 * math.pi)) <= \
+                vp.gate_sigmas * math.sqrt(rec.cov_ab[2, 2]) + math.radians(2)
+        return agrees
+
+    def _teammate_there(self, a: RobotContext, rec: SightingRecord) -> str | None:
+        """A teammate of the observer (other than the robot named) that its team's graph puts
+        where the sighting saw the tag, at the sighting's time: a misread tag id reads as a
+        robot standing exactly where a teammate is."""
+        vp = self.verifier.p
+        gate = vp.gate_sigmas * rec.sigma_p_m + vp.gate_floor_m
+        tol = int(self.cfg.teams.sighting_tolerance_s * 1e9)
+        for cid in self.teams[a.team_id].robot_ids:
+            if cid in (rec.observer, rec.observed):
+                continue
+            c = self.robots[cid]
+            at = c.slam.pose_at(rec.stamp_ns, tol)
+            if at is None:
+                continue
+            p = compose(c.slam.keyframe_pose(at[0]), at[1])[:2]
+            if float(np.hypot(*(p - rec.p_seen_a))) <= gate:
+                return cid
+        return None
 
     def _maps_still_match(self, side_a: list[str], side_b: list[str]) -> bool:
         """Whether keyframes of one side still match the other side's map (within 0.5 m)
@@ -722,8 +755,12 @@ class ServerCore:
                 ln.record.index = None
         back = inverse(T_team_b)
         old.robot_ids, old.links, old.merged_into = side_b, inside_b, None
-        old.finished, old.mapper = False, self._new_mapper()
+        old.mapper = self._new_mapper()
         team.robot_ids, team.links = side_a, inside_a
+        for t_ in (team, old):  # each part judges its own coverage again
+            t_.finished, t_.finished_stamp_ns = False, None
+        for rid in side_a + side_b:
+            self.robots[rid].nav.resume()
         team.mapper = self._new_mapper()
         self.teams[old.team_id] = old
         self._rebuild(team, [(rid, np.zeros(3)) for rid in side_a], inside_a)

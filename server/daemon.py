@@ -42,7 +42,8 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         while not stop.wait(0.2):
             if cfg.exit_when_done and node.core.finished:
                 time.sleep(0.5)  # let the last commands and events go out
-                break
+                if node.core.finished:  # not when a merge was undone meanwhile
+                    break
         node.stop()
         summary = {"wall_s": time.monotonic() - t0, **node.summary()}
         if out is not None:

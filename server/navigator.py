@@ -188,6 +188,13 @@ class Navigator:
         self.path_xy, self.target_xy = None, None
         self.pursuit.reset()
 
+    def resume(self) -> None:
+        """Explore again after ``finish`` (the team it finished with was split up)."""
+        if self.mode == DONE:
+            self.mode, self.finished_reason = WAITING, ""
+            self._looked_around = False
+            self._last_decision_s = -np.inf
+
     def finish(self, reason: str) -> None:
         self.mode, self.finished_reason = DONE, reason
         self.path_xy = self.target_xy = None

@@ -8,6 +8,7 @@ so it is quick and exactly repeatable; the process-level path is the demo's."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -27,18 +28,24 @@ WORLD = DATA / "worlds" / "thesis" / "house_small.world"
 SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.0, 8.0, math.pi)}
 
 
-def config(**teams: object) -> ServerConfig:
+def config(robots: tuple[str, ...] = ("r1", "r2"), **teams: object) -> ServerConfig:
     return ServerConfig.model_validate({
-        "robots": ["r1", "r2"],
+        "robots": list(robots),
         "slam": {"grid": {"resolution_m": 1 / 15}},
         "explore": {"total_area_m2": 374.5, "coverage_threshold": 0.98},
         "teams": teams,
     })
 
 
+Relabel = Callable[[int, str, TagDetection], TagDetection]
+
+
 def run(steps: int, falsify: bool = False, false_until: int = 0,
-        cfg: ServerConfig | None = None) -> tuple[ServerCore, Simulator]:
-    sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=3)
+        cfg: ServerConfig | None = None, spawn: dict[str, tuple[float, float, float]] = SPAWN,
+        relabel: Relabel | None = None) -> tuple[ServerCore, Simulator]:
+    """``relabel(step, observer, detection)`` may change a detection before the server
+    hears it."""
+    sim = Simulator(load_world(WORLD), spawn, SimParams(), seed=3)
     core = ServerCore(cfg or config())
     detector = TagDetector(TagLayout(), CameraMount())
     lidar = sim.p.lidar
@@ -46,7 +53,7 @@ def run(steps: int, falsify: bool = False, false_until: int = 0,
     for step in range(steps):
         obs = sim.sense()
         wrong = falsify or step < false_until
-        for rid in SPAWN:
+        for rid in spawn:
             scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
                         odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
                         angle_increment_rad=lidar.angle_increment_rad,
@@ -65,6 +72,8 @@ def run(steps: int, falsify: bool = False, false_until: int = 0,
                                  sigma_bearing_rad=s.sigma_bearing_rad,
                                  sigma_yaw_rad=s.sigma_yaw_rad)
                     for s in found.sightings]
+            if relabel is not None:
+                dets = [relabel(step, rid, d) for d in dets]
             if dets:
                 core.on_tags(TagDetections(robot_id=rid, seq=obs.step + 1,
                                            stamp_ns=obs.stamp_ns, detections=dets))
@@ -264,3 +273,61 @@ def test_a_team_keeps_matching_each_robots_new_keyframes_against_the_others_maps
     assert len(cross) > at_merge       # more matches came after the merge, as the robots went on
     assert all(ln.record.index is not None for ln in cross)
     assert {ln.b for ln in cross[at_merge:]} <= {"r1", "r2"}
+
+
+def misread(after_step: int, seen: str, read_as: str) -> Relabel:
+    """From ``after_step`` on, r1 reads ``seen``'s tag as ``read_as``'s (a misread id that
+    persists)."""
+    import msgspec
+
+    def relabel(step: int, observer: str, d: TagDetection) -> TagDetection:
+        if step >= after_step and observer == "r1" and d.observed_robot_id == seen:
+            return msgspec.structs.replace(d, observed_robot_id=read_as)
+        return d
+    return relabel
+
+
+def test_a_misread_tag_that_puts_a_robot_on_a_teammate_does_not_split_the_team() -> None:
+    """All three robots meet and merge; then r1 reads r3's tag as r2's, frame after frame. The
+    sightings place r2 where r3 stands, which the team's graph explains by a misread tag:
+    they neither count against the merge nor undo it."""
+    spawn = {**SPAWN, "r3": (-7.0, 7.0, 1.2)}
+    core, _ = run(150, cfg=config(("r1", "r2", "r3")), spawn=spawn,
+                  relabel=misread(40, "r3", "r2"))
+    assert len(core.teams) == 1 and len(core.merges) == 2
+    assert all(m.undone_stamp_ns is None for m in core.merges)
+    assert max(m.stamp_ns for m in core.merges) < 4e9        # merged before the misreading
+    assert core.tag_counters["misread"] >= 20
+    assert core.tag_counters["merges_undone"] == 0
+
+
+def test_a_misread_tag_does_not_merge_a_robot_that_is_elsewhere() -> None:
+    """r1 and r2 start as one team (known start poses); r3 explores far off. r1 reads r2's
+    tag as r3's: sightings that say r3 stands where r1's teammate r2 is are taken as misread,
+    not as evidence for merging r3."""
+    spawn = {**SPAWN, "r3": (4.0, -9.0, math.pi)}
+    cfg = config(("r1", "r2", "r3"), start_poses={r: list(SPAWN[r]) for r in ("r1", "r2")})
+    core, _ = run(60, cfg=cfg, spawn=spawn, relabel=misread(0, "r2", "r3"))
+    assert [m.kind for m in core.merges] == ["start"]
+    assert core.robots["r3"].team_id != core.robots["r1"].team_id
+    assert core.tag_counters["misread"] >= 8
+
+
+def test_a_team_split_after_it_finished_explores_again() -> None:
+    """A merge undone after the team reached its coverage leaves two teams that have not: both
+    go back to exploring (the server does not stop on the team's earlier finish)."""
+    from types import SimpleNamespace
+
+    spawn = {**SPAWN, "r3": (-7.0, 7.0, 1.2)}
+    core, _ = run(40, cfg=config(("r1", "r2", "r3"), refine_on_maps=False), spawn=spawn)
+    assert len(core.teams) == 1
+    team = next(iter(core.teams.values()))
+    stamp = core.robots["r1"].last_stamp_ns
+    core._finish_team(team, stamp, "coverage reached")
+    assert core.finished and all(r.nav.mode == "done" for r in core.robots.values())
+    last = core.merges[-1]
+    pair = (sorted(last.robots_b)[0], next(r for r in team.robot_ids if r not in last.robots_b))
+    core._undo(team, SimpleNamespace(stamp_ns=stamp), tuple(sorted(pair)))
+    assert last.undone_stamp_ns == stamp and len(core.teams) == 2
+    assert not core.finished and not any(t.finished for t in core.teams.values())
+    assert all(r.nav.mode != "done" and r.nav.finished_reason == "" for r in core.robots.values())
