@@ -83,6 +83,10 @@ class TeamsConfig(_Model):
     approach_range_m: float = Field(10.0, ge=0.0, description="a moving thing the LIDAR sees "
                                     "farther than a tag can be read, up to this range, is "
                                     "approached until its tag can be (0: never)")
+    max_map_turn_sigmas: float = Field(3.0, gt=0.0, description="a merge is refused when "
+                                       "its maps, matched where they overlap, turn its "
+                                       "transform by more than this many σ of its rotation, "
+                                       "plus 1°")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
     start_poses: dict[str, tuple[float, float, float]] = Field(

@@ -506,14 +506,26 @@ class ServerCore:
                          "wall cells)", stamp)
             return
         tried = [0]
-        found = sum(len(cross_matches(self.robots[ra].slam, self.robots[rb].slam, T_ab=p.T_ab,
-                                      tried=tried))
-                    for ra in ta.robot_ids for rb in tb.robot_ids)
+        matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
+                   for m in cross_matches(self.robots[ra].slam, self.robots[rb].slam,
+                                          T_ab=p.T_ab, tried=tried)]
+        found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
             self._refuse(p, f"no part of the maps matches within 0.5 m ({tried[0]} tried)",
                          stamp)
             return
+        if matches:
+            # where the maps do match, they say how the transform turns: far better than the
+            # sightings (a small error across the line of sight turns it by degrees)
+            turn = float(np.median([m.turn_rad for m in matches]))
+            info["map_turn_deg"] = round(math.degrees(turn), 3)
+            bound = t.max_map_turn_sigmas * math.sqrt(p.cov_ab[2, 2]) + math.radians(1.0)
+            if abs(turn) > bound:
+                self._refuse(p, f"the maps turn the transform by {math.degrees(turn):.2f}° "
+                             f"({found} matches), beyond its uncertainty "
+                             f"({math.degrees(bound):.2f}°)", stamp)
+                return
         far = max((r.sighting.range_m for r in p.records), default=0.0)
         if far > t.max_sighting_range_m and found == 0 and kind == "tags":
             # sightings from afar (located by the LIDAR): a small error across the line of

@@ -374,6 +374,7 @@ class CrossMatch:
     T_ka_kb: F64
     information: F64      # in kb's frame (the between factor's error space)
     inlier_fraction: float
+    turn_rad: float = 0.0  # how far the match turned kb from where it was placed
 
 
 def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
@@ -423,5 +424,6 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         out.append(CrossMatch(ka, kb, between(pa[ka], m.T_map_scan),
-                              R.T @ m.information @ R, m.inlier_fraction))
+                              R.T @ m.information @ R, m.inlier_fraction,
+                              math.remainder(m.T_map_scan[2] - pb[kb, 2], 2 * math.pi)))
     return out

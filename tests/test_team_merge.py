@@ -331,3 +331,32 @@ def test_a_team_split_after_it_finished_explores_again() -> None:
     assert last.undone_stamp_ns == stamp and len(core.teams) == 2
     assert not core.finished and not any(t.finished for t in core.teams.values())
     assert all(r.nav.mode != "done" and r.nav.finished_reason == "" for r in core.robots.values())
+
+
+def test_a_proposal_whose_rotation_the_maps_contradict_is_refused() -> None:
+    """A proposal right where the robots stand but turned 4° (sightings from afar, sharing one
+    error across the line of sight): matched where they overlap, the maps turn it back by
+    more than its σ allows, and the merge is refused; the true transform merges."""
+    from server.teams import MergeProposal
+
+    # no merge from sightings; and no conflict check, which would see 4° here, so close to
+    # both robots' starts, but not far from them, where such merges came from
+    core, _ = run(60, cfg=config(min_sightings=1000, max_conflict_ratio=1.0))
+    assert len(core.teams) == 2
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+    meet = core.robots["r2"].pose                             # where r2 is, in its own frame
+    turn = np.array([0.0, 0.0, math.radians(4.0)])
+    at_meet = compose(T_true, meet)                           # r2 in r1's frame
+    # turned about r2's current place: right there, 4° off everywhere else
+    T_bad = compose(compose(at_meet, turn), between(meet, np.zeros(3)))
+    C = np.diag([0.02 ** 2, 0.02 ** 2, math.radians(0.8) ** 2])
+    core.try_merge(MergeProposal("team-r1", "team-r2", (), T_bad, C, T_bad), 1)
+    assert len(core.teams) == 2 and core.tag_counters["merges_rejected"] == 1
+    assert any(e.kind == "merge_rejected" and "turn" in e.message for e in core.event_log)
+    # (with no sightings, a link between the start frames holds the graphs together)
+    _, link = core.own_frames_link("r1", "r2", T_true, np.array([0.02, 0.02, 0.01]), "marker",
+                                   2)
+    core.try_merge(MergeProposal("team-r1", "team-r2", (), T_true, C, T_true), 2, (link,),
+                   kind="marker")
+    assert len(core.teams) == 1 and len(core.merges) == 1
+    assert abs(core.merges[0].agreement["map_turn_deg"]) < 1.0
