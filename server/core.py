@@ -253,8 +253,11 @@ class ServerCore:
             team.history.append((stamp_ns, team.coverage))
             if total and not team.finished and team.coverage >= self.cfg.explore.coverage_threshold:
                 self._finish_team(team, stamp_ns, f"coverage {team.coverage:.3f} reached")
-            elif not team.finished and all(
-                    self.robots[rid].nav.mode == DONE for rid in team.robot_ids):
+            elif not team.finished and (alive := [
+                    rid for rid in team.robot_ids if self.robots[rid].alive]) and all(
+                    self.robots[rid].nav.mode == DONE for rid in alive):
+                # (a robot that vanished does not hold its team back; one that comes back to
+                # a finished team stops too)
                 self._finish_team(team, stamp_ns, "no reachable frontier left")
         self._set_lambda()
 

@@ -360,3 +360,23 @@ def test_a_proposal_whose_rotation_the_maps_contradict_is_refused() -> None:
                    kind="marker")
     assert len(core.teams) == 1 and len(core.merges) == 1
     assert abs(core.merges[0].agreement["map_turn_deg"]) < 1.0
+
+
+def test_a_team_whose_live_robots_are_done_finishes_without_the_one_that_vanished() -> None:
+    core, _ = run(20, cfg=config(start_poses={r: list(p) for r, p in SPAWN.items()}))
+    assert len(core.teams) == 1
+    team = next(iter(core.teams.values()))
+    stamp = core.robots["r1"].last_stamp_ns
+    core.set_alive("r2", False)
+    core.robots["r1"].nav.finish("no reachable frontier left")
+    assert core.robots["r2"].nav.mode != "done"
+    core._next_cover_ns = 0
+    core._periodic(stamp + 1)
+    assert team.finished and core.finished
+    # ... but a team with no live robot left is not taken for done
+    core2, _ = run(20, cfg=config(start_poses={r: list(p) for r, p in SPAWN.items()}))
+    for rid in SPAWN:
+        core2.set_alive(rid, False)
+    core2._next_cover_ns = 0
+    core2._periodic(core2.robots["r1"].last_stamp_ns + 1)
+    assert not core2.finished
