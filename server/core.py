@@ -391,7 +391,8 @@ class ServerCore:
         # poor at range, hence the wide tolerance
         back = inverse(rel)
         b.look.hear(now_b, transform_points(b.pose, back[None, :2])[0],
-                    max(1.0, 0.35 * det.range_m), sure=False)
+                    max(1.0, 0.35 * det.range_m), sure=False, range_m=det.range_m,
+                    range_tolerance_m=3.0 * det.sigma_range_m + 0.2)
 
     def _process_pending(self, now_ns: int) -> None:
         t = self.cfg.teams

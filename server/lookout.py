@@ -145,6 +145,8 @@ class Lookout:
         self.moved = False                   # an approach drove the robot somewhere
         #: a tag sighting's word on where another team's robot is: (map xy, tolerance, sure, s)
         self.call: tuple[F64, float, bool, float] | None = None
+        #: ... and, when the reader's distance is known, that distance and its tolerance
+        self.call_range: tuple[float, float] | None = None
         self.spin_until_s: float | None = None   # turning on the spot to find a reader
         self.calls = 0
 
@@ -152,10 +154,13 @@ class Lookout:
     def active(self) -> bool:
         return self.heading is not None or self.approaching or self.spin_until_s is not None
 
-    def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool) -> None:
+    def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool,
+             range_m: float | None = None, range_tolerance_m: float = 0.3) -> None:
         """A tag sighting places another team's robot at ``xy`` (map frame) within
         ``tolerance_m``; ``sure``: the place is good enough to drive to without the LIDAR's
-        confirmation. Taken up at the next scan (see the module docstring)."""
+        confirmation. ``range_m``: how far away it is, known better than where (a robot seen
+        by another learns the distance between them from the reader, the direction only
+        through the tag's heading). Taken up at the next scan (see the module docstring)."""
         xy = np.asarray(xy, dtype=np.float64)
         if self.approaching and self.track is not None and \
                 math.hypot(*(xy - self.track)) <= max(tolerance_m, self.p.track_m):
@@ -164,6 +169,7 @@ class Lookout:
                 self.track = xy
             return
         self.call = (xy, tolerance_m, sure, now_s)
+        self.call_range = None if range_m is None else (float(range_m), float(range_tolerance_m))
 
     def _near_call(self, pose: F64) -> bool:
         """A call from within tag range, not already faced, not right after a meeting. The
@@ -189,12 +195,19 @@ class Lookout:
         """Take up the latest call; None when it leads nowhere."""
         assert self.call is not None
         xy, tol, sure, t = self.call
-        self.call = None
+        ranged, self.call, self.call_range = self.call_range, None, None
         if now_s - t > self.p.lost_s:
             return None
         # close by, even a rough place is worth driving to: tags are read only within
         # max_range_m, and the other robot is looking for this one too
         near = self._close(xy, pose)
+        if not sure and ranged is not None:
+            # a moving thing at the reader's distance is the reader, whatever the tag's
+            # heading said about the direction
+            on_ring = [g for g in groups
+                       if abs(math.hypot(*(g[0] - pose[:2])) - ranged[0]) <= ranged[1]]
+            if on_ring:
+                groups, tol = on_ring, math.inf
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure or near else None)
@@ -215,7 +228,7 @@ class Lookout:
         """Drop what the robot was looking at and any call: the map frame changed under them
         (a merge), and the robot that called may now be a teammate."""
         self.reset()
-        self.call = None
+        self.call, self.call_range = None, None
 
     def reset(self) -> None:
         self.heading, self.hold_until_s, self.spin_until_s = None, None, None

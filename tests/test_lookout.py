@@ -241,3 +241,31 @@ def test_a_close_call_is_taken_up_during_the_cooldown_of_an_ordinary_look() -> N
     look.hear(1.0, np.array([0.0, 1.3]), 1.0, sure=False)    # someone 1.3 m to the left
     tw = look.step(1.05, pose, walls_seen(pose), free_room(), np.zeros((0, 2)))
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps > 0
+
+
+def test_an_unsure_call_with_the_readers_distance_finds_the_reader_at_that_distance() -> None:
+    """The tag's heading put the reader 3 m off (outside the call's tolerance), and another
+    moving thing lies nearer that wrong place: the one at the reader's distance, which the
+    reader measured, is the reader."""
+    g = free_room()
+    pose = np.array([-3.5, 0.0, math.pi / 2])
+    reader, decoy = np.array([2.5, 0.5]), np.array([-1.0, -3.5])
+    pts = np.concatenate([walls_seen(pose), to_robot(pose, blob(*reader)),
+                          to_robot(pose, blob(*decoy))])
+    wrong = np.array([0.5, -3.5])                       # 3 m from the reader, 1.5 from the decoy
+    dist = math.hypot(*(reader - pose[:2]))
+    look = Lookout(LookParams(approach_range_m=10.0))
+    look.hear(0.0, wrong, 2.0, sure=False, range_m=dist, range_tolerance_m=0.3)
+    tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
+    assert tw is not None and look.approaching
+    assert look.track is not None and math.hypot(*(look.track - reader)) < 0.3
+    # without the distance, the decoy nearest the wrong place is taken
+    look = Lookout(LookParams(approach_range_m=10.0))
+    look.hear(0.0, wrong, 2.0, sure=False)
+    look.step(0.05, pose, pts, g, np.zeros((0, 2)))
+    assert look.track is not None and math.hypot(*(look.track - decoy)) < 0.3
+    # nothing at that distance: as before (here the decoy, within the tolerance)
+    look = Lookout(LookParams(approach_range_m=10.0))
+    look.hear(0.0, wrong, 2.0, sure=False, range_m=9.0, range_tolerance_m=0.3)
+    look.step(0.05, pose, pts, g, np.zeros((0, 2)))
+    assert look.track is not None and math.hypot(*(look.track - decoy)) < 0.3
