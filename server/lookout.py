@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 
 from server.control import Twist
 from server.planning import OccupancyGrid
+from server.planning.grid import OCCUPIED_ABOVE
 from server.slam.geometry import transform_points
 
 F64 = NDArray[np.float64]
@@ -118,6 +119,55 @@ def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F
     return None
 
 
+def objects_at_range(points_robot: F64, pose: F64, grid: OccupancyGrid | None, range_m: float,
+                     tolerance_m: float, width_m: float = 0.45, past_m: float = 0.3
+                     ) -> list[F64]:
+    """Things standing free about ``range_m`` away (map frame): runs of neighbouring returns
+    within ``tolerance_m`` of that distance, no wider than ``width_m``, not on a wall the map
+    knows, that the LIDAR sees past on both sides (the beams beside them reach ``past_m``
+    farther, or return nothing). Unlike ``moving_objects``, the place need not be known free:
+    a robot read through a door often stands where this robot has not mapped yet."""
+    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
+    if len(pts) < 3 or not math.isfinite(range_m) or not math.isfinite(tolerance_m):
+        return []
+    ang = np.arctan2(pts[:, 1], pts[:, 0])
+    order = np.argsort(ang)
+    pts, ang = pts[order], ang[order]
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    gaps = np.diff(ang, append=ang[0] + 2 * math.pi)   # from each return to the next
+    step = float(np.median(gaps))
+    band = np.abs(r - range_m) <= tolerance_m
+    if grid is not None and band.any():
+        world = transform_points(pose, pts)
+        res = grid.resolution_m
+        ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
+        iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
+        h, w = grid.data.shape
+        inside = (ix >= 0) & (iy >= 0) & (ix < w) & (iy < h)
+        wall = np.zeros(len(pts), dtype=bool)
+        wall[inside] = grid.data[iy[inside], ix[inside]] > OCCUPIED_ABOVE
+        band &= ~wall
+    n = len(pts)
+    out: list[F64] = []
+    done: set[int] = set()
+    for i in np.flatnonzero(band):
+        if i in done:
+            continue
+        run = [int(i)]   # band returns from i on, each next to the one before
+        while len(run) < n and band[(run[-1] + 1) % n] and gaps[run[-1]] <= 1.5 * step:
+            run.append((run[-1] + 1) % n)
+        done.update(run)
+        if math.hypot(*(pts[run[0]] - pts[run[-1]])) > width_m:
+            continue
+        before, after = (run[0] - 1) % n, (run[-1] + 1) % n
+        mean_r = float(r[run].mean())
+        past_before = gaps[before] > 1.5 * step or r[before] >= mean_r + past_m
+        past_after = gaps[run[-1]] > 1.5 * step or r[after] >= mean_r + past_m
+        if past_before and past_after:
+            out.append(transform_points(pose, pts[run].mean(axis=0, keepdims=True))[0])
+    return out
+
+
 def _bearing(pose: F64, xy: F64) -> float:
     return math.remainder(math.atan2(xy[1] - pose[1], xy[0] - pose[0]) - pose[2], 2 * math.pi)
 
@@ -189,9 +239,11 @@ class Lookout:
         self.reset()
         groups = [] if grid is None else moving_objects(points_robot, pose, grid, mates_xy,
                                                         self.p, range_m)
-        return self._answer(now_s, pose, groups)
+        return self._answer(now_s, pose, groups, points_robot, grid)
 
-    def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]]) -> Twist | None:
+    def _answer(self, now_s: float, pose: F64, groups: list[tuple[F64, int]],
+                points_robot: F64 | None = None, grid: OccupancyGrid | None = None
+                ) -> Twist | None:
         """Take up the latest call; None when it leads nowhere."""
         assert self.call is not None
         xy, tol, sure, t = self.call
@@ -201,13 +253,17 @@ class Lookout:
         # close by, even a rough place is worth driving to: tags are read only within
         # max_range_m, and the other robot is looking for this one too
         near = self._close(xy, pose)
-        if not sure and ranged is not None:
-            # a moving thing at the reader's distance is the reader, whatever the tag's
-            # heading said about the direction
-            on_ring = [g for g in groups
-                       if abs(math.hypot(*(g[0] - pose[:2])) - ranged[0]) <= ranged[1]]
-            if on_ring:
-                groups, tol = on_ring, math.inf
+        if not sure and ranged is not None and points_robot is not None:
+            # something standing free at the reader's distance is the reader, whatever the
+            # tag's heading said about the direction: face it (the reader is coming)
+            there = objects_at_range(points_robot, pose, grid, *ranged)
+            if there:
+                reader = min(there, key=lambda c: math.hypot(*(c - xy)))
+                self.calls += 1
+                log.info("%s: answering a call from %.1f m away (rough): facing what stands "
+                         "at that distance", self.name, ranged[0])
+                self._look_toward(now_s, pose, reader, meet=True)
+                return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure or near else None)
@@ -259,7 +315,7 @@ class Lookout:
             if self.approaching:
                 return self._approach(now_s, pose, groups, points_robot)
             if self.call is not None and p.approach_range_m > 0:
-                return self._answer(now_s, pose, groups)
+                return self._answer(now_s, pose, groups, points_robot, grid)
             near = next((c for c, n in groups if n >= p.min_points
                          and math.hypot(*(c - pose[:2])) <= p.max_range_m), None)
             if near is None:

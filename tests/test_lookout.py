@@ -243,10 +243,10 @@ def test_a_close_call_is_taken_up_during_the_cooldown_of_an_ordinary_look() -> N
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps > 0
 
 
-def test_an_unsure_call_with_the_readers_distance_finds_the_reader_at_that_distance() -> None:
+def test_an_unsure_call_with_the_readers_distance_faces_what_stands_there() -> None:
     """The tag's heading put the reader 3 m off (outside the call's tolerance), and another
-    moving thing lies nearer that wrong place: the one at the reader's distance, which the
-    reader measured, is the reader."""
+    moving thing lies nearer that wrong place: the thing standing free at the reader's
+    distance, which the reader measured, is the reader, and the robot turns to face it."""
     g = free_room()
     pose = np.array([-3.5, 0.0, math.pi / 2])
     reader, decoy = np.array([2.5, 0.5]), np.array([-1.0, -3.5])
@@ -257,15 +257,40 @@ def test_an_unsure_call_with_the_readers_distance_finds_the_reader_at_that_dista
     look = Lookout(LookParams(approach_range_m=10.0))
     look.hear(0.0, wrong, 2.0, sure=False, range_m=dist, range_tolerance_m=0.3)
     tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
-    assert tw is not None and look.approaching
-    assert look.track is not None and math.hypot(*(look.track - reader)) < 0.3
+    toward = math.atan2(reader[1] - pose[1], reader[0] - pose[0])
+    assert look.heading is not None and abs(math.remainder(look.heading - toward,
+                                                           2 * math.pi)) < 0.05
+    assert look.meeting and not look.approaching and look.spin_until_s is None
+    assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0      # turning right
     # without the distance, the decoy nearest the wrong place is taken
     look = Lookout(LookParams(approach_range_m=10.0))
     look.hear(0.0, wrong, 2.0, sure=False)
     look.step(0.05, pose, pts, g, np.zeros((0, 2)))
     assert look.track is not None and math.hypot(*(look.track - decoy)) < 0.3
-    # nothing at that distance: as before (here the decoy, within the tolerance)
+    # nothing standing free at that distance (only the room's walls): as before
+    wall_dist = 4.9 - pose[0]
     look = Lookout(LookParams(approach_range_m=10.0))
-    look.hear(0.0, wrong, 2.0, sure=False, range_m=9.0, range_tolerance_m=0.3)
+    look.hear(0.0, wrong, 2.0, sure=False, range_m=wall_dist, range_tolerance_m=0.3)
     look.step(0.05, pose, pts, g, np.zeros((0, 2)))
     assert look.track is not None and math.hypot(*(look.track - decoy)) < 0.3
+
+
+def test_things_standing_free_at_a_distance_are_found_where_the_map_does_not_reach() -> None:
+    """A robot read through a door stands where this robot has no map yet: it is still
+    found, by the LIDAR seeing past it on both sides; a wall crossing that distance is not."""
+    from server.lookout import objects_at_range
+
+    pose = np.array([0.0, 0.0, 0.0])
+    a = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    r = np.full(360, 9.0)                                # far walls all round
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], 1)
+    body = blob(6.0, 2.0)
+    near_side = body[np.hypot(*body.T) < math.hypot(6.0, 2.0)]
+    bearing = np.arctan2(near_side[:, 1], near_side[:, 0])
+    keep = np.all(np.abs(np.subtract.outer(a, bearing)) > math.radians(1.0), axis=1)
+    pts = np.concatenate([pts[keep], near_side])       # the body hides the wall behind it
+    unknown = OccupancyGrid(np.full((400, 400), -1, dtype=np.int8), 0.05, (-10.0, -10.0))
+    found = objects_at_range(pts, pose, unknown, math.hypot(6.0, 2.0), 0.3)
+    assert len(found) == 1 and math.hypot(*(found[0] - [6.0, 2.0])) < 0.2
+    assert objects_at_range(pts, pose, unknown, 9.0, 0.3) == []   # the walls: too wide
+    assert objects_at_range(pts, pose, None, 4.0, 0.3) == []
