@@ -332,6 +332,12 @@ class Lookout:
             if abs(bearing) <= p.half_fov_rad:
                 return None
             self._look_toward(now_s, pose, near)
+        if self.meeting and self.call is not None and self.call[2] and \
+                p.approach_range_m > 0 and not self._close(self.call[0], pose):
+            # facing a reader found by its distance, its tag is now read too: go closer,
+            # where both tags and the maps' overlap say more
+            return self._answer_now(now_s, pose, points_robot, grid, mates_xy,
+                                    max(p.max_range_m, p.approach_range_m))
         err = math.remainder(self.heading - pose[2], 2 * math.pi)
         self.heading_error = err
         if self.hold_until_s is None:

@@ -262,6 +262,11 @@ def test_an_unsure_call_with_the_readers_distance_faces_what_stands_there() -> N
                                                            2 * math.pi)) < 0.05
     assert look.meeting and not look.approaching and look.spin_until_s is None
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0      # turning right
+    # facing it, the robot reads the reader's tag: a sure call, and it goes closer
+    look.hear(0.5, reader, 0.6, sure=True)
+    tw = look.step(0.55, pose, pts, g, np.zeros((0, 2)))
+    assert look.approaching and look.track is not None
+    assert math.hypot(*(look.track - reader)) < 0.3
     # without the distance, the decoy nearest the wrong place is taken
     look = Lookout(LookParams(approach_range_m=10.0))
     look.hear(0.0, wrong, 2.0, sure=False)
