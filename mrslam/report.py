@@ -134,6 +134,19 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
     return out
 
 
+def threshold_times(teams: dict[str, Any]) -> tuple[bool, float | None, float | None]:
+    """Whether the run reached its threshold, when (the last of the final teams), and when
+    the first team did: a team merged into another later counts for the first (its robots
+    had mapped that much together), not for the run."""
+    final = [t for t in teams.values() if not t.get("merged_into")]
+    reached = bool(final) and all(t["reached"] for t in final)
+    times = [t["sim_time_to_threshold_s"] for t in final]
+    best = max(times) if times and None not in times else None
+    first = min((t["sim_time_to_threshold_s"] for t in teams.values()
+                 if t.get("sim_time_to_threshold_s") is not None), default=None)
+    return reached, best, first
+
+
 def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any],
                  wall_time_s: float) -> dict[str, Any]:
     from sim.grid import read_nav2
@@ -210,15 +223,14 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                           first_online, final_team)
     for tid, old in summary.get("merged_teams", {}).items():
         hist = old.get("coverage_history", [])
+        # a team may reach the threshold before a robot still alone joins it
+        t_old = next((s * 1e-9 for s, c in hist if c >= threshold), None)
         teams.setdefault(tid, {"robot_ids": old["robot_ids"], "merged_into": old["merged_into"],
                                "coverage": _finite(hist[-1][1]) if hist else None,
-                               "reached": False, "sim_time_to_threshold_s": None,
+                               "reached": t_old is not None,
+                               "sim_time_to_threshold_s": _finite(t_old) if t_old else None,
                                "coverage_history": [[s * 1e-9, c] for s, c in hist]})
-    reached = bool(teams) and all(t["reached"] for t in teams.values()
-                                  if not t.get("merged_into"))
-    # the run reached its threshold when the last of the (final) teams did
-    times = [t["sim_time_to_threshold_s"] for t in teams.values() if not t.get("merged_into")]
-    best = max(times) if times and None not in times else None
+    reached, best, first = threshold_times(teams)
     report = {
         "scenario": plan["title"], "world": plan["world"], "seed": cfg.seed,
         "explorer": cfg.explorer, "lockstep": cfg.lockstep,
@@ -227,8 +239,7 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "reached": reached,
         "sim_time_to_threshold_s": best,
         # the first team whose own map reached the threshold (other teams may still explore)
-        "first_team_time_to_threshold_s": min(
-            (t for t in times if t is not None), default=None),
+        "first_team_time_to_threshold_s": first,
         "true_coverage": min((t.get("true_coverage") or 0.0 for t in teams.values()
                               if not t.get("merged_into")), default=None),
         "phantom_area_m2": sum(t.get("phantom_area_m2") or 0.0 for t in teams.values()

@@ -72,3 +72,19 @@ def test_summary_names_the_team_that_fell_short() -> None:
     assert "team-r2" not in text and "nan" not in text
     report.update(reached=True, sim_time_to_threshold_s=70.0, teams={"team-r1": teams["team-r1"]})
     assert "reached 95% in 70 s sim" in _summary(report)
+
+
+def test_the_first_team_to_the_threshold_counts_though_a_lone_robot_joined_it_later() -> None:
+    """Four robots' team reached 90 % at 370 s; the fifth, alone all along, joined it at 859 s:
+    the run reached its threshold at 860 s, the first team at 370 s."""
+    from mrslam.report import threshold_times
+
+    teams = {"team-r1": {"reached": True, "sim_time_to_threshold_s": 860.0},
+             "team-r2": {"reached": True, "sim_time_to_threshold_s": 370.0,
+                         "merged_into": "team-r1"},
+             "team-r4": {"reached": False, "sim_time_to_threshold_s": None,
+                         "merged_into": "team-r2"}}
+    assert threshold_times(teams) == (True, 860.0, 370.0)
+    teams["team-r1"] = {"reached": False, "sim_time_to_threshold_s": None}
+    assert threshold_times(teams) == (False, None, 370.0)
+    assert threshold_times({}) == (False, None, None)
