@@ -175,7 +175,8 @@ class ServerCore:
         prev = r.pose.copy()
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         keyframes = len(r.slam.keyframes)
-        r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose, ranges, angles,
+        r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose,
+                                 self._without_teammates(r, ranges, angles), angles,
                                  scan.range_max_mm / 1000.0)
         if r.scans:
             r.distance_m += float(math.hypot(*(r.pose[:2] - prev[:2])))
@@ -317,6 +318,31 @@ class ServerCore:
             r.alive = alive
             self.emit("robot_joined" if alive else "robot_lost", [robot_id], r.team_id,
                       f"robot {robot_id} {'is back' if alive else 'vanished'}", r.last_stamp_ns)
+
+    def _without_teammates(self, r: RobotContext, ranges: F64, angles: F64) -> F64:
+        """The scan for SLAM, without the beams that hit a teammate's body (as none): robots
+        driving in a row along a corridor see each other where the walls say nothing along
+        it, and a matcher that holds on to the robot ahead thinks it stands still."""
+        team = self.teams.get(r.team_id)
+        if team is None or len(team.robot_ids) < 2 or not r.scans:
+            return ranges
+        mates = np.array([self.robots[o].pose[:2] for o in team.robot_ids
+                          if o != r.robot_id and self.robots[o].alive and self.robots[o].scans],
+                         dtype=np.float64).reshape(-1, 2)
+        if not len(mates):
+            return ranges
+        ok = np.isfinite(ranges) & np.isfinite(angles)
+        idx = np.flatnonzero(ok)
+        pts = np.stack([ranges[idx] * np.cos(angles[idx]), ranges[idx] * np.sin(angles[idx])], 1)
+        world = transform_points(r.pose, pts)
+        d = np.hypot(world[:, None, 0] - mates[None, :, 0],
+                     world[:, None, 1] - mates[None, :, 1]).min(axis=1)
+        hit = idx[d <= self.cfg.control.robot_radius_m + 0.15]
+        if not len(hit):
+            return ranges
+        out = np.array(ranges, dtype=np.float64, copy=True)
+        out[hit] = np.nan
+        return out
 
     def _others_in_robot_frame(self, r: RobotContext) -> F64:
         """Team mates' positions in ``r``'s body frame (for collision avoidance)."""

@@ -380,3 +380,22 @@ def test_a_team_whose_live_robots_are_done_finishes_without_the_one_that_vanishe
     core2._next_cover_ns = 0
     core2._periodic(core2.robots["r1"].last_stamp_ns + 1)
     assert not core2.finished
+
+
+def test_slam_does_not_see_the_teammates_bodies() -> None:
+    """Beams that end on a teammate's body are left out of the robot's scan matching and map
+    (a row of robots along a corridor would otherwise hold each other in place); other beams,
+    and a robot alone, keep their returns."""
+    core, _ = run(20, cfg=config(start_poses={r: list(p) for r, p in SPAWN.items()}))
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert r1.team_id == r2.team_id
+    rel = between(r1.pose, np.array([*r2.pose[:2], 0.0]))
+    bearing, dist = math.atan2(rel[1], rel[0]), math.hypot(rel[0], rel[1])
+    angles = np.array([bearing, bearing + 0.02, bearing + 1.0, bearing - 1.0])
+    ranges = np.array([dist - 0.13, dist - 0.1, 3.0, np.inf])
+    out = core._without_teammates(r1, ranges, angles)
+    assert np.isnan(out[:2]).all()                      # on r2's body: no return
+    assert out[2] == 3.0 and out[3] == np.inf           # the rest as measured
+    assert not np.isnan(ranges).any()                   # the navigator's scan is untouched
+    core.set_alive("r2", False)                         # a vanished teammate is not filtered
+    assert not np.isnan(core._without_teammates(r1, ranges, angles)).any()
