@@ -5,8 +5,8 @@ Reports each case's time to threshold, the team speed-ups (case 1 / case 2, case
 merge transform errors after joint optimisation against the direct method on the same
 sightings, and — with ``--spurious`` — the team cases again with that share of false tag views.
 
-    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--runs N]
-                          [--out DIR]
+    python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--thesis-rule]
+                          [--runs N] [--out DIR]
 
 Runs with several robots are not exactly repeatable (the server's timing feeds back into the
 simulation), so ``--runs N`` runs each team case N times and adds every run's speed-up and
@@ -35,12 +35,13 @@ GOALS = {"speedup_case2": 2.5, "speedup_case4": 3.5, "merge_error_m": 0.05,
 
 
 def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
-        known_starts: bool = False) -> dict[str, Any]:
+        known_starts: bool = False, coordination: str = "optimal") -> dict[str, Any]:
     from mrslam.demo import run
 
     r = run({"scenario": f"thesis-case-{case}", "seed": seed, "out": str(out),
              "spurious_detections": spurious, "max_sim_time_s": max_sim_time_s,
-             "known_starts": known_starts, "wall_timeout_s": 5400}, progress=False)
+             "known_starts": known_starts, "coordination": coordination,
+             "wall_timeout_s": 5400}, progress=False)
     robots = r["robots"]
     merges = r.get("merges", [])
     return {
@@ -73,6 +74,9 @@ def main() -> None:
     ap.add_argument("--known-starts", action="store_true",
                     help="also run the team cases with the start poses given to the server "
                     "(one team from the start: what coordination alone gains)")
+    ap.add_argument("--thesis-rule", action="store_true",
+                    help="also run the team cases with the dissertation's target rule "
+                    "(--coordination thesis) instead of the optimal assignment")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--runs", type=int, default=1,
                     help="run each team case (2, 4) this many times (single robots repeat "
@@ -97,6 +101,11 @@ def main() -> None:
             print(f"running case {case} with known start poses...", file=sys.stderr)
             res["cases"][f"{case}-known-starts"] = one(case, base / f"case-{case}-known-starts",
                                                        a.seed, 0.0, a.max_sim_time, True)
+        if a.thesis_rule and case in ("2", "4"):
+            print(f"running case {case} with the dissertation's target rule...", file=sys.stderr)
+            res["cases"][f"{case}-thesis-rule"] = one(case, base / f"case-{case}-thesis-rule",
+                                                      a.seed, 0.0, a.max_sim_time,
+                                                      coordination="thesis")
     c = res["cases"]
 
     def t(k: str) -> float | None:
@@ -119,6 +128,9 @@ def main() -> None:
         if f"{k}-known-starts" in c:
             res[f"speedup_case{k}_known_starts"] = ratio(t(str(int(k) - 1)),
                                                          t(f"{k}-known-starts"))
+        if f"{k}-thesis-rule" in c:
+            res[f"speedup_case{k}_thesis_rule"] = ratio(t(str(int(k) - 1)),
+                                                        t(f"{k}-thesis-rule"))
     merges = [m for k in c if k.split("#")[0] in ("2", "4") for m in c[k]["merges"]
               if "joint_error_m" in m and m.get("kind", "tags") == "tags"]
     if merges:
