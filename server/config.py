@@ -75,6 +75,12 @@ class TeamsConfig(_Model):
                                   "keyframes of a robot are matched against its teammates' "
                                   "maps where they overlap, so the joint map keeps fitting "
                                   "together as the robots go on (0: never)")
+    retire_sightings_after: int = Field(3, ge=0, description="once this many map matches "
+                                        "join two robots' graphs, the tag sightings between "
+                                        "them leave the graph (and no more are added): the "
+                                        "maps' overlap fixes the pair far more precisely, and "
+                                        "the small bias one meeting's sightings share would "
+                                        "bend both maps against it (0: keep them)")
     min_map_match_tries: int = Field(3, ge=1, description="where the aligned maps overlap at "
                                      "this many keyframes, at least one must match")
     look_at_movers: bool = Field(True, description="while robots outside the team remain, "

@@ -103,6 +103,7 @@ class Link:
     b: str
     stamp_ns: int
     record: FactorRecord
+    retired: bool = False    # out of the graph: map matches tie the pair (tag sightings only)
 
 
 @dataclass
@@ -167,7 +168,7 @@ class ServerCore:
             "sightings", "used", "unknown_robot", "self", "bad", "expired", "within_team",
             "refined", "contradicting", "merges", "merges_rejected", "merges_undone",
             "map_matches", "too_far", "contradictions_overruled", "merges_deferred",
-            "misread"), 0)
+            "misread", "sightings_retired"), 0)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan) -> VelocityCommand:
@@ -569,6 +570,7 @@ class ServerCore:
                       + [(rid, p.T_ab) for rid in tb.robot_ids],
                       ta.links + tb.links + links)
         info["map_matches"] = self._refine_on_maps(ta.robot_ids, tb.robot_ids, links)
+        info["sightings_retired"] = self._retire_sightings(ta.links + tb.links + links)
         T_joint = compose(b_anchor.slam.keyframe_pose(0), inverse(b_origin_before))
         for rid in tb.robot_ids:
             r = self.robots[rid]
@@ -579,7 +581,7 @@ class ServerCore:
             ta.visited.add(transform_points(p.T_ab, np.asarray(xy).reshape(1, 2))[0])
         merged_ids = list(tb.robot_ids)
         ta.robot_ids = ta.robot_ids + merged_ids
-        ta.links = ta.links + tb.links + links
+        ta.links = [ln for ln in ta.links + tb.links + links if not ln.retired]
         tb.merged_into = ta.team_id
         self.retired_teams[tb.team_id] = self.teams.pop(tb.team_id)
         self.latest_grids.pop(tb.team_id, None)
@@ -623,7 +625,41 @@ class ServerCore:
         if every <= 0 or len(team.robot_ids) < 2 or k % every:
             return
         mates = [o for o in team.robot_ids if o != r.robot_id]
-        self._refine_on_maps(mates, [r.robot_id], team.links, only=[k])
+        if self._refine_on_maps(mates, [r.robot_id], team.links, only=[k]) and \
+                self._retire_sightings(team.links):
+            team.links = [ln for ln in team.links if not ln.retired]
+
+    def _tied_by_maps(self, links: list[Link], a: str, b: str) -> bool:
+        """Whether map matches join robots a and b's graphs often enough that the tag
+        sightings between them no longer count (``teams.retire_sightings_after``)."""
+        need = self.cfg.teams.retire_sightings_after
+        return need > 0 and sum(ln.record.kind == "cross" and {ln.a, ln.b} == {a, b}
+                                for ln in links) >= need
+
+    def _retire_sightings(self, links: list[Link]) -> int:
+        """Take the tag sightings out of the graph for every robot pair the maps now tie
+        (``_tied_by_maps``); they are marked ``retired`` (the caller drops them from the
+        team's links). A meeting's sightings share their error (one geometry, seen from one
+        place): kept beside map matches, they hold the two maps a fraction of a degree off
+        where the robots met while the matches elsewhere pull them right, and both maps bend.
+        Returns how many were taken out."""
+        out = [ln for ln in links if ln.record.kind == "rendezvous" and not ln.retired
+               and self._tied_by_maps(links, ln.a, ln.b)]
+        if not out:
+            return 0
+        graph = self.robots[out[0].a].slam.graph
+        graph.remove([ln.record.index for ln in out if ln.record.index is not None])
+        for ln in out:
+            ln.retired, ln.record.index = True, None
+        graph.iterate(self.cfg.slam.graph.extra_iterations_after_loop)
+        for rc in self.robots.values():
+            if rc.slam.graph is graph:
+                rc.slam.rebind(graph)
+                rc.pose = rc.slam.pose
+        self.tag_counters["sightings_retired"] += len(out)
+        log.info("%d tag sightings left the graph: the maps tie %s", len(out),
+                 ", ".join(sorted({"+".join(sorted((ln.a, ln.b))) for ln in out})))
+        return len(out)
 
     def _refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link],
                         only: list[int] | None = None) -> int:
@@ -712,6 +748,8 @@ class ServerCore:
             self._contradictions.pop(pair, None)
             last = max((ln.stamp_ns for ln in team.links if {ln.a, ln.b} == set(pair)),
                        default=None)
+            if self._tied_by_maps(team.links, *pair):
+                return   # the maps say more about this pair than another sighting would
             if last is None or rec.stamp_ns - last >= t.refine_period_s * 1e9:
                 ln = self._link(rec)
                 a = self.robots[rec.observer]

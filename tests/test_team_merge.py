@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -42,9 +43,11 @@ Relabel = Callable[[int, str, TagDetection], TagDetection]
 
 def run(steps: int, falsify: bool = False, false_until: int = 0,
         cfg: ServerConfig | None = None, spawn: dict[str, tuple[float, float, float]] = SPAWN,
-        relabel: Relabel | None = None) -> tuple[ServerCore, Simulator]:
+        relabel: Relabel | None = None,
+        truth: dict[int, dict[str, tuple[float, float, float]]] | None = None
+        ) -> tuple[ServerCore, Simulator]:
     """``relabel(step, observer, detection)`` may change a detection before the server
-    hears it."""
+    hears it; ``truth`` gets every robot's true pose at each scan's stamp."""
     sim = Simulator(load_world(WORLD), spawn, SimParams(), seed=3)
     core = ServerCore(cfg or config())
     detector = TagDetector(TagLayout(), CameraMount())
@@ -52,6 +55,9 @@ def run(steps: int, falsify: bool = False, false_until: int = 0,
     K = sim.p.camera.camera.K
     for step in range(steps):
         obs = sim.sense()
+        if truth is not None:
+            poses = {rid: [float(v) for v in sim.robots[rid].pose] for rid in spawn}
+            truth[obs.stamp_ns] = {rid: (p[0], p[1], p[2]) for rid, p in poses.items()}
         wrong = falsify or step < false_until
         for rid in spawn:
             scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
@@ -399,3 +405,47 @@ def test_slam_does_not_see_the_teammates_bodies() -> None:
     assert not np.isnan(ranges).any()                   # the navigator's scan is untouched
     core.set_alive("r2", False)                         # a vanished teammate is not filtered
     assert not np.isnan(core._without_teammates(r1, ranges, angles)).any()
+
+
+def keyframe_errors(core: ServerCore, truth: dict[int, dict[str, tuple[float, float, float]]]
+                    ) -> float:
+    """The largest position error of any keyframe of either robot in the team frame (r1's
+    first pose), against the truth at the keyframe's stamp."""
+    r1_start = np.array(SPAWN["r1"])
+    worst = 0.0
+    for rid in SPAWN:
+        sl = core.robots[rid].slam
+        for kf, P in zip(sl.keyframes, sl.keyframe_poses(), strict=True):
+            est, true = compose(r1_start, P), np.array(truth[kf.stamp_ns][rid])
+            worst = max(worst, math.hypot(*(est[:2] - true[:2])))
+    return worst
+
+
+def test_sightings_leave_the_graph_once_the_maps_tie_the_robots() -> None:
+    """Every sighting of one meeting is off the same way (5° in the tag's heading, 2° in
+    bearing): kept in the graph beside the map matches, they hold the robots' relative pose
+    off where they met while the matches pull it right, and both maps bend. Once the maps tie
+    the pair, the sightings leave the graph and no more are added."""
+    import msgspec
+
+    def biased(step: int, observer: str, d: TagDetection) -> TagDetection:
+        return msgspec.structs.replace(d, yaw_rad=d.yaw_rad + math.radians(5.0),
+                                       bearing_rad=d.bearing_rad + math.radians(2.0))
+
+    truth: dict[int, dict[str, tuple[float, float, float]]] = {}
+    core, _ = run(300, relabel=biased, truth=truth)
+    assert len(core.merges) == 1 and len(core.teams) == 1
+    team = next(iter(core.teams.values()))
+    assert core.tag_counters["sightings_retired"] > 0
+    assert not [ln for ln in team.links if ln.record.kind == "rendezvous"]
+    assert sum(ln.record.kind == "cross" for ln in team.links) >= 3
+    fg = core.robots["r1"].slam.graph.isam.getFactorsUnsafe()   # removed factors are null
+    assert not [i for i in range(fg.size()) if isinstance(fg.at(i), gtsam.CustomFactor)]
+    kept = keyframe_errors(core, truth)
+
+    truth_old: dict[int, dict[str, tuple[float, float, float]]] = {}
+    old, _ = run(300, relabel=biased, truth=truth_old, cfg=config(retire_sightings_after=0))
+    assert old.tag_counters["sightings_retired"] == 0
+    assert any(ln.record.kind == "rendezvous" for t in old.teams.values() for ln in t.links)
+    bent = keyframe_errors(old, truth_old)
+    assert kept <= 0.025 and bent >= 2 * kept, (kept, bent)
