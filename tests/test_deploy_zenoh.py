@@ -83,50 +83,55 @@ def test_client_without_a_valid_certificate_cannot_connect(
 def test_robot_can_publish_only_under_its_own_keys(
         secured: tuple[Bus, str, Path], certs: Path) -> None:
     server, endpoint, tmp = secured
-    got: list[tuple[str, str]] = []
+    got: list[tuple[str, str, int]] = []
     lock = threading.Lock()
 
     def on_scan(key: str, msg: Scan) -> None:
         with lock:
-            got.append((key, msg.robot_id))
+            got.append((key, msg.robot_id, msg.seq))
 
     server.subscribe(keys.ALL_SCANS, Scan, on_scan)
     maps: list[MapUpdate] = []
     r1 = client(certs, tmp, endpoint, "r1")
     r2 = client(certs, tmp, endpoint, "r2")
-    # a second session with r2's credentials for the refused attempts: on a loaded machine, a
-    # session that published on a refused key sometimes had its own scans dropped for seconds
-    rogue = client(certs, tmp, endpoint, "r2")
+    rogue = client(certs, tmp, endpoint, "r2")  # a second session with r2's credentials
     dash = client(certs, tmp, endpoint, "dashboard")
+    spoof_seq = 1_000_000  # refused scans carry sequence numbers from here on
     try:
         cmds: list[VelocityCommand] = []
         r1.subscribe(keys.robot_cmd_vel("r1"), VelocityCommand, lambda k, m: cmds.append(m))
         dash.subscribe(keys.SERVER_MAP, MapUpdate, lambda k, m: maps.append(m))
         spoofed: list[MapUpdate] = []
         server.subscribe(keys.SERVER_MAP, MapUpdate, lambda k, m: spoofed.append(m))
-        # subscriptions take a moment to reach the router (longer on a busy machine): send
-        # again until the allowed messages arrive, the refused ones every time too
-        deadline = time.monotonic() + 15.0
-        seq = 0
 
         def arrived() -> bool:
             with lock:
-                scans = set(got)
-            return len(scans) >= 2 and bool(cmds)
+                scans = {(k, r) for k, r, _ in got}
+            return scans == {("mrslam/robot/r1/scan", "r1"),
+                             ("mrslam/robot/r2/scan", "r2")} and bool(cmds)
 
+        # 1. allowed traffic: subscriptions take a moment to reach the router (longer on a busy
+        # machine), so send again until it arrives
+        deadline = time.monotonic() + 15.0
+        seq = 0
         while not arrived() and time.monotonic() < deadline:
-            seq += 3
-            rogue.publish(keys.robot_scan("r1"), scan("r1", seq=seq), block=True)  # refused
-            rogue.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)  # refused
-            r2.publish(keys.robot_scan("r2"), scan("r2", seq=seq + 1), block=True)
-            r1.publish(keys.robot_scan("r1"), scan("r1", seq=seq + 2), block=True)
+            seq += 2
+            r2.publish(keys.robot_scan("r2"), scan("r2", seq=seq), block=True)
+            r1.publish(keys.robot_scan("r1"), scan("r1", seq=seq + 1), block=True)
             server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
                 robot_id="r1", v_mps=0.1, omega_rps=0.0), block=True)
             wait_for(arrived, 0.5)
         assert arrived(), (got, cmds)
-        time.sleep(0.5)  # would a refused message still arrive?
+        # 2. refused: r2's credentials writing r1's scans and the server's map, repeatedly
+        for i in range(10):
+            rogue.publish(keys.robot_scan("r1"), scan("r1", seq=spoof_seq + i), block=True)
+            rogue.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)
+            time.sleep(0.05)
+        time.sleep(1.0)  # would a refused message still arrive?
         with lock:
-            assert set(got) == {("mrslam/robot/r1/scan", "r1"), ("mrslam/robot/r2/scan", "r2")}
+            assert not [g for g in got if g[2] >= spoof_seq]
+            assert {(k, r) for k, r, _ in got} == {("mrslam/robot/r1/scan", "r1"),
+                                                   ("mrslam/robot/r2/scan", "r2")}
         assert {c.robot_id for c in cmds} == {"r1"}
         assert spoofed == [] and maps == []
         server.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)
