@@ -14,7 +14,7 @@ from schemas import Scan, VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
 from tests.conftest import ROOT
 from tests.examples import scan
-from tests.test_deploy_zenoh import wait_for, write_config
+from tests.test_deploy_zenoh import stream_arrives, wait_for, write_config
 
 DEPLOY = ROOT / "deploy"
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
@@ -32,9 +32,15 @@ def test_robots_behind_a_site_router_reach_the_server_only_under_their_keys(
     site_conf = write_config(tmp_path, "site-b", "zenohd", "--certs", str(certs), "--name",
                              "site-b", "--listen", site, "--connect", central, "r3", "r4")
     got: list[str] = []
+    seqs: set[int] = set()
     with Bus.open("router", config_file=server_conf) as server, \
             Bus.open("router", config_file=site_conf) as _site:
-        server.subscribe(keys.ALL_SCANS, Scan, lambda k, m: got.append(k))
+
+        def on_scan(key: str, msg: Scan) -> None:
+            got.append(key)
+            seqs.add(msg.seq)
+
+        server.subscribe(keys.ALL_SCANS, Scan, on_scan)
         r3 = Bus.open("client", config_file=write_config(
             tmp_path, "r3", "agent", "--certs", str(certs), "--connect", site, "--robot", "r3"),
             connect_timeout_ms=3000)
@@ -57,5 +63,6 @@ def test_robots_behind_a_site_router_reach_the_server_only_under_their_keys(
             time.sleep(0.5)
             assert set(got) == {"mrslam/robot/r3/scan"}
             assert {c.robot_id for c in cmds} == {"r3"}
+            assert stream_arrives(r3, "r3", 5000, lambda: set(seqs))  # every scan, not one
         finally:
             r3.close()

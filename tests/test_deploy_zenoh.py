@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -62,6 +62,21 @@ def wait_for(cond: object, timeout_s: float = 3.0) -> bool:
             return True
         time.sleep(0.02)
     return bool(cond())  # type: ignore[operator]
+
+
+def stream_arrives(bus: Bus, robot: str, first_seq: int, seqs_seen: Callable[[], set[int]],
+                   n: int = 30) -> bool:
+    """Publish ``n`` scans at 20 Hz as an agent does: does every one of them arrive?
+
+    (Before the robots were allowed to hear of the server's subscriptions, a client's declared
+    publisher delivered its first put at most and dropped the rest.)
+    """
+    want = set(range(first_seq, first_seq + n))
+    for q in sorted(want):
+        bus.publish(keys.robot_scan(robot), scan(robot, seq=q), block=True)
+        time.sleep(0.05)
+    wait_for(lambda: want <= seqs_seen(), 3.0)
+    return want <= seqs_seen()
 
 
 def test_client_without_a_valid_certificate_cannot_connect(
@@ -134,6 +149,16 @@ def test_robot_can_publish_only_under_its_own_keys(
                                                    ("mrslam/robot/r2/scan", "r2")}
         assert {c.robot_id for c in cmds} == {"r1"}
         assert spoofed == [] and maps == []
+        # 3. a robot's stream arrives whole, also after refused attempts under its key
+
+        def seqs(robot: str) -> Callable[[], set[int]]:
+            def seen() -> set[int]:
+                with lock:
+                    return {q for _, r, q in got if r == robot}
+            return seen
+
+        assert stream_arrives(r1, "r1", 5000, seqs("r1"))
+        assert stream_arrives(r2, "r2", 5000, seqs("r2"))
         server.publish(keys.SERVER_MAP, all_examples()["MapUpdate"], block=True)
         assert wait_for(lambda: len(maps) == 1)  # observers read what the server publishes
     finally:

@@ -11,7 +11,9 @@
 The server's router requires mutual TLS and applies access control keyed on the certificate's
 common name: robot <id> may publish, declare tokens and queryables only under
 ``mrslam/robot/<id>/**`` and may subscribe to its own keys and to ``mrslam/server/**`` (its
-commands, the map, the server's liveliness). Names passed with ``--observer`` (dashboards,
+commands, the map, the server's liveliness). It is told which keys under ``mrslam/`` have
+subscribers (declarations only, no data): without that, a client's declared publisher delivers
+its first put at most and drops the rest. Names passed with ``--observer`` (dashboards,
 loggers) may read everything and write nothing. Everything else is denied. The server's own
 session is the router, so its publications and subscriptions are local and always allowed.
 
@@ -77,10 +79,14 @@ def access_control(robots: list[str], observers: list[str],
         readable = [*own, "mrslam/server/**"]
         rules += [_rule(f"{rid}-write", "ingress", WRITE, own),
                   _rule(f"{rid}-subscribe", "ingress", SUBSCRIBE, readable),
-                  _rule(f"{rid}-receive", "egress", RECEIVE, readable)]
+                  _rule(f"{rid}-receive", "egress", RECEIVE, readable),
+                  # the server's subscriptions to the robot's keys: a client's publisher that
+                  # hears of no subscriber drops its puts before they leave the robot
+                  _rule(f"{rid}-routes", "egress", DECLARE, ["mrslam/**"])]
         subjects.append({"id": f"robot-{rid}", "cert_common_names": [rid]})
         policies.append({"id": f"policy-{rid}", "subjects": [f"robot-{rid}"],
-                         "rules": [f"{rid}-write", f"{rid}-subscribe", f"{rid}-receive"]})
+                         "rules": [f"{rid}-write", f"{rid}-subscribe", f"{rid}-receive",
+                                   f"{rid}-routes"]})
     if observers:
         rules += [_rule("observe-subscribe", "ingress", SUBSCRIBE, ["mrslam/**"]),
                   _rule("observe-receive", "egress", RECEIVE, ["mrslam/**"])]
