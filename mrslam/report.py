@@ -134,6 +134,44 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
     return out
 
 
+SIGHT_RANGE_M = 10.0   # the farthest a tag is read (and LIDAR-located) in the simulator
+
+
+def first_sight(merges: list[dict[str, Any]], truth: dict[str, Any], segments: np.ndarray,
+                circles: np.ndarray | None = None, within_m: float = SIGHT_RANGE_M
+                ) -> list[float | None]:
+    """For each merge, the first sim time [s] at which a robot of one side had a robot of the
+    other within ``within_m`` and nothing but air between them (the truth against the world's
+    walls), or None if never before the merge: the earliest the two teams could have met.
+    A merge long after it was slow to see or verify; one right after it waited on the meeting."""
+    from sim.raycast import line_of_sight
+
+    out: list[float | None] = []
+    for m in merges:
+        end = m["stamp_ns"]
+        best: int | None = None
+        for ra in m["robots_a"]:
+            for rb in m["robots_b"]:
+                if ra not in truth or rb not in truth:
+                    continue
+                sa = np.asarray(truth[ra]["stamps_ns"], dtype=np.int64)
+                pa = np.asarray(truth[ra]["poses"], dtype=np.float64)
+                sb = np.asarray(truth[rb]["stamps_ns"], dtype=np.int64)
+                pb = np.asarray(truth[rb]["poses"], dtype=np.float64)
+                if not len(sa) or not len(sb):
+                    continue
+                keep = sa <= (end if best is None else best)
+                sa, pa = sa[keep], pa[keep]
+                j = np.clip(np.searchsorted(sb, sa), 0, len(sb) - 1)
+                near = np.flatnonzero(np.hypot(*(pa[:, :2] - pb[j, :2]).T) <= within_m)
+                for i in near:
+                    if line_of_sight(tuple(pa[i, :2]), tuple(pb[j[i], :2]), segments, circles):
+                        best = int(sa[i])
+                        break
+        out.append(round(best * 1e-9, 2) if best is not None else None)
+    return out
+
+
 def threshold_times(teams: dict[str, Any]) -> tuple[bool, float | None, float | None]:
     """Whether the run reached its threshold, when (the last of the final teams), and when
     the first team did: a team merged into another later counts for the first (its robots
@@ -221,6 +259,16 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                   if (server_dir / "trajectories" / f"{rid}_final.csv").exists()}
     merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth,
                           first_online, final_team)
+    from sim.errors import WorldError
+    from sim.loader import load_world
+
+    try:
+        world = load_world(plan["world"])
+        sights = first_sight(summary.get("merges", []), truth, world.segments, world.circles)
+        for row, t_sight in zip(merges, sights, strict=True):
+            row["first_sight_s"] = t_sight
+    except WorldError as e:   # a scoring extra: the report stands without it
+        log.warning("first line of sight per merge not scored: %s", e)
     for tid, old in summary.get("merged_teams", {}).items():
         hist = old.get("coverage_history", [])
         # a team may reach the threshold before a robot still alone joins it

@@ -76,6 +76,9 @@ def test_two_robots_merge_over_the_wire(tmp_path: Path) -> None:
     merges = [m for m in report["merges"] if not m["undone"]]
     assert len(merges) == 1 and report["false_merges"] == 0
     assert merges[0]["joint_error_m"] <= 0.05 and merges[0]["joint_error_deg"] <= 1.0
+    # they start in sight of each other
+    assert merges[0]["first_sight_s"] is not None
+    assert merges[0]["first_sight_s"] <= min(1.0, merges[0]["sim_time_s"])
     final = [t for t in report["teams"].values() if not t.get("merged_into")]
     assert len(final) == 1 and sorted(final[0]["robot_ids"]) == ["r1", "r2"]
     # the bound for a small team (0.15 m): multi-process runs differ in when sightings

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from mrslam.evaluate import compose
-from mrslam.report import merge_errors
+from mrslam.report import first_sight, merge_errors
 
 A0 = np.array([-23.0, -22.0, 0.0])      # where robots a and b started (world)
 B0 = np.array([-5.0, 20.0, 0.3])
@@ -88,3 +88,24 @@ def test_the_first_team_to_the_threshold_counts_though_a_lone_robot_joined_it_la
     teams["team-r1"] = {"reached": False, "sim_time_to_threshold_s": None}
     assert threshold_times(teams) == (False, None, 370.0)
     assert threshold_times({}) == (False, None, None)
+
+
+def test_first_sight_is_when_the_teams_could_first_see_each_other() -> None:
+    """r1 stands still; r2 drives along y = 4 from x = 0 to 20 at 1 m/s. A wall on x = 8 from
+    y = -5 to 5 hides r2 from r1 (at (10, 0)) while r2 is left of it: with the wall, the
+    first sight is when r2 reaches x = 8; without it, as soon as r2 is within
+    10 m. A merge of robots that never came within 10 m, or one before any sight, gets None."""
+    stamps = np.arange(0, 21) * 1_000_000_000
+    truth = {"r1": {"stamps_ns": stamps, "poses": np.tile([10.0, 0.0, 0.0], (21, 1))},
+             "r2": {"stamps_ns": stamps,
+                    "poses": np.column_stack([np.arange(21.0), np.full(21, 4.0), np.zeros(21)])},
+             "r3": {"stamps_ns": stamps, "poses": np.tile([50.0, 50.0, 0.0], (21, 1))}}
+    wall = np.array([[8.0, -5.0, 8.0, 5.0]])
+    merges = [{"stamp_ns": 20_000_000_000, "robots_a": ["r1"], "robots_b": ["r2"]},
+              {"stamp_ns": 20_000_000_000, "robots_a": ["r1", "r2"], "robots_b": ["r3"]},
+              {"stamp_ns": 3_000_000_000, "robots_a": ["r1"], "robots_b": ["r2"]}]
+    # in the open: within 10 m of (10, 0) along y = 4 once x ≥ 10 − √84 ≈ 0.83, so at t = 1 s.
+    # With the wall: for x < 8 the line to r2 crosses x = 8 at y = 8 / (10 − x) < 5, blocked;
+    # from x = 8 on it clears, so at t = 8 s. The third merge (at 3 s) comes before that.
+    assert first_sight(merges, truth, np.zeros((0, 4))) == [1.0, None, 1.0]
+    assert first_sight(merges, truth, wall) == [8.0, None, None]
