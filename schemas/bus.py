@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -106,6 +107,24 @@ class Bus:
                     self._publishers[key] = pub
         pub.put(encode(msg))
         self.stats.published[type(msg).__name__] += 1
+
+    def wait_for_subscribers(self, key: str, timeout_s: float = 5.0) -> bool:
+        """Wait until a subscriber somewhere matches ``key``; False if none does in time.
+
+        A client learns of subscriptions from its router, and until it has, what it publishes
+        on ``key`` goes nowhere. A program whose first messages matter (a test, a one-shot
+        command) waits here rather than sleeping for a guessed time.
+        """
+        pub = self.session.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout_s
+            while not pub.matching_status.matching:
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.01)
+            return True
+        finally:
+            pub.undeclare()
 
     # -- subscribing ------------------------------------------------------------------------
     def subscribe(self, key: str, cls: type[M], callback: Callable[[str, M], None]) -> Any:

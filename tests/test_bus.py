@@ -38,7 +38,8 @@ def test_every_message_type_crosses_the_bus(router: Bus, endpoint: str) -> None:
                 with lock:
                     got[name] = msg
             b.subscribe(key_for(name), cls, on)
-        time.sleep(0.3)
+        for name in examples:
+            assert a.wait_for_subscribers(key_for(name))
         for name, msg in examples.items():
             a.publish(key_for(name), msg, block=True)
         assert wait_for(lambda: len(got) == len(examples))
@@ -49,7 +50,7 @@ def test_garbage_is_counted_and_not_delivered(router: Bus, endpoint: str) -> Non
     delivered: list[Scan] = []
     with Bus.open("client", connect=[endpoint]) as a:
         router.subscribe(keys.ALL_SCANS, Scan, lambda k, m: delivered.append(m))
-        time.sleep(0.3)
+        assert a.wait_for_subscribers(keys.robot_scan("r3"))
         a.session.put(keys.robot_scan("r1"), b"\x93garbage")
         a.session.put(keys.robot_scan("r2"), b"")
         a.publish(keys.robot_scan("r3"), scan("r3"), block=True)
@@ -68,11 +69,22 @@ def test_a_failing_handler_does_not_stop_delivery(router: Bus, endpoint: str) ->
 
     with Bus.open("client", connect=[endpoint]) as a:
         router.subscribe(keys.ALL_SCANS, Scan, handler)
-        time.sleep(0.3)
+        assert a.wait_for_subscribers(keys.robot_scan("r1"))
         for i in range(3):
             a.publish(keys.robot_scan("r1"), scan(seq=i), block=True)
         assert wait_for(lambda: len(seen) == 3)
     assert router.stats.callback_errors["Scan"] == 1
+
+
+def test_a_client_can_wait_until_someone_subscribes(router: Bus, endpoint: str) -> None:
+    got: list[Scan] = []
+    with Bus.open("client", connect=[endpoint]) as a, Bus.open("client", connect=[endpoint]) as b:
+        assert not a.wait_for_subscribers(keys.robot_scan("r1"), timeout_s=0.3)
+        b.subscribe(keys.ALL_SCANS, Scan, lambda k, m: got.append(m))
+        assert a.wait_for_subscribers(keys.robot_scan("r1"))
+        assert not a.wait_for_subscribers(keys.robot_scan("r1") + "/other", timeout_s=0.2)
+        a.publish(keys.robot_scan("r1"), scan("r1"), block=True)
+        assert wait_for(lambda: len(got) == 1)
 
 
 def test_latest_map_queryable(router: Bus, endpoint: str) -> None:

@@ -71,6 +71,8 @@ def stream_arrives(bus: Bus, robot: str, first_seq: int, seqs_seen: Callable[[],
     (Before the robots were allowed to hear of the server's subscriptions, a client's declared
     publisher delivered its first put at most and dropped the rest.)
     """
+    if not bus.wait_for_subscribers(keys.robot_scan(robot), timeout_s=15.0):
+        return False  # the robot never heard of the server's subscription
     want = set(range(first_seq, first_seq + n))
     for q in sorted(want):
         bus.publish(keys.robot_scan(robot), scan(robot, seq=q), block=True)

@@ -41,9 +41,10 @@ def test_recorder_process_writes_what_was_published_and_finishes_on_sigterm(
         while not out.exists() and time.monotonic() < deadline:
             assert proc.poll() is None, proc.stdout.read() if proc.stdout else ""
             time.sleep(0.1)
-        time.sleep(0.5)  # the subscription reaches the router
         sent: list[tuple[str, bytes]] = []
         with Bus.open("client", connect=[endpoint]) as pub:
+            for key in (keys.robot_scan("r1"), keys.robot_scan("r2"), keys.robot_status("r1")):
+                assert pub.wait_for_subscribers(key, timeout_s=30), key
             for k in range(20):
                 for rid in ("r1", "r2"):
                     s = msgspec.structs.replace(scan(rid, seq=k, seed=k),
@@ -141,8 +142,8 @@ def test_recorder_leaves_out_excluded_keys(tmp_path: Path, endpoint: str, router
         deadline = time.monotonic() + 30
         while not out.exists() and time.monotonic() < deadline:
             time.sleep(0.1)
-        time.sleep(0.5)
         with Bus.open("client", connect=[endpoint]) as pub:
+            assert pub.wait_for_subscribers(keys.robot_scan("r1"), timeout_s=30)
             for k in range(5):
                 pub.publish(keys.robot_scan("r1"), msgspec.structs.replace(
                     scan("r1", seq=k, seed=k), stamp_ns=10**9 + k * 10**8), block=True)
