@@ -15,7 +15,7 @@ import typer
 
 from mrslam import __version__
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Multi-robot active SLAM: server, robot agent, simulator and tools.")
 log = logging.getLogger("mrslam")
 

@@ -64,6 +64,14 @@ def test_every_subcommand_exists() -> None:
         assert cmd in res.output
 
 
+def test_help_shows_the_units_in_brackets() -> None:
+    # help text writes units as [s], [ns], [m]: they must not be taken for markup and dropped
+    res = CliRunner().invoke(app, ["replay", "--help"], env={"COLUMNS": "200"})
+    assert "[ns]" in res.output and "[s]" in res.output
+    res = CliRunner().invoke(app, ["eval-relations", "--help"], env={"COLUMNS": "200"})
+    assert "[m]" in res.output and "[deg]" in res.output
+
+
 def test_unbuilt_command_exits_2_with_message(capsys: pytest.CaptureFixture[str]) -> None:
     def not_built() -> None:
         raise NotImplementedError
