@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from mrslam.config import write_resolved
+from mrslam.config import load_config, write_resolved
 from mrslam.launch import ProcessGroup
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
     """Run one demo; returns the report (also written to ``<out>/report.json``)."""
     from rich.console import Console
 
-    cfg = DemoConfig.model_validate(overrides or {})
+    cfg = load_config(DemoConfig, overrides=overrides or {}, environ={})  # bad values: ConfigError
     if not cfg.out:
         name = cfg.scenario or Path(cfg.world or "world").stem
         cfg.out = str(Path("runs") / time.strftime(f"{name}-%Y%m%d-%H%M%S"))

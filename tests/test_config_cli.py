@@ -72,6 +72,12 @@ def test_help_shows_the_units_in_brackets() -> None:
     assert "[m]" in res.output and "[deg]" in res.output
 
 
+def test_demo_with_a_value_out_of_range_says_which_and_exits_2() -> None:
+    res = CliRunner().invoke(app, ["demo", "--coverage", "1.5"])
+    assert res.exit_code == 2, res.output
+    assert "coverage" in res.output and "less than or equal to 1" in res.output
+
+
 def test_unbuilt_command_exits_2_with_message(capsys: pytest.CaptureFixture[str]) -> None:
     def not_built() -> None:
         raise NotImplementedError
