@@ -74,7 +74,8 @@ def bench_core(steps: int) -> dict[str, object]:
     from sim.config import SimConfig
     from sim.process import build
 
-    sim, _ = build(SimConfig(scenario="thesis-case-4"))
+    sim, _ = build(SimConfig(scenario="thesis-case-4",
+                             scenarios_file=str(THESIS / "scenarios.yaml")))
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -92,7 +93,8 @@ def bench_lockstep(sim_s: float) -> dict[str, object]:
 
     endpoint = free_local_endpoint()
     exe = [sys.executable, "-m", "mrslam.cli"]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONPATH=str(ROOT),
+               MRSLAM_SCENARIOS_FILE=str(THESIS / "scenarios.yaml"))
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "run"
         sim = subprocess.Popen([*exe, "sim", "--scenario", "thesis-case-4", "--lockstep",

@@ -31,6 +31,9 @@ class DemoConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     scenario: str | None = "thesis-case-2"
+    scenarios_file: str | None = Field(
+        None, description="where the scenario is defined; default: the cases that ship with "
+        "mrslam (sim/worlds/scenarios.yaml)")
     world: str | None = None
     robots: dict[str, Pose] = Field(default_factory=dict)
     area_m2: float | None = Field(
@@ -90,10 +93,11 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
 
 def plan_run(cfg: DemoConfig) -> dict[str, Any]:
     """Resolve the scenario: world, robots, settings, and the world's true map."""
-    from sim.config import SimConfig, load_scenario, resolve_scene
+    from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
     from sim.world_map import world_map
 
-    scfg = SimConfig(scenario=cfg.scenario, world=cfg.world, robots=cfg.robots)
+    scfg = SimConfig(scenario=cfg.scenario, world=cfg.world, robots=cfg.robots,
+                     scenarios_file=cfg.scenarios_file or str(DEFAULT_SCENARIOS))
     world, robots = resolve_scene(scfg)
     case: dict[str, Any] = (load_scenario(Path(scfg.scenarios_file), cfg.scenario)
                             if cfg.scenario else {})

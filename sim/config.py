@@ -14,9 +14,8 @@ from schemas.tags import CameraMount, TagLayout
 from schemas.types import ID_PATTERN
 from sim.errors import SimError
 
-#: Where the reference scenarios live in a development checkout (``../shared/data``).
-DEFAULT_SCENARIOS = (Path(__file__).resolve().parents[2] / "shared" / "data" / "worlds"
-                     / "thesis" / "scenarios.yaml")
+#: The dissertation's four cases in our own worlds, shipped with the package.
+DEFAULT_SCENARIOS = Path(__file__).resolve().parent / "worlds" / "scenarios.yaml"
 Pose = tuple[float, float, float]
 
 

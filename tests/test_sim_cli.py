@@ -56,9 +56,13 @@ def test_robot_specs_and_scenes() -> None:
     assert parse_robot_spec("r2:1.5,-2") == ("r2", (1.5, -2.0, 0.0))
     with pytest.raises(SimError):
         parse_robot_spec("r2")
+    # by default the cases that ship with the package, in our own worlds
     world, robots = resolve_scene(SimConfig(scenario="thesis-case-4"))
-    assert world.name == "house_large.world" and len(robots) == 5
+    assert world.name == "large_house.world" and world.is_file() and len(robots) == 5
     world, robots = resolve_scene(SimConfig(scenario="thesis-case-4",
                                             robots={"r9": (0.0, 0.0, 0.0)}))
     assert list(robots) == ["r9"]
-    assert (THESIS / "scenarios.yaml").exists()
+    # the dissertation's worlds when its scenarios file is named
+    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4",
+                                            scenarios_file=str(THESIS / "scenarios.yaml")))
+    assert world == THESIS / "house_large.world" and len(robots) == 5

@@ -197,5 +197,6 @@ def test_default_area_to_cover_adds_the_wall_faces_to_the_free_area() -> None:
     assert fig["explorable_area_m2"] == pytest.approx(
         fig["free_area_m2"] + fig["wall_face_area_m2"], abs=1e-3)
     assert 0.0 < fig["wall_face_area_m2"] < fig["occupied_area_m2"]
-    plan = plan_run(DemoConfig(scenario="thesis-case-1"))
+    plan = plan_run(DemoConfig(scenario="thesis-case-1",
+                               scenarios_file=str(THESIS / "scenarios.yaml")))
     assert plan["area_m2"] == pytest.approx(fig["explorable_area_m2"])

@@ -1,0 +1,182 @@
+"""The floor plans of the worlds that ship with mrslam, written out as Gazebo SDF box walls.
+
+The dissertation's figures are kept as facts: a small house of 20 × 20 m and a large one of
+50 × 50 m, both centred on the origin, walls 0.15 m thick and 2.5 m high, and the spawn poses of
+its four cases (``sim/worlds/scenarios.yaml``). The rooms, doors and corridors are our own.
+
+A plan is a list of straight walls along their centre lines, each with its door openings, and a
+few square pillars. ``python -m sim.floorplan`` rewrites ``sim/worlds/*.world`` from this
+module; a test checks that the files there are what it writes.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+WALL_THICKNESS_M = 0.15
+WALL_HEIGHT_M = 2.5
+WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
+
+Point = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A straight wall from ``a`` to ``b`` (centre line) with door openings, each
+    ``(centre, width)`` in metres along the wall from ``a``."""
+
+    a: Point
+    b: Point
+    doors: tuple[tuple[float, float], ...] = ()
+
+    @property
+    def length_m(self) -> float:
+        return math.dist(self.a, self.b)
+
+    def pieces(self, thickness_m: float) -> list[tuple[Point, Point]]:
+        """The solid stretches between the doors. The wall's own ends reach ``thickness_m / 2``
+        past ``a`` and ``b``, so walls meeting there close the corner; door edges do not, so an
+        opening is exactly its width."""
+        length = self.length_m
+        ux, uy = (self.b[0] - self.a[0]) / length, (self.b[1] - self.a[1]) / length
+        cuts = sorted((c - w / 2, c + w / 2) for c, w in self.doors)
+        starts = [-thickness_m / 2] + [hi for _, hi in cuts]
+        ends = [lo for lo, _ in cuts] + [length + thickness_m / 2]
+        return [((self.a[0] + s * ux, self.a[1] + s * uy), (self.a[0] + e * ux, self.a[1] + e * uy))
+                for s, e in zip(starts, ends, strict=True) if e - s > 1e-9]
+
+
+@dataclass(frozen=True)
+class Plan:
+    name: str
+    walls: tuple[Wall, ...]
+    pillars: tuple[tuple[float, float, float], ...] = ()   # (x, y, side) [m]
+
+
+def hwall(y: float, x0: float, x1: float, doors: tuple[float, ...] = (),
+          width_m: float = 1.0) -> Wall:
+    """A wall along ``y`` from ``x0`` to ``x1``, doors centred at the given x."""
+    return Wall((x0, y), (x1, y), tuple((abs(x - x0), width_m) for x in doors))
+
+
+def vwall(x: float, y0: float, y1: float, doors: tuple[float, ...] = (),
+          width_m: float = 1.0) -> Wall:
+    """A wall along ``x`` from ``y0`` to ``y1``, doors centred at the given y."""
+    return Wall((x, y0), (x, y1), tuple((abs(y - y0), width_m) for y in doors))
+
+
+def small_house() -> Plan:
+    """20 × 20 m: three rooms along the north side (the middle one behind a slanted wall),
+    a hall along the middle that opens into a lounge in the east, three rooms in the south,
+    the south-west corner cut off, a free-standing slanted counter and a short wall in the
+    lounge."""
+    c = 10.0 - WALL_THICKNESS_M / 2
+    return Plan("small_house", (
+        # outline, the south-west corner cut at 45°
+        hwall(-c, -6.5, c), vwall(c, -c, c), hwall(c, c, -c), vwall(-c, c, -6.5),
+        Wall((-c, -6.5), (-6.5, -c)),
+        # north rooms: west (r1), middle (r2), east behind a slanted wall
+        hwall(3.5, -c, c, doors=(-7.0, -2.0, 5.5)),
+        vwall(-5.5, 3.5, c, doors=(6.5,)),
+        Wall((0.0, 3.5), (1.5, c), doors=((4.5, 1.0),)),
+        # the hall's south side, the south rooms (r3 in the east one) and the lounge
+        hwall(1.0, -c, 2.0, doors=(-7.0, -1.0)),
+        vwall(-4.0, -c, 1.0, doors=(-5.5,)),
+        vwall(2.0, -c, 1.0, doors=(-7.5,)),
+        hwall(-3.0, 2.0, c, doors=(7.5,), width_m=1.2),
+        Wall((-2.5, -2.5), (0.5, -5.5)),         # a slanted counter, free on both sides
+        Wall((c, 0.5), (8.0, 2.0)),              # an alcove in the lounge
+    ))
+
+
+def large_house() -> Plan:
+    """50 × 50 m: two 3 m corridors cross at a hall with cut corners and split the house
+    into four wings of two to three rooms each; the north-east corner is cut off, two wings
+    have a slanted partition, one a partition with a free end and a long room has pillars."""
+    c = 25.0 - WALL_THICKNESS_M / 2
+    d = 1.2
+    return Plan("large_house", (
+        # outline, the north-east corner cut at 45°
+        hwall(-c, -c, c), vwall(c, -c, 21.0), Wall((c, 21.0), (21.0, c)), hwall(c, 21.0, -c),
+        vwall(-c, c, -c),
+        # corridors: x = ±1.5 and y = ±1.5, meeting at a hall with slanted corners
+        vwall(-1.5, 4.0, c, doors=(19.0, 8.0), width_m=d),
+        vwall(1.5, 4.0, c, doors=(20.0, 6.0), width_m=d),
+        vwall(-1.5, -c, -4.0, doors=(-18.0, -7.0), width_m=d),
+        vwall(1.5, -c, -4.0, doors=(-20.0, -9.0), width_m=d),
+        hwall(1.5, -c, -4.0, doors=(-19.0, -8.0), width_m=d),
+        hwall(1.5, 4.0, c, doors=(10.0, 20.0), width_m=d),
+        hwall(-1.5, -c, -4.0, doors=(-20.0, -9.0), width_m=d),
+        hwall(-1.5, 4.0, c, doors=(7.0, 19.0), width_m=d),
+        Wall((-1.5, 4.0), (-4.0, 1.5)), Wall((1.5, 4.0), (4.0, 1.5)),
+        Wall((-1.5, -4.0), (-4.0, -1.5)), Wall((1.5, -4.0), (4.0, -1.5)),
+        # north-west wing: r5 in the outer room, r4 (and case 3's robot) beside it
+        hwall(13.0, -c, -1.5, doors=(-19.0, -7.0), width_m=d),
+        vwall(-13.0, 1.5, c, doors=(7.0, 19.0), width_m=d),
+        # north-east wing: r3 in the outer room; a slanted partition, a long room with pillars
+        hwall(10.0, 1.5, c, doors=(8.0, 19.0), width_m=d),
+        vwall(13.0, 10.0, c, doors=(20.0,), width_m=d),
+        Wall((5.0, c), (9.0, 19.0)),
+        # south-west wing: r1 in the outer room; a slanted partition in the long room
+        hwall(-12.0, -c, -1.5, doors=(-15.0, -5.0), width_m=d),
+        vwall(-12.0, -c, -12.0, doors=(-19.0,), width_m=d),
+        Wall((-11.0, -12.0), (-7.0, -6.0)),
+        # south-east wing: r2 in the outer room; a partition with a free end, a slanted alcove
+        vwall(12.0, -c, -1.5, doors=(-20.0, -7.0), width_m=d),
+        hwall(-13.0, 12.0, c, doors=(18.0,), width_m=d),
+        hwall(-12.0, 1.5, 8.0),
+        Wall((c, -5.0), (20.0, -9.0)),
+    ), pillars=((8.0, 5.75, 0.5), (17.0, 5.75, 0.5)))
+
+
+PLANS = {"small_house": small_house, "large_house": large_house}
+
+
+def _box(name: str, x: float, y: float, yaw: float, length: float, width: float,
+         height: float) -> list[str]:
+    pose = f"<pose>{x:.4f} {y:.4f} {height / 2:.4f} 0 0 {yaw:.6f}</pose>"
+    geom = f"<geometry><box><size>{length:.4f} {width:.4f} {height:.4f}</size></box></geometry>"
+    return [f'        <collision name="{name}">{pose}{geom}</collision>',
+            f'        <visual name="{name}">{pose}{geom}</visual>']
+
+
+def to_sdf(plan: Plan, thickness_m: float = WALL_THICKNESS_M,
+           height_m: float = WALL_HEIGHT_M) -> str:
+    """The plan as an SDF world: one static model, one box per solid stretch of wall."""
+    lines = ['<?xml version="1.0" ?>',
+             f"<!-- mrslam's {plan.name.replace('_', ' ')}: written by `python -m "
+             "sim.floorplan`; change the plan there -->",
+             '<sdf version="1.6">', f'  <world name="{plan.name}">',
+             "    <include><uri>model://sun</uri></include>",
+             "    <include><uri>model://ground_plane</uri></include>",
+             f'    <model name="{plan.name}">', "      <static>true</static>",
+             '      <link name="walls">']
+    k = 0
+    for wall in plan.walls:
+        for (x0, y0), (x1, y1) in wall.pieces(thickness_m):
+            lines += _box(f"wall_{k}", (x0 + x1) / 2, (y0 + y1) / 2,
+                          math.atan2(y1 - y0, x1 - x0), math.dist((x0, y0), (x1, y1)),
+                          thickness_m, height_m)
+            k += 1
+    for i, (x, y, side) in enumerate(plan.pillars):
+        lines += _box(f"pillar_{i}", x, y, 0.0, side, side, height_m)
+    lines += ["      </link>", "    </model>", "  </world>", "</sdf>", ""]
+    return "\n".join(lines)
+
+
+def write_worlds(folder: Path = WORLDS_DIR) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name, make in PLANS.items():
+        path = folder / f"{name}.world"
+        path.write_text(to_sdf(make()))
+        out.append(path)
+    return out
+
+
+if __name__ == "__main__":
+    for p in write_worlds(Path(sys.argv[1]) if len(sys.argv) > 1 else WORLDS_DIR):
+        print(p)
