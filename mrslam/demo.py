@@ -128,6 +128,7 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
     server = {
         "bus": {"mode": "router", "listen": [endpoint], "connect": []},
         "robots": sorted(plan["robots"]),
+        "clock": {"source": "sim"},
         "slam": {"grid": {"resolution_m": plan["resolution_m"], "p_hit": 0.75, "p_miss": 0.35}},
         "explore": {"explorer": cfg.explorer, "lam": plan["lam"], "total_area_m2": plan["area_m2"],
                     "coverage_threshold": plan["threshold"]},
