@@ -96,6 +96,10 @@ class SimConfig(_Model):
     start_timeout_s: float = Field(60.0, gt=0.0, description="lockstep: wait for agents")
     ack_timeout_s: float = Field(60.0, gt=0.0, description="lockstep: give up on an ack")
     resend_after_s: float = Field(1.0, gt=0.0, description="lockstep: re-send a step")
+    command_ttl_s: float = Field(
+        0.5, gt=0.0, le=10.0, description="a robot whose last motor command (in lockstep: last "
+        "ack) is older than this [sim s] stops until a new one arrives, as the base firmware "
+        "does (it caps a command's timeout at 0.5 s)")
 
     @model_validator(mode="after")
     def _ids(self) -> SimConfig:

@@ -6,6 +6,11 @@ the ground truth (also appended to ``<out>/truth.jsonl``). In real-time mode it 
 mode it waits (at start) until every robot's agent is alive, and (each step) until every live
 agent has acknowledged the step, re-sending the step's messages when an ack is late; the command
 inside the ack is the one applied. A robot whose agent disappears is stopped.
+
+A command holds for ``command_ttl_s`` of simulated time from the step it arrived in (real time)
+or the step its ack answered (lockstep), as the motor board's firmware holds a speed only for
+its timeout: an agent that hangs, or an ack that times out, leaves its robot standing, not
+driving blind on its last command.
 """
 
 from __future__ import annotations
@@ -59,6 +64,7 @@ def params_from_config(cfg: SimConfig) -> SimParams:
         lidar=LidarSpec(lid.beams, math.radians(lid.fov_deg), lid.range_min_m, lid.range_max_m,
                         lid.sigma_m),
         drive=DriveLimits(**cfg.drive.model_dump()),
+        command_ttl_ns=round(cfg.command_ttl_s * 1e9),
         odometry=OdometryNoise(**cfg.odometry.model_dump()),
         camera=CameraSpec(
             camera=PinholeCamera.from_hfov(cam.width, cam.height, math.radians(cam.hfov_deg)),
@@ -116,9 +122,10 @@ class SimNode:
         self.world_name = world_name
         self.truth_out = truth_out
         self.cond = threading.Condition()
-        self.motor: dict[str, tuple[float, float]] = {}
+        # commands as (v, ω, simulation time given)
+        self.motor: dict[str, tuple[float, float, int]] = {}
         self.acked: dict[str, int] = dict.fromkeys(sim.robots, -1)
-        self.ack_cmd: dict[str, tuple[float, float]] = {}
+        self.ack_cmd: dict[str, tuple[float, float, int]] = {}
         self.alive: set[str] = set()
         self.started: float | None = None   # monotonic time of the first step
         self.counters = {"ack_timeouts": 0, "resends": 0, "images": 0, "foreign_messages": 0,
@@ -139,7 +146,7 @@ class SimNode:
     def _on_motor(self, key: str, msg: SimMotorCommand) -> None:
         if self._ours(key, msg.robot_id):
             with self.cond:
-                self.motor[msg.robot_id] = (msg.v_mps, msg.omega_rps)
+                self.motor[msg.robot_id] = (msg.v_mps, msg.omega_rps, self.sim.stamp_ns)
 
     def _on_ack(self, key: str, msg: SimStepAck) -> None:
         if not self._ours(key, msg.robot_id):
@@ -147,8 +154,11 @@ class SimNode:
         with self.cond:
             if msg.step > self.acked[msg.robot_id]:
                 self.acked[msg.robot_id] = msg.step
+                # an ack without a command renews the one before
+                v, w, _ = self.ack_cmd.get(msg.robot_id, (0.0, 0.0, 0))
                 if msg.v_mps is not None and msg.omega_rps is not None:
-                    self.ack_cmd[msg.robot_id] = (msg.v_mps, msg.omega_rps)
+                    v, w = msg.v_mps, msg.omega_rps
+                self.ack_cmd[msg.robot_id] = (v, w, msg.step * self.sim.p.step_ns)
             self.cond.notify_all()
 
     def _on_alive(self, key: str, alive: bool) -> None:
@@ -160,7 +170,7 @@ class SimNode:
                 self.alive.add(rid)
             else:
                 self.alive.discard(rid)
-                self.motor[rid] = self.ack_cmd[rid] = (0.0, 0.0)
+                self.motor[rid] = self.ack_cmd[rid] = (0.0, 0.0, self.sim.stamp_ns)
                 log.warning("agent of %s is gone; stopping the robot", rid)
             self.cond.notify_all()
 
@@ -188,8 +198,8 @@ class SimNode:
                     t0, k0 = time.monotonic(), sim.step + 1
             with self.cond:
                 commands = dict(self.ack_cmd if cfg.lockstep else self.motor)
-            for rid, (v, w) in commands.items():
-                sim.set_command(rid, v, w)
+            for rid, (v, w, stamp_ns) in commands.items():
+                sim.set_command(rid, v, w, stamp_ns)
             sim.advance()
 
     def _finished(self) -> bool:
@@ -257,9 +267,12 @@ class SimNode:
             "real_time_factor": sim_s / stepping if stepping > 0 else None,
             "lockstep": self.cfg.lockstep, "seed": self.cfg.seed,
             "robots": {rid: {"pose": list(r.pose), "collisions": r.collisions,
-                             "distance_m": r.distance_m, "images": r.image_seq}
+                             "distance_m": r.distance_m, "images": r.image_seq,
+                             "commands_expired": r.commands_expired}
                        for rid, r in sim.robots.items()},
-            **self.counters, "bus": self.bus.stats.as_dict(),
+            **self.counters,
+            "commands_expired": sum(r.commands_expired for r in sim.robots.values()),
+            "bus": self.bus.stats.as_dict(),
         }
 
 

@@ -7,6 +7,10 @@ truth; ``advance()`` applies the latest commands and integrates the physics to t
 on that substep, stops, and has a collision counted (once per contact: pushing on against the
 wall is the same collision until the robot has backed off by ``CONTACT_MARGIN_M``).
 
+A command holds for ``command_ttl_ns`` of simulated time from the moment it was given (as the
+motor board's firmware holds a speed only for its timeout): a robot whose command is older
+stops until a newer one arrives, and the lapse is counted and logged once.
+
 Randomness comes only from numpy Generators seeded from (seed, robot id), one stream each for
 LIDAR noise, odometry and camera noise, so a robot's noise does not depend on which other robots
 exist or on what the camera renders; nothing reads the wall clock.
@@ -82,6 +86,7 @@ class SimParams:
     camera: CameraSpec = field(default_factory=CameraSpec)
     tags: TagLayout = field(default_factory=TagLayout)
     mount: CameraMount = field(default_factory=CameraMount)
+    command_ttl_ns: int | None = None   # None: a command holds until the next one
 
 
 @dataclass
@@ -96,6 +101,9 @@ class RobotState:
     v: float = 0.0
     w: float = 0.0
     cmd: tuple[float, float] = (0.0, 0.0)
+    cmd_stamp_ns: int = 0          # simulation time the command was given
+    cmd_expired: bool = False      # its time-to-live ran out: the robot is held still
+    commands_expired: int = 0      # lapses of a moving command
     collisions: int = 0
     in_contact: bool = False
     distance_m: float = 0.0
@@ -162,11 +170,28 @@ class Simulator:
             raise SimError(f"robots {', '.join(names)} spawn inside or touching an obstacle "
                            f"of {self.world.name} (or each other)")
 
-    def set_command(self, robot_id: str, v_mps: float, omega_rps: float) -> None:
+    def set_command(self, robot_id: str, v_mps: float, omega_rps: float,
+                    stamp_ns: int | None = None) -> None:
+        """The robot's command from ``stamp_ns`` (the simulation time it was given; default
+        now) until the next one or until its time-to-live runs out."""
         r = self.robots.get(robot_id)
         if r is None:
             raise KeyError(robot_id)
         r.cmd = (float(v_mps), float(omega_rps))
+        r.cmd_stamp_ns = self.stamp_ns if stamp_ns is None else int(stamp_ns)
+
+    def _command(self, r: RobotState) -> tuple[float, float]:
+        """The command in force over the coming step: (0, 0) once it would lapse before the
+        step ends."""
+        ttl = self.p.command_ttl_ns
+        stale = ttl is not None and self.stamp_ns + self.p.step_ns - r.cmd_stamp_ns > ttl
+        if stale and not r.cmd_expired and r.cmd != (0.0, 0.0):
+            r.commands_expired += 1
+            log.warning("%s: its command is %.2f s old by the end of step %d: stopping it",
+                        r.robot_id, (self.stamp_ns + self.p.step_ns - r.cmd_stamp_ns) / 1e9,
+                        self.step)
+        r.cmd_expired = stale
+        return (0.0, 0.0) if stale else r.cmd
 
     # -- sensing ----------------------------------------------------------------------------
     def sense(self) -> Observation:
@@ -274,10 +299,11 @@ class Simulator:
         reach = lim.radius_m + CONTACT_MARGIN_M + lim.v_max_mps * dt * n + 0.01
         pairs = self.obstacles.near(self._centres(), reach)
         noise = [r.rng_odom.standard_normal((n, 2)) for r in robots]
+        cmds = [self._command(r) for r in robots]
         for i in range(n):
             moved = []
-            for r in robots:
-                r.v, r.w = limit_command(r.cmd[0], r.cmd[1], r.v, r.w, lim, dt)
+            for r, (v_cmd, w_cmd) in zip(robots, cmds, strict=True):
+                r.v, r.w = limit_command(v_cmd, w_cmd, r.v, r.w, lim, dt)
                 moved.append(arc_step(r.pose, r.v, r.w, dt))
             centres = np.array([m[:2] for m in moved]).reshape(-1, 2)
             hit = self.obstacles.touching(centres, lim.radius_m, pairs)

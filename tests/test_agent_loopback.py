@@ -116,7 +116,9 @@ def test_scans_flow_commands_move_the_robot_and_it_stops_when_they_stop(
 
 def test_the_robot_stops_when_the_server_disappears(router: Bus, endpoint: str) -> None:
     truth = Truth(router)
-    with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0}) as results:
+    # the base's own time-to-live is set long: the agent must stop the robot by itself
+    with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0,
+                                                      "command_ttl_s": 10.0}) as results:
         server = Bus.open("client", connect=[endpoint])
         try:
             server.declare_alive(keys.SERVER_ALIVE)
