@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -12,6 +12,9 @@ from server.slam.config import GridConfig, SlamConfig
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class ExploreConfig(_Model):
@@ -95,7 +98,7 @@ class TeamsConfig(_Model):
                                        "plus 1°")
     undo_after: int = Field(5, ge=2, description="this many consistent sightings that "
                             "contradict a committed merge undo it")
-    start_poses: dict[str, tuple[float, float, float]] = Field(
+    start_poses: dict[str, tuple[Finite, Finite, Finite]] = Field(
         default_factory=dict, description="robots placed at known poses (x, y, yaw [rad]) in "
         "one common frame: they form one team from their first scan, after the map check; "
         "the others join by rendezvous")
@@ -107,6 +110,33 @@ class TeamsConfig(_Model):
         "dissertation's rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
 
 
+class ClockConfig(_Model):
+    """Time: the server's own clock, and how robots' stamps are held to it (server.clock)."""
+
+    source: Literal["wall", "sim", "stamps"] = Field(
+        "wall", description="the server's clock: this machine's (wall), the simulator's "
+        "mrslam/sim/clock (sim; the demo), or the newest robot stamp accepted (stamps: for "
+        "replaying recordings only, it trusts every robot's clock)")
+    max_skew_s: float = Field(2.0, gt=0.0, description="a stamp (after its robot's re-basing) "
+                              "this far from the server's clock is refused")
+    rebase_after: int = Field(3, ge=1, description="this many messages in a row that agree "
+                              "on a new offset to the server's clock re-base the robot's "
+                              "stamps (its clock stepped)")
+
+
+class AdmissionConfig(_Model):
+    """Who is served: unknown robots, newcomers, robots that left (server.registry)."""
+
+    probation_messages: int = Field(3, ge=1, description="a new robot without a liveliness "
+                                    "token is admitted after this many messages (held, not "
+                                    "lost, until then)")
+    forget_after_s: float = Field(60.0, gt=0.0, description="robots silent and not alive for "
+                                  "this long leave the registry (a robot that comes back "
+                                  "starts afresh)")
+    max_newcomers: int = Field(10_000, ge=1, description="ids waiting for admission at once; "
+                               "more are refused")
+
+
 def _router() -> BusConfig:
     return BusConfig(mode="router", listen=[f"tcp/0.0.0.0:{DEFAULT_PORT}"], connect=[])
 
@@ -115,6 +145,8 @@ class ServerConfig(_Model):
     bus: BusConfig = Field(default_factory=_router)
     robots: list[str] | None = Field(
         None, description="robots allowed to join; None accepts any robot that appears")
+    clock: ClockConfig = ClockConfig()
+    admission: AdmissionConfig = AdmissionConfig()
     # one observation decides a cell for exploration: a beam through it makes it free
     # (p 0.35 < 0.4), an endpoint in it makes it occupied (p 0.75 > 0.7)
     slam: SlamConfig = SlamConfig(grid=GridConfig(p_hit=0.75, p_miss=0.35))

@@ -6,8 +6,10 @@ One call per scan does the robot's whole loop:
     twist = navigator.step(...)           # explore (decide target, plan) → pursue → avoid
     cmd   = VelocityCommand(twist)        # stamped with the scan's stamp, with a time-to-live
 
-Periodic work (coverage and termination, map and state messages) is driven by the scans'
-stamps, not the wall clock, so a lockstep simulation gives the same run every time.
+Stamps reach the core in the server's time (``server.node`` maps each robot's clock onto it).
+Periodic work (coverage and termination, map and state messages) runs on the ``now_ns`` the
+caller passes: the server's own clock (the simulator's in lockstep, so a lockstep simulation
+gives the same run every time); offline callers pass none and it runs on the scans' stamps.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from server.navigator import DONE, Navigator
 from server.planning import CostParams
 from server.planning import OccupancyGrid as PlanningGrid
 from server.slam import RobotSlam
-from server.slam.backend import FactorRecord
+from server.slam.backend import FactorRecord, robot_key_space
 from server.slam.geometry import compose, inverse, transform_points
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.mapping import GridMapper
@@ -67,7 +69,6 @@ from server.teams import (
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-ROBOT_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
 
 
 @dataclass
@@ -151,6 +152,7 @@ class ServerCore:
         self.events: list[Event] = []
         self.event_log: list[Event] = []
         self._seq = 0
+        self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
         self._next_cover_ns = 0
         #: each team's grid as of ``map_stamp_ns`` (refreshed every ``map_period_s`` of scan time)
         self.latest_grids: dict[str, PlanningGrid] = {}
@@ -171,7 +173,7 @@ class ServerCore:
             "misread", "sightings_retired"), 0)
 
     # -- the loop --------------------------------------------------------------------------
-    def on_scan(self, scan: Scan) -> VelocityCommand:
+    def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
         r = self.robots.get(scan.robot_id) or self._add_robot(scan.robot_id)
         prev = r.pose.copy()
         ranges, angles = scan.ranges_m(), scan.angles_rad()
@@ -196,7 +198,7 @@ class ServerCore:
         if self._pending:
             self._process_pending(scan.stamp_ns)
         team = self.teams[r.team_id]
-        self._periodic(scan.stamp_ns)
+        self._periodic(scan.stamp_ns if now_ns is None else now_ns)
         if team.finished:
             r.nav.finish("team coverage reached")
         if not self.navigate:
@@ -285,9 +287,8 @@ class ServerCore:
 
     # -- robots and teams ------------------------------------------------------------------
     def _add_robot(self, robot_id: str) -> RobotContext:
-        if len(self.robots) >= len(ROBOT_CHARS):
-            raise ValueError(f"cannot track more than {len(ROBOT_CHARS)} robots")
-        char = ROBOT_CHARS[len(self.robots)]
+        char, block = robot_key_space(self._robots_added)
+        self._robots_added += 1
         c = self.cfg.control
         nav = Navigator(
             make_explorer(self.cfg.explore.explorer, self._explorer_params),
@@ -298,7 +299,8 @@ class ServerCore:
             StuckDetector(c.stuck_window_s, c.stuck_min_progress_m),
             self.cfg.explore.replan_period_s)
         team_id = f"team-{robot_id}"
-        r = RobotContext(robot_id, RobotSlam(char, self.cfg.slam), nav, team_id)
+        r = RobotContext(robot_id, RobotSlam(char, self.cfg.slam, key_block=block), nav,
+                         team_id)
         t = self.cfg.teams
         r.look = Lookout(LookParams(max_range_m=t.max_sighting_range_m,
                                     omega_rps=min(1.0, c.omega_max_rps),
@@ -310,7 +312,8 @@ class ServerCore:
                                    VisitedTargets(self.cfg.explore.visited_radius_m),
                                    anchor=robot_id, mapper=self._new_mapper())
         self.emit("robot_joined", [robot_id], team_id, f"robot {robot_id} joined", 0)
-        log.info("robot %s tracked as graph symbol %r in %s", robot_id, char, team_id)
+        log.debug("robot %s tracked as graph symbol %r (block %d) in %s", robot_id, char,
+                  block, team_id)
         return r
 
     def set_alive(self, robot_id: str, alive: bool) -> None:

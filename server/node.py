@@ -1,8 +1,10 @@
 """The server's one bus module: Zenoh in, ``ServerCore`` in a worker thread, Zenoh out.
 
-Zenoh delivers scans on its own threads; they are admitted (robot, key, stamp order), queued
-per robot, and handed to the core by a single worker thread, so the core needs no locks. The
-worker also publishes maps, robot states and events on their periods.
+Zenoh delivers scans on its own threads; they are admitted (robot, key, clock and stamp order:
+``server.registry``), their stamps mapped into the server's time, queued per robot, and handed
+to the core by a single worker thread, so the core needs no locks. Each command goes back
+stamped with the robot's own stamp of its scan. The worker also publishes maps, robot states
+and events on their periods, and forgets robots that went silent.
 """
 
 from __future__ import annotations
@@ -13,11 +15,15 @@ import time
 from collections import deque
 from typing import Any
 
-from schemas import Scan, TagDetections, keys
+import msgspec
+
+from schemas import Scan, SimClock, TagDetections, keys
 from schemas.bus import Bus
+from schemas.ratelog import RateLimitedLog
+from server.clock import ClockPolicy, ServerClock
 from server.config import ServerConfig
 from server.core import ServerCore
-from server.registry import Refused, RobotRegistry
+from server.registry import AdmissionPolicy, Refused, RobotRegistry
 
 log = logging.getLogger(__name__)
 
@@ -27,64 +33,75 @@ class ServerNode:
         self.bus = bus
         self.cfg = cfg
         self.core = core or ServerCore(cfg)
-        self.registry = RobotRegistry(cfg.robots)
+        self.clock = ServerClock(cfg.clock.source)
+        a, c = cfg.admission, cfg.clock
+        self.registry = RobotRegistry(AdmissionPolicy(
+            allowed=frozenset(cfg.robots) if cfg.robots is not None else None,
+            probation=a.probation_messages, forget_after_ns=round(a.forget_after_s * 1e9),
+            max_newcomers=a.max_newcomers,
+            clock=ClockPolicy(round(c.max_skew_s * 1e9), c.rebase_after)))
         self.dropped: dict[str, int] = {}
         self.errors = 0
-        self._queues: dict[str, deque[Scan]] = {}
-        self._order: deque[str] = deque()  # robot ids in arrival order, one per queued scan
+        self._queues: dict[str, deque[Any]] = {}
+        self._order: deque[str] = deque()  # queue names in arrival order, one per queued item
         self._cv = threading.Condition()
         self._stop = threading.Event()
         self._latest_maps: list[Any] = []
+        self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
         self.bus.declare_alive(keys.SERVER_ALIVE)
-        self.bus.subscribe(keys.ALL_SCANS, Scan, self._on_scan)
-        self.bus.subscribe(keys.ALL_TAGS, TagDetections, self._on_tags)
+        if self.clock.source == "sim":
+            self.bus.subscribe(keys.SIM_CLOCK, SimClock,
+                               lambda _k, m: self.clock.on_sim_clock(m.stamp_ns))
+        self.bus.subscribe(keys.ALL_SCANS, Scan, self._on_message)
+        self.bus.subscribe(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
         self.bus.serve(keys.SERVER_MAP, lambda: list(self._latest_maps))
         self._worker.start()
 
-    def _on_scan(self, key: str, scan: Scan) -> None:
-        try:
-            self.registry.admit(keys.robot_id_of(key), scan.robot_id, "scan", scan.stamp_ns)
-        except Refused:
-            return
+    def _on_message(self, key: str, msg: Scan | TagDetections) -> None:
+        stream = "scan" if isinstance(msg, Scan) else "tags"
         with self._cv:
-            q = self._queues.setdefault(scan.robot_id, deque())
-            if len(q) >= self.cfg.queue_per_robot:
-                q.popleft()  # the server is behind: the oldest waiting scan goes
-                self.dropped[scan.robot_id] = self.dropped.get(scan.robot_id, 0) + 1
-            else:
-                self._order.append(scan.robot_id)
-            q.append(scan)
-            self._cv.notify()
+            try:
+                ready = self.registry.admit(keys.robot_id_of(key), msg.robot_id, stream,
+                                            msg.stamp_ns, self.clock.reference_ns(), msg)
+            except Refused:
+                return
+            self._enqueue(msg.robot_id, ready)
 
-    def _on_tags(self, key: str, msg: TagDetections) -> None:
-        try:
-            self.registry.admit(keys.robot_id_of(key), msg.robot_id, "tags", msg.stamp_ns)
-        except Refused:
-            return
-        with self._cv:
-            name = f"#tags:{msg.robot_id}"
+    def _enqueue(self, rid: str, ready: list[tuple[str, int, Any]]) -> None:
+        """Queue admitted messages (stamps in server time); the caller holds ``_cv``."""
+        for stream, stamp_ns, msg in ready:
+            self.clock.on_accepted(stamp_ns)
+            name = rid if stream == "scan" else f"#tags:{rid}"
             q = self._queues.setdefault(name, deque())
             if len(q) >= self.cfg.queue_per_robot:
-                q.popleft()  # behind: the oldest sightings go first
+                q.popleft()  # the server is behind: the oldest waiting message goes
                 self.dropped[name] = self.dropped.get(name, 0) + 1
             else:
                 self._order.append(name)
-            q.append(msg)  # type: ignore[arg-type]
+            # the core works in server time; the robot's own stamp goes back in its command
+            q.append((msgspec.structs.replace(msg, stamp_ns=stamp_ns), msg.stamp_ns))
+        if ready:
             self._cv.notify()
 
     def _on_alive(self, key: str, alive: bool) -> None:
         rid = keys.robot_id_of(key)
-        if rid is None or not self.registry.set_alive(rid, alive):
+        if rid is None:
             return
         with self._cv:
-            self._queues.setdefault(f"#alive:{rid}", deque()).append(alive)  # type: ignore[arg-type]
-            self._order.append(f"#alive:{rid}")
-            self._cv.notify()
+            changed, ready = self.registry.set_alive(rid, alive, self.clock.reference_ns())
+            if changed:
+                self._queue_alive(rid, alive)
+            self._enqueue(rid, ready)
+
+    def _queue_alive(self, rid: str, alive: bool) -> None:
+        self._queues.setdefault(f"#alive:{rid}", deque()).append(alive)
+        self._order.append(f"#alive:{rid}")
+        self._cv.notify()
 
     # -- the worker ------------------------------------------------------------------------
     def _next(self, timeout_s: float) -> tuple[str, Any] | None:
@@ -95,8 +112,9 @@ class ServerNode:
             return rid, self._queues[rid].popleft()
 
     def _work(self) -> None:
-        next_states = 0.0
-        last_stamp = map_stamp = 0
+        next_states = next_forget = 0.0
+        map_stamp = 0
+        clocked = self.clock.source != "stamps"
         while not self._stop.is_set():
             item = self._next(0.1)
             if item is not None:
@@ -105,22 +123,31 @@ class ServerNode:
                     if rid.startswith("#alive:"):
                         self.core.set_alive(rid.split(":", 1)[1], bool(payload))
                     elif rid.startswith("#tags:"):
-                        self.core.on_tags(payload)
+                        self.core.on_tags(payload[0])
                     else:
-                        last_stamp = max(last_stamp, payload.stamp_ns)
-                        cmd = self.core.on_scan(payload)
-                        self.bus.publish(keys.robot_cmd_vel(rid), cmd, block=True)
-                except Exception:
+                        scan, own_stamp_ns = payload
+                        cmd = self.core.on_scan(scan, self.clock.now_ns() if clocked else None)
+                        self.bus.publish(keys.robot_cmd_vel(rid),
+                                         msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
+                                         block=True)
+                except Exception as e:
                     # one robot's failure must not stop the server for the others
                     self.errors += 1
-                    log.exception("processing %s failed", rid)
+                    self._errlog.log(logging.ERROR, type(e).__name__, "processing %s failed",
+                                     rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
             now = time.monotonic()
+            if now >= next_forget:
+                next_forget = now + 1.0
+                with self._cv:
+                    for rid in self.registry.forget_silent(self.clock.now_ns()):
+                        self._queue_alive(rid, False)
             try:
                 for ev in self.core.pop_events():
                     self.bus.publish(keys.SERVER_EVENTS, ev, block=True)
                 if now >= next_states:
                     next_states = now + self.cfg.states_period_s
-                    self.bus.publish(keys.SERVER_ROBOTS, self.core.robot_states(last_stamp))
+                    self.bus.publish(keys.SERVER_ROBOTS,
+                                     self.core.robot_states(self.clock.now_ns()))
                 if self.core.map_stamp_ns != map_stamp:
                     map_stamp = self.core.map_stamp_ns
                     self._latest_maps = self.core.map_updates()
@@ -136,5 +163,6 @@ class ServerNode:
             self._worker.join(timeout=10)
 
     def summary(self) -> dict[str, Any]:
-        return {"registry": self.registry.counters(), "dropped_scans": self.dropped,
+        return {"registry": self.registry.counters(), "admission": self.registry.totals(),
+                "dropped_scans": self.dropped,
                 "errors": self.errors, "bus": self.bus.stats.as_dict()}

@@ -1,9 +1,18 @@
-"""Admission of robots and their messages: who may talk to the server, and in what order.
+"""Admission of robots and their messages: who may talk to the server, when, and in what order.
 
-A message is refused (with a typed reason, counted per robot and reason) when its key names a
-different robot than its body, when the robot is not on the configured allowlist, or when its
-stamp does not advance past the last accepted one from that robot on that stream. Refusing is
+A message is refused (with a typed reason, counted per reason and logged at a limited rate)
+when its key names a different robot than its body (``key-mismatch``), when the robot is not
+on the configured allowlist (``unknown-robot``), when its stamp is too far from the server's
+clock or does not advance (``clock-skew``, ``out-of-order``; see ``server.clock``). Refusing is
 never fatal: the message is dropped, everything accepted before stays.
+
+A robot that is not yet known is admitted as soon as its agent's liveliness token is seen, or
+once it has sent ``probation`` messages with sane stamps. Until then its messages are held
+(not processed, not lost) and released in order on admission. A burst of one-message ids, as
+a stranger or a broken client sends, therefore costs a small record each, and those records
+go when their ids have been silent (and not alive) for ``forget_after_s``, or, beyond
+``max_newcomers`` waiting at once, oldest first. Records of robots that left go after the same
+silence; such a robot starts afresh when it comes back (e.g. after a reboot).
 """
 
 from __future__ import annotations
@@ -11,6 +20,10 @@ from __future__ import annotations
 import logging
 from collections import Counter
 from dataclasses import dataclass, field
+from typing import Any
+
+from schemas.ratelog import RateLimitedLog
+from server.clock import ClockPolicy, RobotClock, StampRefused
 
 log = logging.getLogger(__name__)
 
@@ -24,66 +37,159 @@ class Refused(ValueError):
         super().__init__(f"{robot_id}: {reason}: {detail}")
 
 
+@dataclass(frozen=True)
+class AdmissionPolicy:
+    allowed: frozenset[str] | None = None   # None: any robot id
+    probation: int = 3                      # messages that admit a robot without a token
+    forget_after_ns: int = 60_000_000_000
+    max_newcomers: int = 10_000             # ids waiting for admission at once
+    clock: ClockPolicy = field(default_factory=ClockPolicy)
+
+
 @dataclass
 class RobotRecord:
     robot_id: str
+    clock: RobotClock
     alive: bool = False
-    last_stamp_ns: dict[str, int] = field(default_factory=dict)
+    admitted: bool = False
+    last_heard_ns: int = 0                  # the server's clock when it last heard of it
+    #: (stream, stamp in server time, message) held while on probation
+    held: list[tuple[str, int, Any]] = field(default_factory=list)
     accepted: Counter[str] = field(default_factory=Counter)
     refused: Counter[str] = field(default_factory=Counter)
 
 
 class RobotRegistry:
-    """Robots seen on the bus, their liveliness and per-stream stamp order."""
+    """Robots heard of on the bus: admission, liveliness, clock offsets and stream order."""
 
-    def __init__(self, allowed: list[str] | None = None) -> None:
-        self.allowed = set(allowed) if allowed else None
+    def __init__(self, policy: AdmissionPolicy | None = None) -> None:
+        self.policy = policy or AdmissionPolicy()
         self.robots: dict[str, RobotRecord] = {}
-        self.refused_unknown: Counter[str] = Counter()
+        self.refused: Counter[str] = Counter()           # by reason, all ids
+        self.refused_by_robot: Counter[tuple[str, str]] = Counter()  # (robot, reason), bounded
+        self.joined = self.forgotten = self.clock_steps = 0
+        self._waiting: dict[str, None] = {}   # ids not admitted yet, oldest first
+        self.evicted = 0
+        self._log = RateLimitedLog(log)
 
-    def admit(self, key_robot_id: str | None, robot_id: str, stream: str, stamp_ns: int) -> None:
-        """Accept a message or raise Refused. ``stream`` names the message kind (scan, tags...)."""
+    # -- messages --------------------------------------------------------------------------
+    def admit(self, key_robot_id: str | None, robot_id: str, stream: str, stamp_ns: int,
+              server_ns: int | None, message: Any = None) -> list[tuple[str, int, Any]]:
+        """Admit one message; returns what is now ready for processing, in order, as
+        (stream, stamp in server time, message): nothing while the robot is on probation,
+        its held messages and this one when it is admitted. Raises Refused."""
         if key_robot_id is not None and key_robot_id != robot_id:
             raise self._refuse(robot_id, "key-mismatch",
                                f"published under robot {key_robot_id!r}'s key")
-        if self.allowed is not None and robot_id not in self.allowed:
-            self.refused_unknown[robot_id] += 1
+        p = self.policy
+        if p.allowed is not None and robot_id not in p.allowed:
             raise self._refuse(robot_id, "unknown-robot", "not in the configured robot list")
+        rec = self.robots.get(robot_id) or self._new(robot_id)
+        steps = rec.clock.steps
+        try:
+            t = rec.clock.map(stream, stamp_ns, server_ns)
+        except StampRefused as e:
+            raise self._refuse(robot_id, e.reason, str(e).split(": ", 1)[1]) from None
+        finally:
+            if server_ns is not None:
+                rec.last_heard_ns = server_ns
+        if rec.clock.steps != steps:
+            self.clock_steps += 1
+            log.warning("robot %s: its clock stepped; stamps re-based by %+.3f s (step #%d)",
+                        robot_id, rec.clock.offset_ns / 1e9, rec.clock.steps)
+        rec.accepted[stream] += 1
+        if rec.admitted:
+            return [(stream, t, message)]
+        rec.held.append((stream, t, message))
+        if rec.alive or len(rec.held) >= p.probation:
+            return self._admit(rec)
+        return []
+
+    def _new(self, robot_id: str, waiting: bool = True) -> RobotRecord:
+        """A record for a robot not heard of before (``waiting``: not admitted yet)."""
+        rec = self.robots[robot_id] = RobotRecord(robot_id, RobotClock(self.policy.clock))
+        if not waiting:
+            return rec
+        if len(self._waiting) >= self.policy.max_newcomers:
+            # the oldest newcomer goes: a real robot admits itself within a few messages,
+            # so a flood of new ids cannot keep it out
+            oldest = next(iter(self._waiting))
+            del self._waiting[oldest], self.robots[oldest]
+            self.evicted += 1
+            self._log.warning("evicted", "newcomer %s dropped: %d robot ids are waiting to be "
+                              "admitted", oldest, len(self._waiting) + 1)
+        self._waiting[robot_id] = None
+        return rec
+
+    def _admit(self, rec: RobotRecord) -> list[tuple[str, int, Any]]:
+        rec.admitted = True
+        self._waiting.pop(rec.robot_id, None)
+        self.joined += 1
+        self._log.info("joined", "robot %s joined%s", rec.robot_id,
+                       "" if rec.alive else " (no liveliness token seen)")
+        held, rec.held = rec.held, []
+        return held
+
+    # -- liveliness and forgetting -----------------------------------------------------------
+    def set_alive(self, robot_id: str, alive: bool, server_ns: int | None = None
+                  ) -> tuple[bool, list[tuple[str, int, Any]]]:
+        """Record liveliness; returns (changed, messages released by admission)."""
+        p = self.policy
+        if p.allowed is not None and robot_id not in p.allowed:
+            return False, []
         rec = self.robots.get(robot_id)
         if rec is None:
-            rec = self.robots[robot_id] = RobotRecord(robot_id)
-            log.info("robot %s joined", robot_id)
-        last = rec.last_stamp_ns.get(stream)
-        if last is not None and stamp_ns <= last:
-            raise self._refuse(robot_id, "out-of-order",
-                               f"{stream} stamp {stamp_ns} not after last accepted {last}")
-        rec.last_stamp_ns[stream] = stamp_ns
-        rec.accepted[stream] += 1
-
-    def set_alive(self, robot_id: str, alive: bool) -> bool:
-        """Record liveliness; returns True when it changed."""
-        if self.allowed is not None and robot_id not in self.allowed:
-            return False
-        rec = self.robots.setdefault(robot_id, RobotRecord(robot_id))
+            if not alive:
+                return False, []
+            rec = self._new(robot_id, waiting=False)
+        if server_ns is not None:
+            rec.last_heard_ns = server_ns
         changed = rec.alive != alive
         rec.alive = alive
-        return changed
+        return changed, self._admit(rec) if alive and not rec.admitted else []
 
+    def forget_silent(self, server_ns: int) -> list[str]:
+        """Drop the records of robots that are not alive and were last heard of more than
+        ``forget_after_s`` ago; returns the ids of those that had been admitted."""
+        cutoff = server_ns - self.policy.forget_after_ns
+        gone = [r for r in self.robots.values() if not r.alive and r.last_heard_ns < cutoff]
+        for r in gone:
+            del self.robots[r.robot_id]
+            self._waiting.pop(r.robot_id, None)
+        self.forgotten += len(gone)
+        left = [r.robot_id for r in gone if r.admitted]
+        if gone:
+            self._log.info("forgotten", "forgot %d silent robot ids (%d had joined: %s)",
+                           len(gone), len(left), ", ".join(left[:10]))
+        return left
+
+    # -- counting --------------------------------------------------------------------------
     def _refuse(self, robot_id: str, reason: str, detail: str) -> Refused:
+        self.refused[reason] += 1
+        if robot_id in self.robots or len(self.refused_by_robot) < 1000:
+            self.refused_by_robot[(robot_id, reason)] += 1
         rec = self.robots.get(robot_id)
         if rec is not None:
             rec.refused[reason] += 1
         err = Refused(robot_id, reason, detail)
-        total = sum(r.refused[reason] for r in self.robots.values()) + (
-            self.refused_unknown[robot_id] if reason == "unknown-robot" else 0)
-        if total <= 10 or total % 1000 == 0:
-            log.warning("refused message #%d: %s", total, err)
+        self._log.warning(reason, "refused message #%d: %s", self.refused[reason], err)
         return err
 
-    def counters(self) -> dict[str, dict[str, int]]:
-        out = {rid: {f"refused_{k}": v for k, v in r.refused.items()}
-               | {f"accepted_{k}": v for k, v in r.accepted.items()}
-               for rid, r in self.robots.items()}
-        for rid, n in self.refused_unknown.items():
-            out.setdefault(rid, {})["refused_unknown-robot"] = n
+    def counters(self) -> dict[str, Any]:
+        """Per robot (accepted and refused by kind, clock steps) and fleet-wide totals."""
+        out: dict[str, Any] = {}
+        for (rid, reason), n in self.refused_by_robot.items():
+            out.setdefault(rid, {})[f"refused_{reason}"] = n
+        for rid, r in self.robots.items():
+            d = out.setdefault(rid, {})
+            d.update({f"accepted_{k}": v for k, v in r.accepted.items()})
+            if r.clock.steps:
+                d["clock_steps"] = r.clock.steps
+                d["clock_offset_s"] = r.clock.offset_ns / 1e9
         return out
+
+    def totals(self) -> dict[str, Any]:
+        return {"refused": dict(self.refused), "joined": self.joined,
+                "forgotten": self.forgotten, "evicted_newcomers": self.evicted,
+                "clock_steps": self.clock_steps, "known": len(self.robots),
+                "on_probation": len(self._waiting)}

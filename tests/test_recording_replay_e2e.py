@@ -46,7 +46,9 @@ def test_replayed_session_gives_the_live_runs_poses_and_map(tmp_path: Path) -> N
 
     endpoint = free_local_endpoint()
     cfg = load_config(ServerConfig, live / "server.yaml", {
-        "bus": {"listen": [endpoint]}, "queue_per_robot": 100_000, "exit_when_done": False})
+        "bus": {"listen": [endpoint]}, "queue_per_robot": 100_000, "exit_when_done": False,
+        # the recording's own stamps are the only clock a replay at full speed has
+        "clock": {"source": "stamps"}})
     with Bus.open("router", listen=[endpoint]) as bus:
         node = ServerNode(bus, cfg)
         node.start()

@@ -1,6 +1,7 @@
 """The pose-graph back-end, split in two so that several robots can later share one problem:
 
-- ``RobotTrajectory``: one robot's keys ``gtsam.symbol(c, k)`` and the factors it added (kept,
+- ``RobotTrajectory``: one robot's keys ``gtsam.symbol(c, block·2³² + k)`` and the factors it
+  added (kept,
   so they can be re-inserted into another graph), its prior factor and that prior's index in
   the graph that currently holds it (so the prior can be removed when robots are joined);
 - ``PoseGraph``: a GTSAM problem optimised incrementally with ISAM2, holding any number of
@@ -23,6 +24,20 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 
 
+#: symbol letters of the first robots; robot n uses ``KEY_CHARS[n % 52]`` in key block ``n // 52``
+KEY_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
+#: keyframes per robot: a key's index is ``block << KEY_INDEX_BITS | k`` (gtsam has 56 bits)
+KEY_INDEX_BITS = 32
+
+
+def robot_key_space(n: int) -> tuple[str, int]:
+    """The symbol letter and key block of the ``n``-th robot (0-based): room for 52 · 2²⁴
+    robots of 2³² keyframes each in gtsam's 56-bit symbol index."""
+    if not 0 <= n < len(KEY_CHARS) << (56 - KEY_INDEX_BITS):
+        raise ValueError(f"no graph keys left for robot number {n}")
+    return KEY_CHARS[n % len(KEY_CHARS)], n // len(KEY_CHARS)
+
+
 class GraphError(RuntimeError):
     """The optimiser rejected an update (e.g. a key without any constraint)."""
 
@@ -41,6 +56,7 @@ class RobotTrajectory:
     """One robot's keyframe keys and factors, independent of the graph that optimises them."""
 
     robot_char: str
+    block: int = 0           # key block (see ``robot_key_space``)
     n_keys: int = 0
     factors: list[FactorRecord] = field(default_factory=list)
     prior: FactorRecord | None = None
@@ -50,7 +66,9 @@ class RobotTrajectory:
             raise ValueError(f"robot char must be one character, got {self.robot_char!r}")
 
     def key(self, k: int) -> int:
-        return int(gtsam.symbol(self.robot_char, k))
+        if not 0 <= k < 1 << KEY_INDEX_BITS:
+            raise GraphError(f"keyframe index {k} is outside a robot's key range")
+        return int(gtsam.symbol(self.robot_char, self.block << KEY_INDEX_BITS | k))
 
     def all_keys(self) -> list[int]:
         return [self.key(k) for k in range(self.n_keys)]

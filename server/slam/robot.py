@@ -78,7 +78,7 @@ class RobotSlam:
     - ``scan_poses()``: stamps and optimised poses of every scan so far;
     - ``occupancy_grid()`` (incremental, re-rendered after the graph moved) and
       ``point_cloud()``;
-    - ``trajectory`` (keys ``gtsam.symbol(robot_char, k)``, the factors this robot added, its
+    - ``trajectory`` (keys ``gtsam.symbol(robot_char, ...)``, the factors this robot added, its
       prior) and ``graph`` (the ``PoseGraph``, possibly shared with other robots).
 
     The map frame is the frame of ``T_map_start`` (default: the first pose is the origin).
@@ -86,10 +86,10 @@ class RobotSlam:
 
     def __init__(self, robot_char: str = "a", config: SlamConfig | None = None,
                  graph: PoseGraph | None = None,
-                 T_map_start: ArrayLike = (0.0, 0.0, 0.0)) -> None:
+                 T_map_start: ArrayLike = (0.0, 0.0, 0.0), key_block: int = 0) -> None:
         self.cfg = config or SlamConfig()
         c = self.cfg
-        self.trajectory = RobotTrajectory(robot_char)
+        self.trajectory = RobotTrajectory(robot_char, key_block)
         self.graph = graph or PoseGraph(c.graph.relinearize_threshold)
         self.keyframes: list[Keyframe] = []
         self.stats = SlamStats()
