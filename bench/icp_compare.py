@@ -106,7 +106,7 @@ def run(name: str, matcher: str, n_scans: int) -> dict[str, Any]:
     frontend.icp = timed  # type: ignore[assignment]
     try:
         t0 = time.perf_counter()
-        slam, stamps, _ = process(scans, SlamConfig())
+        slam, stamps, _, _ = process(scans, SlamConfig())
         slam_s = time.perf_counter() - t0
     finally:
         frontend.icp = original

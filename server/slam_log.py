@@ -27,6 +27,7 @@ from server.logs import (
     read_log,
     select_stream,
 )
+from server.logs.stamps import StampPlan, plan_stamps
 from server.slam.config import SlamConfig
 from server.slam.export import write_nav2, write_ply
 from server.slam.robot import RobotSlam, SlamInputError
@@ -53,27 +54,44 @@ def _laser_offset(clog: CarmenLog, laser: str) -> float:
 
 
 def process(scans: list[OdometryScan], cfg: SlamConfig,
-            progress: Callable[[int], None] | None = None) -> tuple[RobotSlam, list[str], int]:
-    """Feed every scan to one ``RobotSlam``; returns it, the stamps (text) of the scans it
-    accepted, and how many it rejected."""
+            progress: Callable[[int], None] | None = None
+            ) -> tuple[RobotSlam, list[str], int, StampPlan]:
+    """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
+    it (``plan_stamps``); returns it, the stamps (text) of the scans it accepted, how many it
+    rejected as bad input, and the stamp plan (what it dropped or re-based)."""
     slam = RobotSlam("a", cfg)
     accepted: list[str] = []
     rejected = 0
-    for i, s in enumerate(scans):
+    plan = plan_stamps([s.record.stamp_s for s in scans])
+    _log_stamp_plan(plan, scans)
+    for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
+        s = scans[i]
         rec = s.record
         ranges = rec.ranges_m
         if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
             ranges = np.where(ranges >= rec.max_range_m, np.inf, ranges)
         try:
-            slam.add_scan(round(rec.stamp_s * 1e9), s.T_odom_laser, ranges, rec.angles_rad)
+            slam.add_scan(round(stamp_s * 1e9), s.T_odom_laser, ranges, rec.angles_rad)
         except SlamInputError as e:
             rejected += 1
             log.warning("line %d: scan skipped: %s", rec.line_no, e)
             continue
         accepted.append(rec.stamp_text)
-        if progress is not None and i % 25 == 0:
+        if progress is not None and n % 25 == 0:
             progress(i)
-    return slam, accepted, rejected
+    return slam, accepted, rejected, plan
+
+
+def _log_stamp_plan(plan: StampPlan, scans: list[OdometryScan]) -> None:
+    dropped = sorted(plan.dropped_ahead + plan.dropped_behind)
+    for j in dropped[:5]:
+        log.warning("line %d: scan skipped: its stamp %s is out of line with its neighbours'",
+                    scans[j].record.line_no, scans[j].record.stamp_text)
+    if len(dropped) > 5:
+        log.warning("%d scans skipped in all for stamps out of line", len(dropped))
+    for i, shift in plan.steps:
+        log.warning("line %d: the log's clock stepped back; later stamps shifted by %+.3f s",
+                    scans[i].record.line_no, shift)
 
 
 def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, object]:
@@ -98,7 +116,7 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
                   "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
         task = bar.add_task("scans", total=len(scans))
-        slam, stamps, rejected = process(scans, cfg.slam,
+        slam, stamps, rejected, plan = process(scans, cfg.slam,
                                          lambda i: bar.update(task, completed=i))
         bar.update(task, completed=len(scans))
     t_slam = time.perf_counter()
@@ -116,6 +134,9 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
         "odometry_source": source,
         "scans": len(stamps),
         "scans_rejected": rejected,
+        "stamps_dropped_ahead": len(plan.dropped_ahead),
+        "stamps_dropped_behind": len(plan.dropped_behind),
+        "clock_steps": [{"scan": i, "shift_s": d} for i, d in plan.steps],
         "keyframes": slam.stats.keyframes,
         "loop_closures": slam.stats.loop_closures,
         "loop_closures_removed": slam.stats.loop_closures_removed,

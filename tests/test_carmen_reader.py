@@ -178,8 +178,8 @@ def test_readings_at_the_sensor_maximum_are_no_returns(tmp_path: Path) -> None:
         lines.append(f"ROBOTLASER1 {angles} {ranges} 0 {0.1 * k} 0 0 {0.1 * k} 0 0 "
                      f"0 0 0 0 0 {10 + k}.0 h 0")
     log = read_log(write(tmp_path / "max.clf", "\n".join(lines) + "\n"))
-    slam, stamps, rejected = process(attach_odometry(select_stream(log), log.odometry),
-                                     SlamConfig())
+    slam, stamps, rejected, _ = process(attach_odometry(select_stream(log), log.odometry),
+                                        SlamConfig())
     assert len(stamps) == 5 and rejected == 0
     hits = slam.keyframes[0].scan.hits
     assert np.hypot(hits[:, 0], hits[:, 1]).max() < 2.5
