@@ -1,0 +1,84 @@
+"""A real server process against a hostile network: floods of new robot ids, clocks that step,
+stamps far off. Messages are made with our own encoders and sent over loopback Zenoh."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import pytest
+
+from schemas import keys
+from tests.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
+
+HOUR_NS = 3600 * 1_000_000_000
+
+
+@pytest.fixture
+def server(tmp_path: Path):  # type: ignore[no-untyped-def]
+    srv = ServerProcess(tmp_path, {"explore": {"total_area_m2": 48.0}})
+    yield srv
+    srv.stop()
+
+
+def test_two_thousand_fake_ids_then_a_real_robot_is_served(server: ServerProcess,
+                                                            tmp_path: Path) -> None:
+    with server.client() as bus:
+        rss0 = rss_mb(server.proc.pid)
+        assert bus.wait_for_subscribers(keys.robot_scan("f0"), 10.0)
+        for i in range(2000):
+            bus.publish(keys.robot_scan(f"f{i}"), room_scan(f"f{i}", 0, time.time_ns(), 0.0))
+        time.sleep(2.0)
+        robot = RoomRobot(server.endpoint, "r1").start()
+        try:
+            t0 = time.monotonic()
+            deadline = t0 + 20
+            while robot.answered_since(t0) < 30 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert robot.answered_since(t0) >= 30, "the real robot was not served"
+            assert robot.longest_silence_s(t0 + 2.0, time.monotonic()) < 1.0
+        finally:
+            robot.close()
+        rss1 = rss_mb(server.proc.pid)
+    assert server.stop() == 0
+    lines = server.log_lines()
+    assert not any("Traceback" in ln for ln in lines)
+    assert len(lines) <= 200, f"{len(lines)} log lines"
+    summary = json.loads((tmp_path / "server" / "summary.json").read_text())
+    assert summary["admission"]["on_probation"] == 2000   # held, cheaply, never processed
+    assert list(summary["robots"]) == ["r1"]
+    assert rss1 - rss0 < 100, f"server RSS grew {rss1 - rss0:.0f} MB"
+
+
+def test_robots_whose_clocks_step_or_lie_keep_being_served(server: ServerProcess,
+                                                           tmp_path: Path) -> None:
+    """r1's clock steps back an hour; a scan stamped an hour ahead is sent under r2's name
+    (a glitch or a stranger). Both robots go on being answered; the step is re-based and
+    counted, the lone stamp refused and counted."""
+    with server.client() as bus:
+        r1 = RoomRobot(server.endpoint, "r1").start()
+        r2 = RoomRobot(server.endpoint, "r2").start()
+        try:
+            time.sleep(4.0)
+            t_step = time.monotonic()
+            r1.clock_offset_ns = -HOUR_NS
+            bus.publish(keys.robot_scan("r2"), room_scan("r2", 10**6, time.time_ns() + HOUR_NS,
+                                                         0.0))
+            time.sleep(6.0)
+            t_end = time.monotonic()
+            assert r1.longest_silence_s(t_step + 1.0, t_end) < 1.0
+            assert r1.answered_since(t_step + 3.0) >= 20
+            assert r2.longest_silence_s(t_step, t_end) < 1.0
+        finally:
+            r1.close()
+            r2.close()
+    assert server.stop() == 0
+    summary = json.loads((tmp_path / "server" / "summary.json").read_text())
+    reg = summary["registry"]
+    assert reg["r1"]["clock_steps"] == 1 and reg["r1"]["clock_offset_s"] == pytest.approx(
+        3600.0, abs=1.0)
+    assert reg["r2"]["refused_clock-skew"] == 1 and "clock_steps" not in reg["r2"]
+    assert summary["errors"] == 0
+    lines = server.log_lines()
+    assert sum("clock stepped" in ln for ln in lines) == 1
