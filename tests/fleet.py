@@ -8,6 +8,7 @@ and counts the velocity commands the server sends back for them.
 
 from __future__ import annotations
 
+import itertools
 import os
 import subprocess
 import sys
@@ -143,7 +144,7 @@ class RoomRobot:
             times = [t for t, c in self.commands if since <= t <= until and
                      c.stamp_ns in self.sent]
         edges = [since, *times, until]
-        return max(b - a for a, b in zip(edges, edges[1:], strict=False))
+        return max(b - a for a, b in itertools.pairwise(edges))
 
     def close(self) -> None:
         self._stop.set()
