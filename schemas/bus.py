@@ -9,26 +9,58 @@ threads; neither is an exception from a subscriber's callback.
 from __future__ import annotations
 
 import contextlib
+import ipaddress
+import itertools
 import json
 import logging
+import re
 import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
 from schemas.codec import decode, encode
 from schemas.errors import SchemaError
 from schemas.messages import Message
 
+if TYPE_CHECKING:
+    from schemas.config import BusConfig
+
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
 Mode = Literal["router", "client", "peer"]
 
+#: what a session accepts in one message by default [bytes]. Our largest messages are a
+#: 640x480 camera frame (SimImage, 307 kB) and a team's map (MapUpdate: zlib int8 cells; a
+#: 900x900 grid is 80-150 kB as maps look, 0.7-0.8 MB if every cell were noise). Zenoh drops
+#: a larger message where it arrives and keeps the link.
+DEFAULT_MAX_MESSAGE_SIZE = 1_572_864
+#: liveliness tokens ``<key>/zid/<session id>`` say which session holds ``<key>``'s token
+HOLDER_CHUNK = "zid"
+_RUST_SOURCE = re.compile(r"\s*\bat\s+/\S+\.rs:\d+\.?")
+
 
 class BusError(RuntimeError):
     """The Zenoh session could not be opened or used (bad endpoint, router unreachable...)."""
+
+
+_PARSE_AT = re.compile(r"-->\s*(\d+):(\d+)")
+_PARSE_WHAT = re.compile(r"^\s*=\s*(.+)$", re.MULTILINE)
+_DEBUG_MSG = re.compile(r'\bmsg:\s*"((?:[^"\\]|\\.)*)"')   # Json5Err(Message { msg: "..." })
+
+
+def zenoh_message(err: BaseException) -> str:
+    """Zenoh's error text on one line, without the Rust source paths it carries (a json5
+    parse error becomes ``what at line L, column C``)."""
+    text = _RUST_SOURCE.sub("", str(err))
+    at, what, msg = _PARSE_AT.search(text), _PARSE_WHAT.search(text), _DEBUG_MSG.search(text)
+    if at and what:
+        text = f"{what.group(1)} at line {at.group(1)}, column {at.group(2)}"
+    elif msg:
+        text = msg.group(1)
+    return " ".join(text.split()).rstrip(".") or type(err).__name__
 
 
 @dataclass
@@ -39,74 +71,213 @@ class BusStats:
     received: Counter[str] = field(default_factory=Counter)
     rejected: Counter[str] = field(default_factory=Counter)
     callback_errors: Counter[str] = field(default_factory=Counter)
+    oversized: Counter[str] = field(default_factory=Counter)   # sent over max_message_size
     last_error: str = ""
 
     def as_dict(self) -> dict[str, Any]:
         return {
             "published": dict(self.published), "received": dict(self.received),
             "rejected": dict(self.rejected), "callback_errors": dict(self.callback_errors),
-            "last_error": self.last_error,
+            "oversized": dict(self.oversized), "last_error": self.last_error,
         }
 
 
 def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
                  config_file: str | None = None, multicast_scouting: bool = False,
-                 connect_timeout_ms: int | None = None) -> Any:
-    """A ``zenoh.Config``: optional json5 file (TLS, access control) plus our settings."""
+                 connect_timeout_ms: int | None = None,
+                 max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE) -> Any:
+    """A ``zenoh.Config``: optional json5 file (TLS, access control) plus our settings.
+
+    Raises ``BusError`` naming the file or the setting Zenoh refused.
+    """
     import zenoh
 
-    conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
+    try:
+        conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    except zenoh.ZError as e:
+        raise BusError(f"Zenoh config {config_file}: {zenoh_message(e)}") from None
+    settings: list[tuple[str, object]] = [("mode", mode)]
     if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        settings.append(("listen/endpoints", list(listen)))
     if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        settings.append(("connect/endpoints", list(connect)))
     if connect_timeout_ms is not None:
-        conf.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
-    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+        settings.append(("connect/timeout_ms", connect_timeout_ms))
+    settings += [("scouting/multicast/enabled", multicast_scouting),
+                 ("transport/link/rx/max_message_size", max_message_size)]
+    for key, value in settings:
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except zenoh.ZError as e:
+            raise BusError(f"Zenoh setting {key} = {json.dumps(value)}: "
+                           f"{zenoh_message(e)}") from None
     return conf
+
+
+# -- who can reach a listening session --------------------------------------------------------
+_LOCAL_PROTOCOLS = {"unixsock-stream", "unixpipe", "serial"}   # no network reaches these
+_SECURE_PROTOCOLS = {"tls", "quic"}
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True when only this machine can reach ``endpoint`` (``tcp/127.0.0.1:7447``, a unix
+    socket); False for any other address, a wildcard (``0.0.0.0``, ``[::]``) or a host name
+    other than ``localhost``."""
+    proto, _, address = endpoint.partition("/")
+    if proto in _LOCAL_PROTOCOLS:
+        return True
+    address = address.split("?", 1)[0].split("#", 1)[0]
+    host = address.rsplit(":", 1)[0] if ":" in address else address
+    host = host.strip("[]").split("%", 1)[0]
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class ListenSecurity:
+    """Where a session listens and what it lacks to be safe on a network.
+
+    ``exposed`` are the endpoints other machines can reach; ``missing`` names what is absent
+    for those (TLS with client certificates, access control). Both empty: loopback only.
+    """
+
+    endpoints: list[str]
+    exposed: list[str]
+    missing: list[str]
+
+    @property
+    def secure(self) -> bool:
+        return not self.missing
+
+
+def _json(conf: Any, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # a key this Zenoh does not know reads as unset
+        return None
+
+
+def listen_security(conf: Any) -> ListenSecurity:
+    """What the ``zenoh.Config`` ``conf`` would listen on, and whether that is secured.
+
+    Clients do not listen. Without endpoints of its own a router or peer listens where Zenoh's
+    defaults say (all interfaces). Endpoints off this machine need TLS (``tls/`` or ``quic/``
+    with a CA and ``enable_mtls``, so that only holders of a signed certificate connect) and
+    access control (``access_control.enabled``).
+    """
+    mode = _json(conf, "mode") or "peer"
+    if mode == "client":
+        return ListenSecurity([], [], [])
+    endpoints = _json(conf, "listen/endpoints") or []
+    if isinstance(endpoints, dict):   # per-mode defaults
+        endpoints = endpoints.get(mode) or []
+    endpoints = [str(e) for e in endpoints]
+    exposed = [e for e in endpoints if not is_loopback_endpoint(e)]
+    if not exposed:
+        return ListenSecurity(endpoints, [], [])
+    missing: list[str] = []
+    plain = [e for e in exposed if e.partition("/")[0] not in _SECURE_PROTOCOLS]
+    if plain:
+        missing.append(f"TLS (not on {', '.join(plain)})")
+    tls = _json(conf, "transport/link/tls") or {}
+    if len(plain) < len(exposed):
+        if not tls.get("root_ca_certificate"):
+            missing.append("a CA (transport.link.tls.root_ca_certificate)")
+        if tls.get("enable_mtls") is not True:
+            missing.append("client certificates (transport.link.tls.enable_mtls)")
+    if _json(conf, "access_control/enabled") is not True:
+        missing.append("access control (access_control.enabled)")
+    return ListenSecurity(endpoints, exposed, missing)
+
+
+def insecure_listen_warning(sec: ListenSecurity) -> str:
+    return (f"listening on {', '.join(sec.exposed)} without {' and '.join(sec.missing)} "
+            "(bus.insecure_listen): anyone who reaches this host can read everything and send "
+            "the robots commands; see deploy/README.md for TLS and access rules")
 
 
 class Bus:
     """One Zenoh session with typed publish/subscribe, liveliness and queryables."""
 
-    def __init__(self, session: Any) -> None:
+    def __init__(self, session: Any, max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE) -> None:
         self.session = session
+        self.max_message_size = max_message_size
         self.stats = BusStats()
         self._publishers: dict[str, Any] = {}
+        self._sent = itertools.count()
         self._handles: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
 
     @classmethod
     def open(cls, mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
-             config_file: str | None = None, connect_timeout_ms: int | None = None) -> Bus:
+             config_file: str | None = None, connect_timeout_ms: int | None = None,
+             max_message_size: int = DEFAULT_MAX_MESSAGE_SIZE) -> Bus:
+        """Open a session. A router or peer listening beyond this machine without TLS and
+        access control logs a warning every time (the config loader refuses that unless
+        ``bus.insecure_listen`` is set)."""
         import zenoh
 
         zenoh.init_log_from_env_or("error")
+        listen, connect = list(listen), list(connect)
         conf = zenoh_config(mode, listen, connect, config_file,
-                            connect_timeout_ms=connect_timeout_ms)
+                            connect_timeout_ms=connect_timeout_ms,
+                            max_message_size=max_message_size)
+        sec = listen_security(conf)
+        if not sec.secure:
+            log.warning(insecure_listen_warning(sec))
         try:
-            return cls(zenoh.open(conf))
+            return cls(zenoh.open(conf), max_message_size)
         except zenoh.ZError as e:
-            where = ", ".join(list(listen) + list(connect)) or "default endpoints"
-            raise BusError(f"cannot open a Zenoh {mode} session on {where}: {e}") from None
+            where = ", ".join(listen + connect) or ", ".join(sec.endpoints) or \
+                "default endpoints"
+            raise BusError(f"cannot open a Zenoh {mode} session on {where}: "
+                           f"{zenoh_message(e)}") from None
+
+    @classmethod
+    def from_config(cls, cfg: BusConfig) -> Bus:
+        """Open the session a process's ``bus`` config describes."""
+        return cls.open(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config,
+                        cfg.connect_timeout_ms, cfg.max_message_size)
+
+    @property
+    def zid(self) -> str:
+        """This session's Zenoh id (what receivers see as the source of its messages)."""
+        return str(self.session.zid())
 
     # -- publishing -------------------------------------------------------------------------
     def publish(self, key: str, msg: Message, *, block: bool = False) -> None:
-        """Send ``msg`` on ``key``. When the link is congested, drop (default) or wait."""
+        """Send ``msg`` on ``key``. When the link is congested, drop (default) or wait.
+
+        The message carries this session's id as its source (``Sample.source_info``), which
+        receivers may compare with the session they expect it from. Zenoh does not
+        authenticate it: without TLS and access rules a sender can claim any source.
+        """
+        import zenoh
+
         pub = self._publishers.get(key)
         if pub is None:
-            import zenoh
-
             cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
             with self._lock:
                 pub = self._publishers.get(key)
                 if pub is None:
                     pub = self.session.declare_publisher(key, congestion_control=cc)
                     self._publishers[key] = pub
-        pub.put(encode(msg))
-        self.stats.published[type(msg).__name__] += 1
+        payload = encode(msg)
+        name = type(msg).__name__
+        if len(payload) > self.max_message_size:
+            self.stats.oversized[name] += 1
+            n = self.stats.oversized[name]
+            if n <= 3 or n % 1000 == 0:
+                log.warning("%s #%d on %s is %d bytes, over bus.max_message_size (%d): "
+                            "receivers with that limit drop it", name, n, key, len(payload),
+                            self.max_message_size)
+        pub.put(payload, source_info=zenoh.SourceInfo(pub.id, next(self._sent)))
+        self.stats.published[name] += 1
 
     def wait_for_subscribers(self, key: str, timeout_s: float = 5.0) -> bool:
         """Wait until a subscriber somewhere matches ``key``; False if none does in time.
@@ -129,6 +300,12 @@ class Bus:
     # -- subscribing ------------------------------------------------------------------------
     def subscribe(self, key: str, cls: type[M], callback: Callable[[str, M], None]) -> Any:
         """Call ``callback(key, msg)`` for every valid ``cls`` on ``key`` (wildcards allowed)."""
+        return self.subscribe_with_source(key, cls, lambda k, msg, _src: callback(k, msg))
+
+    def subscribe_with_source(self, key: str, cls: type[M],
+                              callback: Callable[[str, M, str | None], None]) -> Any:
+        """Like ``subscribe``, with the id of the session the message says it came from
+        (``None`` when the sender did not say: not a ``Bus.publish``)."""
         name = cls.__name__
 
         def on_sample(sample: Any) -> None:
@@ -140,7 +317,8 @@ class Bus:
                 return
             self.stats.received[name] += 1
             try:
-                callback(k, msg)
+                info = sample.source_info
+                callback(k, msg, None if info is None else str(info.source_id.zid))
             except Exception as e:  # a broken handler must not kill Zenoh's thread
                 self.stats.callback_errors[name] += 1
                 self.stats.last_error = f"{k}: {type(e).__name__}: {e}"
@@ -173,9 +351,26 @@ class Bus:
 
     # -- liveliness -------------------------------------------------------------------------
     def declare_alive(self, key: str) -> Any:
+        """Declare the liveliness token ``key``, and beside it ``<key>/zid/<this session>``:
+        Zenoh's liveliness samples do not say whose token they are, and a receiver that must
+        tell the server's messages from others' learns the server's session from it
+        (``watch_holders``). The companion comes first, so it is known when ``key`` is."""
+        holder = self.session.liveliness().declare_token(f"{key}/{HOLDER_CHUNK}/{self.zid}")
+        self._handles.append(holder)
         token = self.session.liveliness().declare_token(key)
         self._handles.append(token)
         return token
+
+    def watch_holders(self, key: str, callback: Callable[[str, bool], None]) -> Any:
+        """Call ``callback(zid, alive)`` when a session declaring ``key`` with
+        ``declare_alive`` appears or goes (existing ones on declaration)."""
+        prefix = f"{key}/{HOLDER_CHUNK}/"
+
+        def on_holder(token_key: str, alive: bool) -> None:
+            if token_key.startswith(prefix):
+                callback(token_key[len(prefix):], alive)
+
+        return self.watch_alive(f"{prefix}*", on_holder)
 
     def watch_alive(self, pattern: str, callback: Callable[[str, bool], None]) -> Any:
         """Call ``callback(key, alive)`` when a token matching ``pattern`` appears or vanishes.

@@ -4,9 +4,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE
 
 DEFAULT_PORT = 7447
+LOOPBACK_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
 
 class BusConfig(BaseModel):
@@ -15,13 +18,55 @@ class BusConfig(BaseModel):
     The server runs in ``router`` mode and ``listen``s; everyone else is a ``client`` that
     ``connect``s. ``zenoh_config`` names a json5 file (TLS, access control, credentials) that the
     settings here are applied on top of.
+
+    A router or peer that would listen beyond this machine without TLS and access control
+    (see ``schemas.bus.listen_security``) is refused unless ``insecure_listen`` is set.
     """
 
     model_config = ConfigDict(extra="forbid")
 
     mode: Literal["router", "client", "peer"] = "client"
     listen: list[str] = Field(default_factory=list)
-    connect: list[str] = Field(default_factory=lambda: [f"tcp/127.0.0.1:{DEFAULT_PORT}"])
+    connect: list[str] = Field(default_factory=lambda: [LOOPBACK_ENDPOINT])
     zenoh_config: str | None = None
     connect_timeout_ms: int | None = Field(
         default=None, description="-1 waits for the router forever; None keeps Zenoh's default")
+    insecure_listen: bool = Field(
+        False, description="listen on other machines' reach without TLS and access control "
+        "(logged as a warning at every start); otherwise such a config is refused")
+    max_message_size: int = Field(
+        DEFAULT_MAX_MESSAGE_SIZE, ge=65_536, le=1 << 30, description="larger messages are "
+        "dropped where they arrive [bytes]; above the largest camera frame and map")
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _readable_zenoh_config(cls, path: str | None) -> str | None:
+        if path is not None:
+            from schemas.bus import BusError, zenoh_config
+
+            try:
+                zenoh_config("client", config_file=path)
+            except BusError as e:
+                raise ValueError(str(e)) from None
+        return path
+
+    @model_validator(mode="after")
+    def _secured_or_local(self) -> BusConfig:
+        if self.mode == "client" or self.insecure_listen:
+            return self
+        from schemas.bus import BusError, is_loopback_endpoint, listen_security, zenoh_config
+
+        if self.listen and not self.zenoh_config and all(map(is_loopback_endpoint, self.listen)):
+            return self   # the usual case, decided without loading Zenoh
+        try:
+            conf = zenoh_config(self.mode, self.listen, (), self.zenoh_config)
+        except BusError as e:
+            raise ValueError(str(e)) from None
+        sec = listen_security(conf)
+        if not sec.secure:
+            raise ValueError(
+                f"would listen on {', '.join(sec.exposed)} without {' and '.join(sec.missing)}: "
+                f"listen on loopback ({LOOPBACK_ENDPOINT}), or configure TLS and access rules "
+                "in bus.zenoh_config (deploy/README.md), or accept the risk with "
+                "bus.insecure_listen: true (mrslam server --insecure)")
+        return self

@@ -138,7 +138,8 @@ class AdmissionConfig(_Model):
 
 
 def _router() -> BusConfig:
-    return BusConfig(mode="router", listen=[f"tcp/0.0.0.0:{DEFAULT_PORT}"], connect=[])
+    # loopback: other interfaces take TLS and access rules, or bus.insecure_listen
+    return BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{DEFAULT_PORT}"], connect=[])
 
 
 class ServerConfig(_Model):
