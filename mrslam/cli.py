@@ -7,6 +7,7 @@ and ``mrslam agent`` never loads the server's libraries.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, NoReturn
@@ -32,13 +33,21 @@ def setup_logging(verbose: int) -> None:
 
 
 def _fail(text: str, code: int = 2) -> NoReturn:
-    typer.echo(f"mrslam: {text}", err=True)
+    typer.echo(f"mrslam: {' '.join(text.split())}", err=True)   # one line, always
     raise typer.Exit(code)
+
+
+def _os_problem(e: OSError) -> str:
+    """``path: what`` for a failed file operation, without Python's ``[Errno n]``."""
+    what = e.strerror or str(e)
+    return f"{e.filename}: {what}" if e.filename else what
 
 
 def call(command: str, fn: Callable[[], Any]) -> Any:
     """Run a command body; expected failures become one line on stderr and exit code 2."""
-    from mrslam.config import ConfigError
+    import pydantic
+
+    from mrslam.config import ConfigError, describe
     from schemas.bus import BusError
     from schemas.errors import SchemaError
 
@@ -46,14 +55,35 @@ def call(command: str, fn: Callable[[], Any]) -> Any:
         return fn()
     except NotImplementedError:
         _fail(f"{command}: not implemented yet")
-    except (ConfigError, BusError, SchemaError, FileNotFoundError, IsADirectoryError) as e:
+    except (ConfigError, BusError, SchemaError) as e:
         _fail(f"{command}: {e}")
+    except pydantic.ValidationError as e:   # a model built outside the config loader
+        _fail(f"{command}: config error: {describe(e)}")
+    except OSError as e:   # a folder that is a file, a full disk, no permission...
+        _fail(f"{command}: {_os_problem(e)}")
     except KeyboardInterrupt:
         _fail(f"{command}: interrupted", 130)
     except Exception as e:
         if getattr(e, "user_error", False):  # typed errors of our packages about bad input
             _fail(f"{command}: {e}")
         raise
+
+
+def check_out(command: str, path: Path, *, folder: bool = True) -> None:
+    """Fail at once, in one line, when ``--out`` cannot be written: a file on the way (e.g.
+    ``/etc/passwd/x``), a file where a folder goes or the other way round, no permission."""
+    if folder and path.exists() and not path.is_dir():
+        _fail(f"{command}: --out {path}: exists and is not a folder")
+    if not folder and path.is_dir():
+        _fail(f"{command}: --out {path}: is a folder; give a file name")
+    start = path if folder else path.parent
+    for parent in (start, *start.parents):
+        if parent.exists():
+            if not parent.is_dir():
+                _fail(f"{command}: --out {path}: {parent} is a file, not a folder")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                _fail(f"{command}: --out {path}: cannot write in {parent}")
+            return
 
 
 def _version(value: bool) -> None:
@@ -71,14 +101,20 @@ def main_callback(
 
 
 @app.command()
-def server(config: ConfigOpt = None, verbose: VerboseOpt = 0) -> None:
+def server(
+    config: ConfigOpt = None,
+    insecure: Annotated[bool, typer.Option(
+        "--insecure", help="allow listening beyond this machine without TLS and access rules "
+        "(bus.insecure_listen; warned at every start)")] = False,
+    verbose: VerboseOpt = 0,
+) -> None:
     """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
     setup_logging(verbose)
 
     def body() -> Any:
         from server.daemon import run
 
-        return run(config)
+        return run(config, {"bus": {"insecure_listen": True}} if insecure else None)
 
     call("server", body)
 
@@ -131,6 +167,8 @@ def sim(
 ) -> None:
     """Run the 2D multi-robot simulator as its own process."""
     setup_logging(verbose)
+    if out is not None:
+        check_out("sim", out)
 
     def body() -> Any:
         from sim.config import parse_robot_spec
@@ -196,6 +234,8 @@ def demo(
 ) -> None:
     """Start server, simulator and agents on loopback and explore a scenario or world."""
     setup_logging(verbose)
+    if out is not None:
+        check_out("demo", out)
 
     def body() -> Any:
         from mrslam.demo import run
@@ -235,6 +275,7 @@ ZenohConfigOpt = Annotated[Path | None, typer.Option(
 
 def _bus_config(connect: list[str] | None, listen: list[str] | None,
                 zenoh_config: Path | None) -> Any:
+    from mrslam.config import validate
     from schemas.config import BusConfig
 
     fields: dict[str, Any] = {"zenoh_config": str(zenoh_config) if zenoh_config else None}
@@ -242,7 +283,7 @@ def _bus_config(connect: list[str] | None, listen: list[str] | None,
         fields.update(mode="router", listen=list(listen), connect=list(connect or []))
     elif connect:
         fields["connect"] = list(connect)
-    return BusConfig(**fields)
+    return validate(BusConfig, fields)
 
 
 @app.command()
@@ -263,6 +304,7 @@ def record(
 ) -> None:
     """Record every message under mrslam/** into an MCAP file until interrupted."""
     setup_logging(verbose)
+    check_out("record", out, folder=False)
     if compression not in ("zstd", "lz4", "none"):
         _fail(f"record: unknown compression {compression!r} (zstd, lz4 or none)")
 
@@ -323,6 +365,7 @@ def merge(
 ) -> None:
     """Merge the maps of two recorded sessions offline."""
     setup_logging(verbose)
+    check_out("merge", out)
 
     def body() -> Any:
         from mrslam.config import load_config
@@ -347,6 +390,7 @@ def slam_log(
 ) -> None:
     """Run per-robot graph SLAM offline on a CARMEN laser log."""
     setup_logging(verbose)
+    check_out("slam-log", out)
 
     def body() -> Any:
         from server.slam_log import run
@@ -403,6 +447,9 @@ def world_map(
     resolution: Annotated[float, typer.Option(help="cell size [m]")] = 0.05,
 ) -> None:
     """Write a world's ground-truth occupancy map (nav2 format) and its free area."""
+    if not 0.0 < resolution < float("inf"):   # NaN fails too
+        _fail(f"world-map: --resolution must be a positive number of metres, got {resolution}")
+    check_out("world-map", out)
 
     def body() -> Any:
         from sim.world_map import run
@@ -418,8 +465,23 @@ def world_map(
 
 
 def main() -> None:
-    app(prog_name="mrslam")
+    """The ``mrslam`` entry point: like Typer's own, but a usage error (an unknown option, a
+    value that does not parse) is one line on stderr, exit code 2, as every expected failure."""
+    import sys
 
+    try:
+        code = app(prog_name="mrslam", standalone_mode=False)
+    except typer.TyperException as e:
+        if type(e).__name__ == "NoArgsIsHelpError":   # Typer printed the help already
+            sys.exit(e.exit_code)
+        ctx = getattr(e, "ctx", None)
+        where = f"{ctx.info_name}: " if ctx is not None and ctx.parent is not None else ""
+        typer.echo(f"mrslam: {where}{' '.join(e.format_message().split())}", err=True)
+        sys.exit(e.exit_code)
+    except typer.Abort:
+        typer.echo("mrslam: aborted", err=True)
+        sys.exit(1)
+    sys.exit(code if isinstance(code, int) else 0)
 
 if __name__ == "__main__":
     main()

@@ -67,23 +67,57 @@ def load_config(model: type[T], path: str | Path | None = None,
     """Validate ``model`` from the YAML at ``path``, then env, then explicit ``overrides``."""
     data: dict[str, Any] = {}
     if path is not None:
-        p = Path(path)
-        try:
-            loaded = yaml.safe_load(p.read_text())
-        except OSError as e:
-            raise ConfigError(f"{p}: cannot read config ({e.strerror})") from None
-        except yaml.YAMLError as e:
-            raise ConfigError(f"{p}: not valid YAML ({e})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{p}: expected a mapping at the top level")
-        data = loaded or {}
+        data = read_yaml_mapping(Path(path))
     data = _merge(data, env_overrides(model, os.environ if environ is None else environ))
     data = _merge(data, overrides or {})
+    return validate(model, data, path)
+
+
+def read_yaml_mapping(path: Path) -> dict[str, Any]:
+    """The mapping in a YAML file; ``ConfigError`` when it cannot be read, is not text, is not
+    YAML or holds something else."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8); a config "
+                          "is YAML text") from None
+    try:
+        loaded = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(e)})") from None
+    if loaded is not None and not isinstance(loaded, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level")
+    return loaded or {}
+
+
+def _yaml_problem(err: yaml.YAMLError) -> str:
+    """The YAML error in one line: what is wrong and where."""
+    if isinstance(err, yaml.MarkedYAMLError) and err.problem:
+        mark = err.problem_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        return f"{err.problem}{where}"
+    return " ".join(str(err).split())
+
+
+def validate(model: type[T], data: Mapping[str, Any], path: str | Path | None = None) -> T:
+    """``model`` from ``data``; ``ConfigError`` naming each bad field on one line."""
     try:
         return model.model_validate(data)
     except pydantic.ValidationError as e:
         where = f" in {path}" if path else ""
-        raise ConfigError(f"invalid {model.__name__}{where}:\n{e}") from None
+        raise ConfigError(f"config error{where}: {describe(e)}") from None
+
+
+def describe(err: pydantic.ValidationError) -> str:
+    """A validation error as ``field.path: what is wrong`` items on one line."""
+    items = []
+    for e in err.errors(include_url=False):
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        msg = e["msg"].removeprefix("Value error, ")
+        items.append(f"{loc}: {' '.join(msg.split())}")
+    return "; ".join(items)
 
 
 def write_resolved(cfg: pydantic.BaseModel, out_dir: str | Path,
