@@ -106,6 +106,11 @@ class AgentConfig(_Model):
     v_max_mps: float = Field(0.5, gt=0.0, le=5.0, description="commands are clipped to this")
     omega_max_rps: float = Field(2.0, gt=0.0, le=20.0)
     stop_on_server_loss: bool = True
+    command_max_age_s: float = Field(10.0, gt=0.0, description="commands stamped longer ago "
+                                     "on the robot's clock are ignored (a replay, a stamp-0 "
+                                     "stranger); the server stamps each with its scan's time")
+    command_max_ahead_s: float = Field(1.0, ge=0.0, description="commands stamped this far "
+                                       "ahead of the robot's clock are ignored")
     max_queued_frames: int = Field(4, ge=1, description="older frames are dropped beyond this")
     tags: TagLayout = TagLayout()
     camera_mount: CameraMount = CameraMount()

@@ -7,9 +7,11 @@ The backend's sensor callbacks only queue events; one thread handles them in arr
   ``lockstep.wait_for_command`` is set; bounded by ``command_timeout_s`` of wall time);
 - a camera frame goes through the ArUco detector and becomes ``TagDetections``.
 
-Commands (``VelocityCommand`` on ``mrslam/robot/<id>/cmd_vel``) go straight to the base. The
-watchdog stops the base when a command's time-to-live runs out on the robot's clock or when the
-server's liveliness token disappears. Liveliness ``mrslam/robot/<id>/alive`` and a
+Commands (``VelocityCommand`` on ``mrslam/robot/<id>/cmd_vel``) go straight to the base once
+``CommandGate`` has checked that they come from the server the agent is bound to; others are
+counted (``commands_ignored_<reason>``) and logged at a limited rate. The watchdog stops the
+base when a command's time-to-live runs out on the robot's clock or when the server's
+liveliness token disappears. Liveliness ``mrslam/robot/<id>/alive`` and a
 ``RobotStatus`` every ``status_period_s`` tell the world the agent is there.
 """
 
@@ -32,6 +34,7 @@ import msgspec
 from mrslam.config import load_config
 from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight, lidar_fix
 from robot_agent.backend import Backend, Frame, Sweep
+from robot_agent.command_gate import CommandGate, Reason
 from robot_agent.config import AgentConfig
 from robot_agent.watchdog import Watchdog
 from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
@@ -60,6 +63,8 @@ class Agent:
         self.command: tuple[float, float] = (0.0, 0.0)
         self.last_command_stamp_ns = -1
         self.server_alive = False
+        self.gate = CommandGate(self.rid, cfg.command_max_age_s, cfg.command_max_ahead_s)
+        self._ignored_logged: dict[str, float] = {}
         self.counters: Counter[str] = Counter()
         self.seq: Counter[str] = Counter()
         self.last_sweep_wall = 0.0
@@ -70,8 +75,11 @@ class Agent:
         self._status_cpu = (time.monotonic(), time.process_time())
 
     def start(self) -> None:
-        self.bus.subscribe(keys.robot_cmd_vel(self.rid), VelocityCommand, self._on_command)
+        # who the server is before its commands: the first one is not dropped as unknown
+        self.bus.watch_holders(keys.SERVER_ALIVE, self._on_server_holder)
         self.bus.watch_alive(keys.SERVER_ALIVE, self._on_server)
+        self.bus.subscribe_with_source(keys.robot_cmd_vel(self.rid), VelocityCommand,
+                                       self._on_command)
         self.backend.lidar.start(self.events.put)
         if self.backend.camera is not None:
             self.backend.camera.start(self._queue_frame)
@@ -229,11 +237,13 @@ class Agent:
         return self.backend.sync is not None and self.backend.sync.lockstep()
 
     # -- commands and the watchdog ----------------------------------------------------------
-    def _on_command(self, key: str, msg: VelocityCommand) -> None:
-        if msg.robot_id != self.rid:
-            self.counters["foreign_commands"] += 1
-            log.warning("ignoring a command for %s on %s", msg.robot_id, key)
-            return
+    def _on_command(self, key: str, msg: VelocityCommand, source: str | None) -> None:
+        with self.cond:
+            now_ns = self.backend.now_ns()
+            reason = self.gate.check(msg, source, now_ns)
+            if reason is not None:
+                self._ignore(reason, msg, source, now_ns)
+                return
         v = min(max(msg.v_mps, -self.cfg.v_max_mps), self.cfg.v_max_mps)
         w = min(max(msg.omega_rps, -self.cfg.omega_max_rps), self.cfg.omega_max_rps)
         with self.cond:
@@ -242,6 +252,32 @@ class Agent:
             self.last_command_stamp_ns = max(self.last_command_stamp_ns, msg.stamp_ns)
             self.set_velocity(v, w)
             self.cond.notify_all()
+
+    def _ignore(self, reason: Reason, msg: VelocityCommand, source: str | None,
+                now_ns: int) -> None:
+        """Count an ignored command; log the first five of a kind, then one line per 10 s."""
+        name = "foreign_commands" if reason == "other_robot" else f"commands_ignored_{reason}"
+        self.counters[name] += 1
+        self.counters["commands_ignored"] += 1
+        seen, n, t = self.counters[name], self.counters["commands_ignored"], time.monotonic()
+        if seen <= 5 or t - self._ignored_logged.get(reason, 0.0) >= 10.0:
+            self._ignored_logged[reason] = t
+            log.warning("ignored command (%s, %d of this kind, %d in all): for %s, stamp %d ns "
+                        "at robot time %d ns, from session %s; the server is %s", reason, seen,
+                        n, msg.robot_id, msg.stamp_ns, now_ns, source or "unknown",
+                        self.gate.server or "not known")
+
+    def _on_server_holder(self, zid: str, alive: bool) -> None:
+        with self.cond:
+            before = self.gate.server
+            now = self.gate.server_holder(zid, alive)
+            others = self.gate.holders[1:]
+        if now != before:
+            log.info("bound to the server session %s", now) if now else \
+                log.warning("no server session holds the server's token")
+        if alive and zid in others:
+            log.warning("session %s also holds the server's liveliness token; its commands "
+                        "are ignored while %s lives", zid, now)
 
     def _on_server(self, key: str, alive: bool) -> None:
         with self.cond:
@@ -276,7 +312,7 @@ class Agent:
     def errors(self) -> int:
         s = self.bus.stats
         return (sum(s.rejected.values()) + sum(s.callback_errors.values())
-                + self.counters["detector_errors"] + self.counters["foreign_commands"]
+                + self.counters["detector_errors"] + self.counters["commands_ignored"]
                 + sum(self.backend.counters().values()))
 
     def publish_status(self) -> None:
@@ -328,8 +364,7 @@ def run(config: str | Path | None = None, overrides: Mapping[str, Any] | None = 
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    with Bus.open(cfg.bus.mode, cfg.bus.listen, cfg.bus.connect, cfg.bus.zenoh_config,
-                  cfg.bus.connect_timeout_ms) as bus:
+    with Bus.from_config(cfg.bus) as bus:
         backend = make_backend(cfg, bus)
         agent = Agent(cfg, bus, backend)
         agent.start()
