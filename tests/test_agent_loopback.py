@@ -86,6 +86,7 @@ def test_scans_flow_commands_move_the_robot_and_it_stops_when_they_stop(
     router.subscribe(keys.robot_scan("r1"), Scan, lambda k, m: scans.append(m))
     router.subscribe(keys.robot_status("r1"), RobotStatus, lambda k, m: statuses.append(m))
     router.watch_alive(keys.ALL_ALIVE, lambda k, a: alive.add(k) if a else alive.discard(k))
+    router.declare_alive(keys.SERVER_ALIVE)   # the agent obeys the server's session only
     with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0},
                  {"status_period_s": 0.2}) as results:
         assert wait_for(lambda: len(scans) >= 5 and truth.latest is not None)
