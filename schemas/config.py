@@ -66,7 +66,7 @@ class BusConfig(BaseModel):
         if not sec.secure:
             raise ValueError(
                 f"would listen on {', '.join(sec.exposed)} without {' and '.join(sec.missing)}: "
-                f"listen on loopback ({LOOPBACK_ENDPOINT}), or configure TLS and access rules "
-                "in bus.zenoh_config (deploy/README.md), or accept the risk with "
+                "listen on loopback only (tcp/127.0.0.1:<port>), or configure TLS and access "
+                "rules in bus.zenoh_config (deploy/README.md), or accept the risk with "
                 "bus.insecure_listen: true (mrslam server --insecure)")
         return self
