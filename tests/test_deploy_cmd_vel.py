@@ -1,0 +1,70 @@
+"""With the deploy configs' TLS and access rules, only the server reaches a robot's ``cmd_vel``:
+another robot's or a dashboard's commands are stopped by the router before the agent sees them,
+and the agent, through the same rules, learns which session is the server (issue 20, item 4)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from robot_agent.backend import Backend
+from robot_agent.config import AgentConfig
+from robot_agent.runtime import Agent
+from schemas import VelocityCommand, keys
+from schemas.bus import Bus, free_local_endpoint
+from tests.test_agent_command_gate import NoLidar, StillBase, wait_for
+from tests.test_deploy_zenoh import DEPLOY, client, write_config
+
+pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+
+
+def test_only_the_server_commands_a_robot(tmp_path: Path) -> None:
+    certs = tmp_path / "certs"
+    subprocess.run(["bash", str(DEPLOY / "make-certs.sh"), str(certs), "127.0.0.1", "r1", "r2",
+                    "dashboard"], check=True, capture_output=True)
+    endpoint = free_local_endpoint().replace("tcp/", "tls/")
+    conf = write_config(tmp_path, "server", "server", "--certs", str(certs), "--listen",
+                        endpoint, "--observer", "dashboard", "r1", "r2")
+    key = keys.robot_cmd_vel("r1")
+    base = StillBase()
+    stop = threading.Event()
+    with Bus.open("router", config_file=conf) as server:
+        server.declare_alive(keys.SERVER_ALIVE)
+        r1, r2, dash = (client(certs, tmp_path, endpoint, n) for n in ("r1", "r2", "dashboard"))
+        agent = Agent(AgentConfig.model_validate({"robot_id": "r1",
+                                                  "detector": {"enabled": False}}),
+                      r1, Backend(lidar=NoLidar(), base=base, camera=None, now_ns=time.time_ns))
+        agent.start()
+        thread = threading.Thread(target=agent.run, args=(stop,))
+        thread.start()
+        try:
+            # the agent learns the server's session through the rules (its token is readable)
+            assert wait_for(lambda: agent.gate.server == server.zid, 15.0)
+            deadline = time.monotonic() + 15.0
+            while agent.counters["commands_received"] == 0 and time.monotonic() < deadline:
+                for stranger in (r2, dash):
+                    stranger.publish(key, VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(),
+                                                          v_mps=0.5, omega_rps=2.0), block=True)
+                server.publish(key, VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(),
+                                                    v_mps=0.2, omega_rps=0.0), block=True)
+                time.sleep(0.2)
+            assert agent.counters["commands_received"] >= 1
+            for _ in range(10):   # more attempts, once the routes are surely in place
+                for stranger in (r2, dash):
+                    stranger.publish(key, VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(),
+                                                          v_mps=0.5, omega_rps=2.0), block=True)
+                time.sleep(0.05)
+            time.sleep(1.0)   # would a refused command still arrive?
+            # refused by the router: the agent never saw them, so had nothing to ignore
+            assert agent.counters["commands_ignored"] == 0
+            assert all(v != 0.5 for v, _ in base.velocities) and (0.2, 0.0) in base.velocities
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+            for b in (r1, r2, dash):
+                b.close()
