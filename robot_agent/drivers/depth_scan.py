@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_agent.backend import Sweep
+from robot_agent.drivers.beams import to_beams
 from schemas.messages import quantise_ranges_mm
 
 
@@ -57,14 +58,14 @@ def fan(view: DepthView, fx: float, cx: float, rows: int = 1) -> tuple[np.ndarra
 
 def merge_fans(fans: Sequence[tuple[np.ndarray, np.ndarray]], beams: int, max_range_m: float,
                min_range_m: float = 0.0) -> np.ndarray:
-    """Ranges [m] on ``beams`` beams from −π (inf = no return), nearest reading per beam."""
-    increment = 2 * math.pi / beams
-    out = np.full(beams, np.inf)
-    for angles, ranges in fans:
-        ok = np.isfinite(ranges) & (ranges <= max_range_m) & (ranges >= min_range_m)
-        idx = np.rint((np.remainder(angles[ok] + math.pi, 2 * math.pi)) / increment)
-        np.minimum.at(out, idx.astype(np.int64) % beams, ranges[ok])
-    return out
+    """Ranges [m] on ``beams`` beams from −π (inf = no return), nearest reading per beam
+    (``beams.to_beams``: a column without a reading in range still covers its beam)."""
+    if not fans:
+        return np.full(beams, np.inf)
+    angles = np.concatenate([a for a, _ in fans])
+    ranges = np.concatenate([r for _, r in fans])
+    ok = np.isfinite(ranges) & (ranges <= max_range_m) & (ranges >= min_range_m)
+    return to_beams(angles, np.where(ok, ranges, np.inf), beams)
 
 
 def pseudo_scan(views: Sequence[DepthView], fx: float, cx: float, stamp_ns: int,

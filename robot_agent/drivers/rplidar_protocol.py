@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robot_agent.backend import Sweep
+from robot_agent.drivers.beams import to_beams
 
 SYNC = 0xA5
 SYNC2 = 0x5A
@@ -278,19 +279,17 @@ def to_sweep(rev: Revolution, beams: int, range_min_mm: int, range_max_mm: int,
              mount_yaw_rad: float = 0.0, clockwise: bool = True) -> Sweep:
     """Resample one revolution onto ``beams`` fixed beams from −π, counter-clockwise.
 
-    Each measurement goes to the nearest beam; when several land on one beam the nearest
-    obstacle wins (the conservative reading for mapping and collision avoidance). Beams without
-    a measurement, and distances of 0 or outside ``[range_min_mm, range_max_mm]``, are
+    ``beams.to_beams`` places the measurements: at the nearest beam, a lone beam left empty by
+    rounding taking one from a neighbour that got two, the nearest obstacle winning where
+    several share a beam (the conservative reading for mapping and collision avoidance). Beams
+    without a measurement, and distances of 0 or outside ``[range_min_mm, range_max_mm]``, are
     no-returns (0 mm).
     """
-    increment = 2 * math.pi / beams
     theta = robot_angles_rad(rev.angle_deg, mount_yaw_rad, clockwise)
-    idx = np.rint((theta + math.pi) / increment).astype(np.int64) % beams
-    mm = np.rint(rev.distance_mm).astype(np.int64)
+    mm = np.rint(rev.distance_mm)
     ok = (mm >= max(range_min_mm, 1)) & (mm <= range_max_mm)
-    ranges = np.full(beams, np.iinfo(np.int64).max, np.int64)
-    np.minimum.at(ranges, idx[ok], mm[ok])
-    ranges[ranges == np.iinfo(np.int64).max] = 0
-    return Sweep(stamp_ns=rev.stamp_ns, angle_min_rad=-math.pi, angle_increment_rad=increment,
-                 range_min_mm=range_min_mm, range_max_mm=range_max_mm,
-                 ranges_mm=ranges.astype("<u2").tobytes())
+    ranges = to_beams(theta, np.where(ok, mm, np.inf), beams)
+    return Sweep(stamp_ns=rev.stamp_ns, angle_min_rad=-math.pi,
+                 angle_increment_rad=2 * math.pi / beams, range_min_mm=range_min_mm,
+                 range_max_mm=range_max_mm,
+                 ranges_mm=np.where(np.isfinite(ranges), ranges, 0).astype("<u2").tobytes())
