@@ -1,0 +1,64 @@
+"""Oversized messages are dropped where they arrive (issue 20, item 3): the cap sits above our
+largest legitimate messages, and a garbage payload over it neither arrives nor breaks the link."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import zenoh
+
+from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE, Bus
+from schemas.codec import encode
+from schemas.config import BusConfig
+from schemas.messages import MapUpdate
+from schemas.sim import SimImage
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+def test_the_cap_is_well_above_our_largest_messages() -> None:
+    rng = np.random.default_rng(0)
+    frame = SimImage(robot_id="r1", width=640, height=480, fx=500.0, fy=500.0, cx=320.0,
+                     cy=240.0, data=rng.integers(0, 256, 640 * 480, dtype=np.uint8).tobytes())
+    # a 900x900 map whose every cell is noise: zlib cannot shrink it much (real maps: ~100 kB)
+    noise = MapUpdate.from_grid(rng.integers(-1, 101, (900, 900)).astype(np.int8),
+                                team_id="t1", robot_ids=["r1", "r2", "r3", "r4", "r5"],
+                                resolution_m=0.05, origin=(0.0, 0.0, 0.0))
+    assert 4 * len(encode(frame)) < DEFAULT_MAX_MESSAGE_SIZE
+    assert 2 * len(encode(noise)) < DEFAULT_MAX_MESSAGE_SIZE
+    assert DEFAULT_MAX_MESSAGE_SIZE < 2_000_000   # the issue's garbage payloads are over it
+
+
+def test_an_oversized_payload_is_dropped_and_the_link_survives(router: Bus,
+                                                              endpoint: str) -> None:
+    got: list[tuple[str, int]] = []
+    router.subscribe_raw("junk/**", lambda k, b: got.append((k, len(b))))
+    with Bus.open("client", connect=[endpoint]) as sender:
+        assert sender.wait_for_subscribers("junk/x")
+        block = zenoh.CongestionControl.BLOCK
+        sender.session.put("junk/big", b"x" * 2_000_000, congestion_control=block)
+        sender.session.put("junk/under", b"y" * (DEFAULT_MAX_MESSAGE_SIZE - 4096),
+                           congestion_control=block)
+        sender.session.put("junk/small", b"z" * 100, congestion_control=block)
+        assert wait_for(lambda: ("junk/small", 100) in got)
+    assert ("junk/big", 2_000_000) not in got
+    assert ("junk/under", DEFAULT_MAX_MESSAGE_SIZE - 4096) in got
+
+
+def test_publishing_over_the_configured_cap_is_counted(router: Bus, endpoint: str) -> None:
+    frame = SimImage(robot_id="r1", width=640, height=480, fx=500.0, fy=500.0, cx=320.0,
+                     cy=240.0, data=bytes(640 * 480))
+    cfg = BusConfig(connect=[endpoint], max_message_size=65_536)
+    with Bus.from_config(cfg) as small:
+        small.publish("junk/frame", frame)
+        assert small.stats.oversized == {"SimImage": 1}
+        assert small.stats.as_dict()["oversized"] == {"SimImage": 1}
