@@ -283,7 +283,7 @@ def _bus_config(connect: list[str] | None, listen: list[str] | None,
         fields.update(mode="router", listen=list(listen), connect=list(connect or []))
     elif connect:
         fields["connect"] = list(connect)
-    return validate(BusConfig, fields)
+    return validate(BusConfig, fields, root="bus")
 
 
 @app.command()

@@ -101,20 +101,22 @@ def _yaml_problem(err: yaml.YAMLError) -> str:
     return " ".join(str(err).split())
 
 
-def validate(model: type[T], data: Mapping[str, Any], path: str | Path | None = None) -> T:
-    """``model`` from ``data``; ``ConfigError`` naming each bad field on one line."""
+def validate(model: type[T], data: Mapping[str, Any], path: str | Path | None = None,
+             root: str = "") -> T:
+    """``model`` from ``data``; ``ConfigError`` naming each bad field on one line (under
+    ``root`` when ``model`` is one part of a larger config, e.g. ``bus``)."""
     try:
         return model.model_validate(data)
     except pydantic.ValidationError as e:
         where = f" in {path}" if path else ""
-        raise ConfigError(f"config error{where}: {describe(e)}") from None
+        raise ConfigError(f"config error{where}: {describe(e, root)}") from None
 
 
-def describe(err: pydantic.ValidationError) -> str:
+def describe(err: pydantic.ValidationError, root: str = "") -> str:
     """A validation error as ``field.path: what is wrong`` items on one line."""
     items = []
     for e in err.errors(include_url=False):
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        loc = ".".join([root] * bool(root) + [str(p) for p in e["loc"]]) or "(top level)"
         msg = e["msg"].removeprefix("Value error, ")
         items.append(f"{loc}: {' '.join(msg.split())}")
     return "; ".join(items)

@@ -1,0 +1,134 @@
+"""Bad inputs for every ``mrslam`` command that takes them (issue 20, item 6), shared by the
+test that runs them and the ``bad_inputs`` section of ``bench/hostile.py``.
+
+Each must end the command with exit code 2 and one line on stderr naming the problem.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+WORLD = ROOT / "sim" / "worlds" / "small_house.world"
+#: a path under an existing file: nothing can be written there
+UNDER_A_FILE = "/etc/passwd/x"
+#: a TCP port nobody listens on (the discard port: reserved, never served here)
+CLOSED = "tcp/127.0.0.1:9"
+OPEN_LISTEN = "tcp/0.0.0.0:7"
+
+
+@dataclass(frozen=True)
+class BadInput:
+    command: str
+    problem: str
+    args: tuple[str, ...]       # after ``mrslam``
+    says: str                   # the stderr line names the problem with this
+
+    @property
+    def id(self) -> str:
+        return f"{self.command}-{self.problem}"
+
+
+def write_files(folder: Path) -> None:
+    """The bad files the cases refer to."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "binary.yaml").write_bytes(bytes(range(256)) * 8)
+    (folder / "image.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR" + bytes(64))
+    (folder / "missing-zenoh.yaml").write_text(f"bus: {{zenoh_config: {folder}/none.json5}}\n")
+    (folder / "bad.json5").write_text("{ mode: 'router', listen: [ \n")
+    (folder / "bad-zenoh.yaml").write_text(f"bus: {{zenoh_config: {folder}/bad.json5}}\n")
+    (folder / "bad-field.yaml").write_text("bus: {mode: satellite}\n")
+    (folder / "open.yaml").write_text(f"bus: {{mode: router, listen: [{OPEN_LISTEN}]}}\n")
+
+
+def cases(folder: Path) -> list[BadInput]:
+    """Every bad input × every command that takes it (files from ``write_files(folder)``)."""
+    f = str(folder)
+    out: list[BadInput] = []
+    with_config = {"server": (), "agent": (), "sim": (),
+                   "slam-log": (str(folder / "none.clf"), "--out", f"{f}/out"),
+                   "merge": (str(folder / "a.mcap"), str(folder / "b.mcap"), "--out",
+                             f"{f}/out")}
+    for cmd, rest in with_config.items():
+        out += [
+            BadInput(cmd, "binary-config", (cmd, *rest, "-c", f"{f}/binary.yaml"),
+                     "not a text file"),
+            BadInput(cmd, "png-config", (cmd, *rest, "-c", f"{f}/image.png"),
+                     "not a text file"),
+            BadInput(cmd, "invalid-field", (cmd, *rest, "-c", f"{f}/bad-field.yaml"),
+                     "bus: Extra inputs" if cmd == "slam-log"    # it has no bus
+                     else "bus.mode: Input should be"),
+        ]
+    for cmd in ("server", "agent", "sim"):
+        out += [
+            BadInput(cmd, "missing-zenoh-config", (cmd, "-c", f"{f}/missing-zenoh.yaml"),
+                     "bus.zenoh_config: Zenoh config"),
+            BadInput(cmd, "invalid-zenoh-config", (cmd, "-c", f"{f}/bad-zenoh.yaml"),
+                     "bad.json5: expected"),
+        ]
+    for cmd, rest in (("record", ("--out", f"{f}/r.mcap")), ("replay", (f"{f}/a.mcap",))):
+        out += [
+            BadInput(cmd, "missing-zenoh-config",
+                     (cmd, *rest, "--zenoh-config", f"{f}/none.json5"), "No such file"),
+            BadInput(cmd, "invalid-zenoh-config",
+                     (cmd, *rest, "--zenoh-config", f"{f}/bad.json5"), "bad.json5: expected"),
+        ]
+    out += [
+        BadInput("sim", "out-under-a-file", ("sim", "--world", str(WORLD), "--out",
+                                             UNDER_A_FILE), "/etc/passwd is a file"),
+        BadInput("demo", "out-under-a-file", ("demo", "--out", UNDER_A_FILE),
+                 "/etc/passwd is a file"),
+        BadInput("world-map", "out-under-a-file", ("world-map", str(WORLD), "--out",
+                                                   UNDER_A_FILE), "/etc/passwd is a file"),
+        BadInput("slam-log", "out-under-a-file", ("slam-log", f"{f}/none.clf", "--out",
+                                                  UNDER_A_FILE), "/etc/passwd is a file"),
+        BadInput("merge", "out-under-a-file", ("merge", f"{f}/a.mcap", f"{f}/b.mcap", "--out",
+                                               UNDER_A_FILE), "/etc/passwd is a file"),
+        BadInput("record", "out-under-a-file", ("record", "--out", f"{UNDER_A_FILE}.mcap"),
+                 "/etc/passwd is a file"),
+        BadInput("world-map", "resolution-0", ("world-map", str(WORLD), "--out", f"{f}/wm",
+                                               "--resolution", "0"), "--resolution"),
+        BadInput("world-map", "resolution-nan", ("world-map", str(WORLD), "--out", f"{f}/wm",
+                                                 "--resolution", "nan"), "--resolution"),
+        BadInput("world-map", "resolution-text", ("world-map", str(WORLD), "--out", f"{f}/wm",
+                                                  "--resolution", "fine"), "--resolution"),
+        BadInput("agent", "unreachable-router", ("agent", "--connect", CLOSED),
+                 "Unable to connect"),
+        BadInput("agent", "malformed-endpoint", ("agent", "--connect", "nowhere"),
+                 "Endpoints must be of the form"),
+        BadInput("record", "unreachable-router", ("record", "--out", f"{f}/r.mcap",
+                                                  "--connect", CLOSED), "Unable to connect"),
+        BadInput("server", "insecure-listen", ("server", "-c", f"{f}/open.yaml"),
+                 "without TLS"),
+        BadInput("sim", "insecure-listen", ("sim", "--world", str(WORLD), "--listen",
+                                            OPEN_LISTEN), "without TLS"),
+        BadInput("record", "insecure-listen", ("record", "--out", f"{f}/r.mcap", "--listen",
+                                               OPEN_LISTEN), "without TLS"),
+        BadInput("eval-relations", "binary-files", ("eval-relations", f"{f}/binary.yaml",
+                                                    f"{f}/image.png"), "binary.yaml"),
+        BadInput("lidar-dump", "missing-port", ("lidar-dump", "--port", f"{f}/no-tty",
+                                                "--timeout", "1"), "no-tty"),
+    ]
+    return out
+
+
+@dataclass(frozen=True)
+class Outcome:
+    code: int
+    stderr_lines: list[str]
+
+    def one_line_naming(self, says: str) -> bool:
+        return (self.code == 2 and len(self.stderr_lines) == 1
+                and "Traceback" not in self.stderr_lines[0] and says in self.stderr_lines[0])
+
+
+def run(case: BadInput, timeout_s: float = 120.0) -> Outcome:
+    """Run the real CLI as a process; its exit code and non-empty stderr lines."""
+    res = subprocess.run([sys.executable, "-m", "mrslam", *case.args], cwd=ROOT,
+                         capture_output=True, text=True, timeout=timeout_s,
+                         env={**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "200"})
+    return Outcome(res.returncode, [ln for ln in res.stderr.splitlines() if ln.strip()])
