@@ -3,6 +3,9 @@
 Sections (``--only NAME ...`` runs some of them; all by default), each a function returning a
 dict with its measurements and ``goal_met``:
 
+- ``payloads``, ``payloads_uncapped``, ``stranger``, ``bad_inputs``: the bus, the robots'
+  commands and the command line (``bench/hostile_bus.py`` says what each does).
+
 The whole result is printed as one JSON object, ``{section: {...}}``.
 
     python bench/hostile.py [--only SECTION ...] [--out DIR]
@@ -25,6 +28,10 @@ Section = Callable[[Path], dict[str, Any]]
 
 #: name -> section; each takes a scratch folder of its own
 SECTIONS: dict[str, Section] = {}
+
+from hostile_bus import SECTIONS as BUS_SECTIONS  # noqa: E402  (payloads, stranger, bad_inputs)
+
+SECTIONS.update(BUS_SECTIONS)
 
 
 def main() -> None:
