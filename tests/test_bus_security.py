@@ -4,6 +4,8 @@ rules are configured, or an insecure listen is asked for explicitly and warned a
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,7 @@ from mrslam.config import ConfigError, load_config
 from schemas.bus import is_loopback_endpoint, listen_security, zenoh_config
 from schemas.config import BusConfig
 from server.config import ServerConfig
-from tests.netsec import connect, free_port, primary_ip, start_server, stop, wait_up
+from tests.netsec import ROOT, connect, free_port, primary_ip, start_server, stop, wait_up
 
 HOST = primary_ip()
 needs_address = pytest.mark.skipif(HOST is None, reason="this machine has no address but "
@@ -118,3 +120,15 @@ def test_a_server_refuses_an_exposed_listener_unless_told_it_is_insecure(
         stop(proc)
     log = (tmp_path / "insecure" / "server.log").read_text()
     assert "WARNING" in log and "without TLS" in log   # ... said at start
+
+
+def test_the_deploy_server_config_counts_as_secured(tmp_path: Path) -> None:
+    out = subprocess.run([sys.executable, str(ROOT / "deploy" / "zenoh" / "config.py"), "server",
+                          "--certs", str(tmp_path), "--listen", "tls/0.0.0.0:7447", "r1"],
+                         check=True, capture_output=True, text=True).stdout
+    (tmp_path / "server.json5").write_text(out)
+    # as deploy/README.md has it: listen: [] takes the file's endpoints
+    cfg = BusConfig(mode="router", listen=[], connect=[],
+                    zenoh_config=str(tmp_path / "server.json5"))
+    sec = listen_security(zenoh_config("router", config_file=cfg.zenoh_config))
+    assert sec.exposed == ["tls/0.0.0.0:7447"] and sec.secure
