@@ -276,8 +276,11 @@ ZenohConfigOpt = Annotated[Path | None, typer.Option(
 def _bus_config(connect: list[str] | None, listen: list[str] | None,
                 zenoh_config: Path | None) -> Any:
     from mrslam.config import validate
+    from schemas.bus import zenoh_config as read_zenoh_config
     from schemas.config import BusConfig
 
+    if zenoh_config is not None:   # named on the command line: read before anything else
+        read_zenoh_config("client", config_file=str(zenoh_config))
     fields: dict[str, Any] = {"zenoh_config": str(zenoh_config) if zenoh_config else None}
     if listen:
         fields.update(mode="router", listen=list(listen), connect=list(connect or []))

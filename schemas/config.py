@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE
 
@@ -20,7 +20,9 @@ class BusConfig(BaseModel):
     settings here are applied on top of.
 
     A router or peer that would listen beyond this machine without TLS and access control
-    (see ``schemas.bus.listen_security``) is refused unless ``insecure_listen`` is set.
+    (see ``schemas.bus.listen_security``) is refused unless ``insecure_listen`` is set; to tell,
+    its ``zenoh_config`` is read here. A client's is read when its session opens (a config may
+    be validated on another machine than the one it is for).
     """
 
     model_config = ConfigDict(extra="forbid")
@@ -37,18 +39,6 @@ class BusConfig(BaseModel):
     max_message_size: int = Field(
         DEFAULT_MAX_MESSAGE_SIZE, ge=65_536, le=1 << 30, description="larger messages are "
         "dropped where they arrive [bytes]; above the largest camera frame and map")
-
-    @field_validator("zenoh_config")
-    @classmethod
-    def _readable_zenoh_config(cls, path: str | None) -> str | None:
-        if path is not None:
-            from schemas.bus import BusError, zenoh_config
-
-            try:
-                zenoh_config("client", config_file=path)
-            except BusError as e:
-                raise ValueError(str(e)) from None
-        return path
 
     @model_validator(mode="after")
     def _secured_or_local(self) -> BusConfig:

@@ -63,17 +63,19 @@ def cases(folder: Path) -> list[BadInput]:
                      "bus: Extra inputs" if cmd == "slam-log"    # it has no bus
                      else "bus.mode: Input should be"),
         ]
-    for cmd in ("server", "agent", "sim"):
+    sim = ("--world", str(WORLD), "--robot", "r1:0,0,0")
+    for cmd, rest in (("server", ()), ("agent", ()), ("sim", sim)):
         out += [
-            BadInput(cmd, "missing-zenoh-config", (cmd, "-c", f"{f}/missing-zenoh.yaml"),
-                     "bus.zenoh_config: Zenoh config"),
-            BadInput(cmd, "invalid-zenoh-config", (cmd, "-c", f"{f}/bad-zenoh.yaml"),
+            BadInput(cmd, "missing-zenoh-config", (cmd, *rest, "-c", f"{f}/missing-zenoh.yaml"),
+                     "none.json5: No such file"),
+            BadInput(cmd, "invalid-zenoh-config", (cmd, *rest, "-c", f"{f}/bad-zenoh.yaml"),
                      "bad.json5: expected"),
         ]
     for cmd, rest in (("record", ("--out", f"{f}/r.mcap")), ("replay", (f"{f}/a.mcap",))):
         out += [
             BadInput(cmd, "missing-zenoh-config",
-                     (cmd, *rest, "--zenoh-config", f"{f}/none.json5"), "No such file"),
+                     (cmd, *rest, "--zenoh-config", f"{f}/none.json5"),
+                     "none.json5: No such file"),
             BadInput(cmd, "invalid-zenoh-config",
                      (cmd, *rest, "--zenoh-config", f"{f}/bad.json5"), "bad.json5: expected"),
         ]
