@@ -5,6 +5,7 @@ dict with its measurements and ``goal_met``:
 
 - ``payloads``, ``payloads_uncapped``, ``stranger``, ``bad_inputs``: the bus, the robots'
   commands and the command line (``bench/hostile_bus.py`` says what each does).
+- ``fake_ids``, ``clocks``: the server's admission and its clocks (``bench/hostile_fleet.py``).
 
 The whole result is printed as one JSON object, ``{section: {...}}``.
 
@@ -30,8 +31,10 @@ Section = Callable[[Path], dict[str, Any]]
 SECTIONS: dict[str, Section] = {}
 
 from hostile_bus import SECTIONS as BUS_SECTIONS  # noqa: E402  (payloads, stranger, bad_inputs)
+from hostile_fleet import SECTIONS as FLEET_SECTIONS  # noqa: E402  (fake_ids, clocks)
 
 SECTIONS.update(BUS_SECTIONS)
+SECTIONS.update(FLEET_SECTIONS)
 
 
 def main() -> None:
