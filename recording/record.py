@@ -41,7 +41,7 @@ def run(out: str | Path, bus: BusConfig | None = None, *, foxglove: bool = False
     meta = {"schema_version": str(SCHEMA_VERSION), "key": key, "exclude": ",".join(exclude),
             "started_unix_ns": str(time.time_ns())}
     t0 = time.monotonic()
-    with Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as session, \
+    with Bus.from_config(b) as session, \
             McapRecorder(out, compression, foxglove, metadata=meta) as rec:
         # the file appears only once the session is up (the demo waits for it)
         def add(k: str, payload: bytes) -> None:

@@ -72,7 +72,7 @@ def run(path: str | Path, bus: BusConfig | None = None, *, speed: float = 1.0,
     b = bus or BusConfig()
     sent: Counter[str] = Counter()
     t0 = time.monotonic()
-    with Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as session:
+    with Bus.from_config(b) as session:
         publishers: dict[str, Any] = {}
         offset_s, prev_ns = 0.0, todo[0].log_time_ns if todo else 0
         for m in todo:

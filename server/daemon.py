@@ -34,7 +34,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
     b = cfg.bus
-    with Bus.open(b.mode, b.listen, b.connect, b.zenoh_config, b.connect_timeout_ms) as bus:
+    with Bus.from_config(b) as bus:
         node = ServerNode(bus, cfg)
         node.start()
         log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))

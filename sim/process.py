@@ -295,8 +295,7 @@ def run(config: str | Path | None = None, overrides: Mapping[str, Any] | None = 
     t0 = time.monotonic()
     with contextlib.ExitStack() as stack:
         truth = stack.enter_context(open(out / "truth.jsonl", "wb")) if out else None
-        bus = stack.enter_context(Bus.open(cfg.bus.mode, cfg.bus.listen, cfg.bus.connect,
-                                           cfg.bus.zenoh_config, cfg.bus.connect_timeout_ms))
+        bus = stack.enter_context(Bus.from_config(cfg.bus))
         node = SimNode(bus, sim, cfg, world_name, truth)
         stack.enter_context(_stop_on_signals(stop))
         log.info("simulating %s with %s (%s)", world_name, ", ".join(sim.robots),

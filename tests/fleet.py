@@ -39,8 +39,10 @@ class ServerProcess:
     def __init__(self, folder: Path, config: dict[str, Any] | None = None) -> None:
         self.endpoint = free_local_endpoint()
         self.folder = folder
-        cfg = {"bus": {"mode": "router", "listen": [self.endpoint], "connect": []},
-               "out": str(folder / "server"), **(config or {})}
+        config = dict(config or {})
+        cfg = {"bus": {"mode": "router", "listen": [self.endpoint], "connect": [],
+                       **config.pop("bus", {})},
+               "out": str(folder / "server"), **config}
         (folder / "server.yaml").write_text(yaml.safe_dump(cfg))
         self.log_path = folder / "server.log"
         self._log = open(self.log_path, "wb")  # noqa: SIM115 (closed in stop)
