@@ -3,6 +3,7 @@ a way to acknowledge steps). Hardware drivers and the simulator backend implemen
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -83,5 +84,7 @@ class Backend:
     camera: Camera | None
     now_ns: Callable[[], int]        # the robot's clock (simulation time in simulation)
     sync: StepSync | None = None
+    #: a clock that never steps, for time-to-live (the robot's clock may: NTP, a boot in 1970)
+    monotonic_ns: Callable[[], int] = time.monotonic_ns
     close: Callable[[], None] = lambda: None
     counters: Callable[[], dict[str, int]] = dict

@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.config import BusConfig
+from schemas.config import BusConfig, Finite
 from schemas.tags import CameraMount, TagLayout
 from schemas.types import ID_PATTERN
 
@@ -116,3 +116,7 @@ class AgentConfig(_Model):
     camera_mount: CameraMount = CameraMount()
     detector: DetectorConfig = DetectorConfig()
     lockstep: LockstepConfig = LockstepConfig()
+    sim_clock_steps: list[tuple[Finite, Finite]] = Field(
+        default_factory=list, description="simulation only: (at [s] of sim time, step [s]): "
+        "from then on the robot's own clock, which stamps what it sends, is off by the step "
+        "(to try the server with clocks that NTP corrects or that boot in 1970)")

@@ -98,14 +98,17 @@ class Agent:
                 self.handle_sweep(event)
             elif isinstance(event, Frame):
                 self.handle_frame(event)
-            self.check_watchdog(self.backend.now_ns())
+            self.check_watchdog(self.backend.monotonic_ns())
             if time.monotonic() >= next_status:
                 self.publish_status()
                 next_status = time.monotonic() + self.cfg.status_period_s
         self.set_velocity(0.0, 0.0)
 
     def handle_sweep(self, sweep: Sweep) -> None:
-        self.check_watchdog(sweep.stamp_ns)
+        self.check_watchdog(self.backend.monotonic_ns())
+        if self.last_sweep is not None and sweep.stamp_ns < self.last_sweep.stamp_ns:
+            with self.cond:   # the robot's clock went back: commands answer the new stamps
+                self.last_command_stamp_ns = -1
         odom = self.backend.base.odometry_at(sweep.stamp_ns)
         if odom is None:
             self.counters["sweeps_without_odometry"] += 1
@@ -247,7 +250,7 @@ class Agent:
         v = min(max(msg.v_mps, -self.cfg.v_max_mps), self.cfg.v_max_mps)
         w = min(max(msg.omega_rps, -self.cfg.omega_max_rps), self.cfg.omega_max_rps)
         with self.cond:
-            self.watchdog.feed(self.backend.now_ns(), msg.ttl_s)
+            self.watchdog.feed(self.backend.monotonic_ns(), msg.ttl_s)
             self.counters["commands_received"] += 1
             self.last_command_stamp_ns = max(self.last_command_stamp_ns, msg.stamp_ns)
             self.set_velocity(v, w)
@@ -349,7 +352,7 @@ def make_backend(cfg: AgentConfig, bus: Bus) -> Backend:
     if cfg.backend == "sim":
         from robot_agent.sim_backend import sim_backend
 
-        return sim_backend(bus, cfg.robot_id)
+        return sim_backend(bus, cfg.robot_id, cfg.sim_clock_steps)
     if cfg.backend == "hardware":
         from robot_agent.hardware import hardware_backend
 

@@ -3,7 +3,9 @@
 The simulator publishes, per step and robot, any camera frames, then the odometry, then the
 sweep (see ``schemas.sim``). One subscriber on ``mrslam/sim/robot/<id>/*`` receives them on one
 thread in that order, so a sweep always finds its odometry and follows its step's frames. The
-robot's clock is the latest simulation time seen. A sweep the simulator re-sends (its ack was
+robot's monotonic clock is the latest simulation time seen; its own clock, which stamps what it
+sends, is the same unless ``clock_steps`` makes it step (to try how the server copes with a
+robot whose clock is corrected by NTP or boots in 1970). A sweep the simulator re-sends (its ack was
 late or lost) is not handed to the agent again; the step's ack is re-sent instead. Payloads that
 do not decode are counted and logged, never passed on.
 """
@@ -13,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import Counter, deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -37,13 +39,17 @@ log = logging.getLogger(__name__)
 class SimBackend:
     """LIDAR source, base, camera and step sync of one simulated robot."""
 
-    def __init__(self, bus: Bus, robot_id: str) -> None:
+    def __init__(self, bus: Bus, robot_id: str,
+                 clock_steps: Sequence[tuple[float, float]] = ()) -> None:
         self.bus = bus
         self.robot_id = robot_id
+        #: (sim time [ns], step [ns]): from that time on, the robot's clock is off by the step
+        self._clock_steps = sorted((round(at * 1e9), round(d * 1e9)) for at, d in clock_steps)
         self._lock = threading.Lock()
         self._now_ns = 0
         self._lockstep = False
-        self._odom: deque[Odometry] = deque(maxlen=64)
+        self._odom: deque[Odometry] = deque(maxlen=64)   # stamped by the robot's clock
+        self._sim_odom = -1                               # sim time of the newest odometry
         self._last_sweep_seq = -1
         self._last_frame_stamp = -1
         self._last_ack: SimStepAck | None = None
@@ -108,7 +114,14 @@ class SimBackend:
         self.bus.publish(keys.sim_motor(self.robot_id), msg, block=True)
 
     def now_ns(self) -> int:
+        return self._robot_ns(self._now_ns)
+
+    def sim_ns(self) -> int:
         return self._now_ns
+
+    def _robot_ns(self, sim_ns: int) -> int:
+        """The robot's own clock at simulation time ``sim_ns``."""
+        return sim_ns + sum(d for at, d in self._clock_steps if sim_ns >= at)
 
     def lockstep(self) -> bool:  # StepSync
         return self._lockstep
@@ -124,15 +137,20 @@ class SimBackend:
     # -- messages, in the order the simulator sent them ---------------------------------------
     def _odometry(self, msg: SimOdometry) -> None:
         with self._lock:
-            if self._odom and msg.stamp_ns < self._odom[-1].stamp_ns:
+            if self._odom and msg.stamp_ns < self._sim_odom:
                 log.warning("simulation time went back to %d ns: a new simulation", msg.stamp_ns)
                 self._odom.clear()
+                self._sim_odom = -1
                 self._last_sweep_seq = self._last_frame_stamp = -1
                 self._last_ack = None
                 self._now_ns = msg.stamp_ns
             self._now_ns = max(self._now_ns, msg.stamp_ns)
-            if not self._odom or msg.stamp_ns > self._odom[-1].stamp_ns:
-                self._odom.append(Odometry(msg.stamp_ns, msg.pose, msg.v_mps, msg.omega_rps))
+            stamp = self._robot_ns(msg.stamp_ns)
+            if self._odom and stamp < self._odom[-1].stamp_ns and msg.stamp_ns >= self._sim_odom:
+                self._odom.clear()   # the robot's clock stepped back: older stamps mislead
+            if msg.stamp_ns > self._sim_odom:
+                self._sim_odom = msg.stamp_ns
+                self._odom.append(Odometry(stamp, msg.pose, msg.v_mps, msg.omega_rps))
 
     def _image(self, msg: SimImage) -> None:
         if msg.stamp_ns == self._last_frame_stamp:
@@ -144,7 +162,7 @@ class SimBackend:
         image = np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.width)
         K = np.array([[msg.fx, 0.0, msg.cx], [0.0, msg.fy, msg.cy], [0.0, 0.0, 1.0]])
         if self._on_frame is not None:
-            self._on_frame(Frame(msg.stamp_ns, image, K))
+            self._on_frame(Frame(self._robot_ns(msg.stamp_ns), image, K))
 
     def _lidar(self, msg: SimLidar) -> None:
         with self._lock:
@@ -160,8 +178,9 @@ class SimBackend:
                 self.bus.publish(keys.sim_ack(self.robot_id), last_ack, block=True)
             return
         if self._on_sweep is not None:
-            self._on_sweep(Sweep(msg.stamp_ns, msg.angle_min_rad, msg.angle_increment_rad,
-                                 msg.range_min_mm, msg.range_max_mm, msg.ranges_mm,
+            self._on_sweep(Sweep(self._robot_ns(msg.stamp_ns), msg.angle_min_rad,
+                                 msg.angle_increment_rad, msg.range_min_mm, msg.range_max_mm,
+                                 msg.ranges_mm,
                                  step=msg.seq if msg.lockstep else None))
 
 
@@ -173,8 +192,10 @@ class _SimCamera:
         self.backend.start_camera(on_frame)
 
 
-def sim_backend(bus: Bus, robot_id: str) -> Backend:
+def sim_backend(bus: Bus, robot_id: str,
+                clock_steps: Sequence[tuple[float, float]] = ()) -> Backend:
     """The Backend of ``robot_id`` in a running simulator reachable on ``bus``."""
-    b = SimBackend(bus, robot_id)
+    b = SimBackend(bus, robot_id, clock_steps)
     return Backend(lidar=b, base=b, camera=_SimCamera(b), now_ns=b.now_ns, sync=b,
+                   monotonic_ns=b.sim_ns,
                    close=b.close, counters=lambda: dict(b.counters))

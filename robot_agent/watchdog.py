@@ -1,8 +1,10 @@
 """Stop the robot when its commands run out or the server goes away.
 
-A command is valid for its ``ttl_s`` from the moment it arrives, measured on the robot's own
-clock (simulation time in simulation), so unsynchronised clocks between server and robot do not
-matter. ``expired`` reports once per lapse, so the caller stops the base once.
+A command is valid for its ``ttl_s`` from the moment it arrives, measured on the robot's
+monotonic clock (simulation time in simulation), so unsynchronised clocks between server and
+robot do not matter, and neither does the robot's own clock stepping: on a clock that stepped
+back an hour a deadline would lie an hour ahead. ``expired`` reports once per lapse, so the
+caller stops the base once.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -10,6 +10,9 @@ from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE
 
 DEFAULT_PORT = 7447
 LOOPBACK_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
+
+#: a config number that must be finite (NaN or inf would pass a range check unnoticed)
+Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class BusConfig(BaseModel):

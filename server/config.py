@@ -2,19 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.config import DEFAULT_PORT, BusConfig
+from schemas.config import DEFAULT_PORT, BusConfig, Finite
 from server.slam.config import GridConfig, SlamConfig
 
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
-
-
-Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
 class ExploreConfig(_Model):

@@ -105,3 +105,55 @@ def test_scans_commands_server_loss_and_return(tmp_path: Path, endpoint: str) ->
     summary = result["summary"]
     assert summary["scans_sent"] >= 5 and summary["commands_received"] >= 8
     assert summary["server_losses"] >= 1
+
+
+def test_a_robot_clock_stepping_back_does_not_keep_the_motors_running(
+        tmp_path: Path, endpoint: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Commands hold for their time-to-live on a clock that never steps: with the robot's
+    own clock set back an hour (NTP) right after the last command, the watchdog still fires
+    (on the robot's clock its deadline would lie an hour ahead) and the base stops."""
+    offset = {"ns": 0}
+    real_time_ns = time.time_ns
+    monkeypatch.setattr(time, "time_ns", lambda: real_time_ns() + offset["ns"])
+    lidar = FakeRplidar(tmp_path / "rplidar", wall_room_mm(2000.0))
+    mcu = FakeMicrocontroller(tmp_path / "base")
+    stop = threading.Event()
+    result: dict[str, Any] = {}
+    overrides = {"robot_id": "r1", "backend": "hardware", "bus": {"connect": [endpoint]},
+                 "hardware": {"lidar": {"port": str(lidar.link), "reconnect_s": 0.2},
+                              "base": {"port": str(mcu.link), "reconnect_s": 0.2},
+                              "camera": {"enabled": False}}}
+
+    def agent() -> None:
+        try:
+            result["summary"] = runtime.run(None, overrides, stop)
+        except Exception as e:  # surfaced below
+            result["error"] = e
+
+    scans: list[Scan] = []
+    thread = threading.Thread(target=agent)
+    with Bus.open("router", listen=[endpoint]) as server:
+        try:
+            server.declare_alive(keys.SERVER_ALIVE)
+            server.subscribe(keys.robot_scan("r1"), Scan, lambda k, m: scans.append(m))
+            thread.start()
+            assert within(lambda: len(scans) >= 3, 10.0), result
+            for k in range(10):   # answer scans as the server does: with their own stamps
+                server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+                    robot_id="r1", seq=k, stamp_ns=scans[-1].stamp_ns, v_mps=0.2,
+                    omega_rps=0.0, ttl_s=0.5))
+                time.sleep(0.1)
+            assert within(lambda: mcu.speed[0] > 0, 2.0)
+            offset["ns"] = -3600 * 1_000_000_000
+            t_last = time.monotonic()
+            assert within(lambda: mcu.stopped_since() is not None, 3.0), \
+                "the motors kept running after the robot's clock stepped back"
+            assert mcu.stopped_since() - t_last <= 1.0   # type: ignore[operator]
+            time.sleep(1.0)   # the base driver's own hold stops it too; the watchdog must fire
+        finally:
+            stop.set()
+            thread.join(timeout=20)
+            lidar.close()
+            mcu.close()
+    assert "error" not in result, result.get("error")
+    assert result["summary"]["watchdog_timeouts"] == 1, str(result["summary"])
