@@ -17,8 +17,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from mrslam.config import load_config, write_resolved
+from mrslam.config import ConfigError, load_config, write_resolved
 from mrslam.launch import ProcessGroup
+from schemas.config import Finite
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +60,9 @@ class DemoConfig(BaseModel):
     known_starts: bool = Field(False, description="tell the server where the robots start: "
                                "one team from the first scan (no rendezvous needed)")
     record: bool = Field(True, description="record every bus message into <out>/run.mcap")
+    clock_steps: dict[str, list[tuple[Finite, Finite]]] = Field(
+        default_factory=dict, description="robots whose own clocks step: {r2: [[at_s, "
+        "step_s]]} (sim time, step), to try the server's clock handling")
     max_sim_time_s: float = Field(3600.0, gt=0)
     wall_timeout_s: float = Field(1800.0, gt=0)
     out: str = ""
@@ -75,6 +79,8 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
     out = Path(cfg.out)
     console = Console(stderr=True)
     plan = plan_run(cfg)
+    if unknown := sorted(set(cfg.clock_steps) - set(plan["robots"])):
+        raise ConfigError(f"clock_steps: no robot {', '.join(unknown)} in this run")
     write_resolved(cfg, out, "demo_config.yaml")
     console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} robot(s), "
                   f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
@@ -145,7 +151,8 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
     for rid in plan["robots"]:
         agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000},
                  # the simulated robots' bodies, for the LIDAR fix of tag sightings
-                 "detector": {"body_radius_m": SimConfig().drive.radius_m}}
+                 "detector": {"body_radius_m": SimConfig().drive.radius_m},
+                 "sim_clock_steps": [list(step) for step in cfg.clock_steps.get(rid, [])]}
         (out / f"agent_{rid}.yaml").write_text(yaml.safe_dump(agent, sort_keys=False))
     sim = {"camera": {"spurious_rate": cfg.spurious_detections}}
     (out / "sim.yaml").write_text(yaml.safe_dump(sim, sort_keys=False))
