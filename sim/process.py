@@ -44,6 +44,7 @@ from schemas import (
 )
 from schemas.bus import Bus
 from schemas.messages import Message
+from schemas.ratelog import RateLimitedLog
 from sim.camera import PinholeCamera
 from sim.config import SimConfig, resolve_scene
 from sim.errors import SimError
@@ -128,6 +129,7 @@ class SimNode:
         self.ack_cmd: dict[str, tuple[float, float, int]] = {}
         self.alive: set[str] = set()
         self.started: float | None = None   # monotonic time of the first step
+        self._log = RateLimitedLog(log)
         self.counters = {"ack_timeouts": 0, "resends": 0, "images": 0, "foreign_messages": 0,
                          "late_steps": 0}
         bus.subscribe(keys.SIM_ALL_MOTOR, SimMotorCommand, self._on_motor)
@@ -139,7 +141,7 @@ class SimNode:
     def _ours(self, key: str, robot_id: str) -> bool:
         if keys.robot_id_of(key) != robot_id or robot_id not in self.sim.robots:
             self.counters["foreign_messages"] += 1
-            log.warning("ignoring a message for robot %s on %s", robot_id, key)
+            self._log.warning("foreign", "ignoring a message for robot %s on %s", robot_id, key)
             return False
         return True
 
