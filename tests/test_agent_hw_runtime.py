@@ -44,25 +44,40 @@ def test_hardware_config_needs_a_calibration_for_the_camera(tmp_path: Path) -> N
         hardware_backend(cfg.hardware)
 
 
+class HardwareAgent:
+    """The agent with the hardware backend on a pty RPLIDAR and microcontroller, run in a
+    thread until ``stop`` is set; ``result`` gets its summary (or the error it raised)."""
+
+    def __init__(self, tmp_path: Path, endpoint: str) -> None:
+        self.lidar = FakeRplidar(tmp_path / "rplidar", wall_room_mm(2000.0))
+        self.mcu = FakeMicrocontroller(tmp_path / "base")
+        self.stop = threading.Event()
+        self.result: dict[str, Any] = {}
+        overrides = {"robot_id": "r1", "backend": "hardware", "bus": {"connect": [endpoint]},
+                     "hardware": {"lidar": {"port": str(self.lidar.link), "reconnect_s": 0.2},
+                                  "base": {"port": str(self.mcu.link), "reconnect_s": 0.2},
+                                  "camera": {"enabled": False}}}
+
+        def agent() -> None:
+            try:
+                self.result["summary"] = runtime.run(None, overrides, self.stop)
+            except Exception as e:  # surfaced by the test
+                self.result["error"] = e
+
+        self.thread = threading.Thread(target=agent)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=20)
+        self.lidar.close()
+        self.mcu.close()
+
+
 def test_scans_commands_server_loss_and_return(tmp_path: Path, endpoint: str) -> None:
-    lidar = FakeRplidar(tmp_path / "rplidar", wall_room_mm(2000.0))
-    mcu = FakeMicrocontroller(tmp_path / "base")
-    stop = threading.Event()
-    result: dict[str, Any] = {}
-    overrides = {"robot_id": "r1", "backend": "hardware", "bus": {"connect": [endpoint]},
-                 "hardware": {"lidar": {"port": str(lidar.link), "reconnect_s": 0.2},
-                              "base": {"port": str(mcu.link), "reconnect_s": 0.2},
-                              "camera": {"enabled": False}}}
-
-    def agent() -> None:
-        try:
-            result["summary"] = runtime.run(None, overrides, stop)
-        except Exception as e:  # surfaced below
-            result["error"] = e
-
+    hw = HardwareAgent(tmp_path, endpoint)
+    mcu, result, thread = hw.mcu, hw.result, hw.thread
     scans: list[Scan] = []
     server = Bus.open("router", listen=[endpoint])
-    thread = threading.Thread(target=agent)
     try:
         token = server.declare_alive(keys.SERVER_ALIVE)
         server.subscribe(keys.robot_scan("r1"), Scan, lambda k, m: scans.append(m))
@@ -96,11 +111,8 @@ def test_scans_commands_server_loss_and_return(tmp_path: Path, endpoint: str) ->
         server.subscribe(keys.robot_scan("r1"), Scan, lambda k, m: scans.append(m))
         assert within(lambda: len(scans) > n + 2, 20.0), "no scans after the server returned"
     finally:
-        stop.set()
-        thread.join(timeout=20)
+        hw.close()
         server.close()
-        lidar.close()
-        mcu.close()
     assert "error" not in result, result.get("error")
     summary = result["summary"]
     assert summary["scans_sent"] >= 5 and summary["commands_received"] >= 8
@@ -115,23 +127,9 @@ def test_a_robot_clock_stepping_back_does_not_keep_the_motors_running(
     offset = {"ns": 0}
     real_time_ns = time.time_ns
     monkeypatch.setattr(time, "time_ns", lambda: real_time_ns() + offset["ns"])
-    lidar = FakeRplidar(tmp_path / "rplidar", wall_room_mm(2000.0))
-    mcu = FakeMicrocontroller(tmp_path / "base")
-    stop = threading.Event()
-    result: dict[str, Any] = {}
-    overrides = {"robot_id": "r1", "backend": "hardware", "bus": {"connect": [endpoint]},
-                 "hardware": {"lidar": {"port": str(lidar.link), "reconnect_s": 0.2},
-                              "base": {"port": str(mcu.link), "reconnect_s": 0.2},
-                              "camera": {"enabled": False}}}
-
-    def agent() -> None:
-        try:
-            result["summary"] = runtime.run(None, overrides, stop)
-        except Exception as e:  # surfaced below
-            result["error"] = e
-
+    hw = HardwareAgent(tmp_path, endpoint)
+    mcu, result, thread = hw.mcu, hw.result, hw.thread
     scans: list[Scan] = []
-    thread = threading.Thread(target=agent)
     with Bus.open("router", listen=[endpoint]) as server:
         try:
             server.declare_alive(keys.SERVER_ALIVE)
@@ -151,9 +149,6 @@ def test_a_robot_clock_stepping_back_does_not_keep_the_motors_running(
             assert mcu.stopped_since() - t_last <= 1.0   # type: ignore[operator]
             time.sleep(1.0)   # the base driver's own hold stops it too; the watchdog must fire
         finally:
-            stop.set()
-            thread.join(timeout=20)
-            lidar.close()
-            mcu.close()
+            hw.close()
     assert "error" not in result, result.get("error")
     assert result["summary"]["watchdog_timeouts"] == 1, str(result["summary"])
