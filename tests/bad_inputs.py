@@ -43,6 +43,7 @@ def write_files(folder: Path) -> None:
     (folder / "bad-zenoh.yaml").write_text(f"bus: {{zenoh_config: {folder}/bad.json5}}\n")
     (folder / "bad-field.yaml").write_text("bus: {mode: satellite}\n")
     (folder / "open.yaml").write_text(f"bus: {{mode: router, listen: [{OPEN_LISTEN}]}}\n")
+    (folder / "nan-start.yaml").write_text("teams: {start_poses: {r1: [0, .nan, 0]}}\n")
 
 
 def cases(folder: Path) -> list[BadInput]:
@@ -106,6 +107,8 @@ def cases(folder: Path) -> list[BadInput]:
                                                   "--connect", CLOSED), "Unable to connect"),
         BadInput("server", "insecure-listen", ("server", "-c", f"{f}/open.yaml"),
                  "without TLS"),
+        BadInput("server", "nan-start-pose", ("server", "-c", f"{f}/nan-start.yaml"),
+                 "teams.start_poses.r1.1: Input should be a finite number"),
         BadInput("sim", "insecure-listen", ("sim", "--world", str(WORLD), "--listen",
                                             OPEN_LISTEN), "without TLS"),
         BadInput("record", "insecure-listen", ("record", "--out", f"{f}/r.mcap", "--listen",
