@@ -93,6 +93,8 @@ class RobotRegistry:
         finally:
             if server_ns is not None:
                 rec.last_heard_ns = server_ns
+        if server_ns is None:   # no clock of its own (replays): the stamps are the time
+            rec.last_heard_ns = max(rec.last_heard_ns, t)
         if rec.clock.steps != steps:
             self.clock_steps += 1
             log.warning("robot %s: its clock stepped; stamps re-based by %+.3f s (step #%d)",

@@ -163,3 +163,13 @@ def test_mapped_stamps_only_go_forward_and_stay_near_the_server_clock(
         assert last is None or t > last
         assert abs(t - server) <= 2 * S
         last = t
+
+
+def test_without_a_clock_of_its_own_the_stamps_say_when_a_robot_was_last_heard() -> None:
+    """Replaying a recording (clock.source: stamps): a robot streaming for minutes is not
+    taken for silent."""
+    reg = RobotRegistry(AdmissionPolicy(forget_after_ns=60 * S))
+    for k in range(200):
+        reg.admit("r1", "r1", "scan", T0 + k * S, None)
+    assert reg.forget_silent(T0 + 199 * S) == [] and reg.robots["r1"].admitted
+    assert reg.forget_silent(T0 + 300 * S) == ["r1"]
