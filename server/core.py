@@ -874,7 +874,11 @@ class ServerCore:
     # -- outputs ---------------------------------------------------------------------------
     @property
     def finished(self) -> bool:
-        return bool(self.teams) and all(t.finished for t in self.teams.values())
+        """Every team with a live robot has finished (and there is one). A team whose robots
+        all vanished cannot go on, so it does not hold the others' end back."""
+        live = [t for t in self.teams.values()
+                if any(self.robots[rid].alive for rid in t.robot_ids)]
+        return bool(live) and all(t.finished for t in live)
 
     def emit(self, kind: str, robot_ids: list[str], team_id: str | None, message: str,
              stamp_ns: int) -> None:

@@ -388,6 +388,22 @@ def test_a_team_whose_live_robots_are_done_finishes_without_the_one_that_vanishe
     assert not core2.finished
 
 
+def test_robots_that_vanished_alone_do_not_hold_back_the_end() -> None:
+    """Two robots, each still alone; r2 drops out (its agent was killed) and r1 finishes: the
+    exploration is over (an exit-when-done server exits), though r2's team never finished."""
+    core, _ = run(20, cfg=config(enabled=False))
+    assert len(core.teams) == 2
+    core.set_alive("r2", False)
+    assert not core.finished
+    core.robots["r1"].nav.finish("no reachable frontier left")
+    core._next_cover_ns = 0
+    core._periodic(core.robots["r1"].last_stamp_ns + 1)
+    assert core.teams["team-r1"].finished and core.finished
+    assert not core.teams["team-r2"].finished
+    core.set_alive("r2", True)   # it came back: its team has work left
+    assert not core.finished
+
+
 def test_slam_does_not_see_the_teammates_bodies() -> None:
     """Beams that end on a teammate's body are left out of the robot's scan matching and map
     (a row of robots along a corridor would otherwise hold each other in place); other beams,
