@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from schemas import keys
 from tests.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
@@ -95,7 +96,8 @@ def test_the_server_applies_its_configured_message_size_cap(tmp_path: Path, cap:
         with srv.client() as bus:
             robot = RoomRobot(srv.endpoint, "r1").start()   # 360 beams: under 1 kB a scan
             for _ in range(5):   # valid scans are never this big: 8,192 beams at most
-                bus.session.put(keys.robot_scan("r1"), b"\x00" * 80_000)
+                bus.session.put(keys.robot_scan("r1"), b"\x00" * 80_000,
+                                congestion_control=zenoh.CongestionControl.BLOCK)
             t0 = time.monotonic()
             time.sleep(3.0)
             assert robot.answered_since(t0) >= 20
