@@ -20,6 +20,7 @@ from robot_agent.runtime import Agent
 from schemas import VelocityCommand, keys
 from schemas.bus import Bus
 from schemas.codec import encode
+from tests.fake_rplidar import within
 
 S = 1_000_000_000
 
@@ -89,15 +90,6 @@ class NoLidar:
         pass
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
-
-
 @pytest.fixture
 def agent(router: Bus, endpoint: str) -> Iterator[tuple[Agent, StillBase]]:
     base = StillBase()
@@ -121,7 +113,7 @@ def test_a_strangers_commands_are_ignored_and_counted(
         router: Bus, endpoint: str, agent: tuple[Agent, StillBase]) -> None:
     a, base = agent
     router.declare_alive(keys.SERVER_ALIVE)     # the router plays the server
-    assert wait_for(lambda: a.gate.server == router.zid)
+    assert within(lambda: a.gate.server == router.zid, 10.0)
     key = keys.robot_cmd_vel("r1")
     with Bus.open("client", connect=[endpoint]) as stranger:
         assert stranger.wait_for_subscribers(key)
@@ -130,15 +122,15 @@ def test_a_strangers_commands_are_ignored_and_counted(
             stranger.publish(key, VelocityCommand(robot_id="r1", stamp_ns=time.time_ns(),
                                                   v_mps=0.5, omega_rps=2.0, ttl_s=5.0))
             time.sleep(0.02)
-        assert wait_for(lambda: a.counters["commands_ignored_not_from_server"] == n)
+        assert within(lambda: a.counters["commands_ignored_not_from_server"] == n, 10.0)
         # nor does a plain Zenoh put on the key (no source) or a stale stamp from the server
         stranger.session.put(key, encode(cmd(time.time_ns() / S, v=0.5)))
         router.publish(key, cmd(time.time_ns() / S - 60.0, v=0.5))
-        assert wait_for(lambda: a.counters["commands_ignored"] == n + 2)
+        assert within(lambda: a.counters["commands_ignored"] == n + 2, 10.0)
         assert a.counters["commands_ignored_stale"] == 1
     # the server's own command is obeyed
     router.publish(key, cmd(time.time_ns() / S, v=0.2))
-    assert wait_for(lambda: a.counters["commands_received"] == 1)
+    assert within(lambda: a.counters["commands_received"] == 1, 10.0)
     assert all(v != 0.5 for v, _ in base.velocities) and (0.2, 0.0) in base.velocities
     summary: dict[str, Any] = a.summary()
     assert summary["commands_ignored"] == n + 2 and a.errors() >= n + 2

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
 
 import numpy as np
 import zenoh
@@ -15,15 +14,7 @@ from schemas.codec import encode
 from schemas.config import BusConfig
 from schemas.messages import MapUpdate
 from schemas.sim import SimImage
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
+from tests.fake_rplidar import within
 
 
 def test_the_cap_is_well_above_our_largest_messages() -> None:
@@ -55,7 +46,8 @@ def test_oversized_payloads_never_reach_a_subscriber_and_the_link_survives(
         for key, size in (("junk/big", 2_000_000), ("junk/small", 100), ("junk/big", 2_000_000),
                           ("junk/big", 2_000_000), ("junk/under", under), ("junk/end", 100)):
             sender.session.put(key, os.urandom(size), congestion_control=block)
-        assert wait_for(lambda: ("junk/end", 100) in at_router and ("junk/end", 100) in at_client)
+        end = ("junk/end", 100)
+        assert within(lambda: end in at_router and end in at_client, 10.0)
         want = [("junk/small", 100), ("junk/under", under), ("junk/end", 100)]
         assert at_router == want and at_client == want
         # Zenoh's own limit drops some of them on the link (how many varies from run to run);
@@ -89,7 +81,7 @@ def test_a_subscriber_drops_by_size_what_the_link_let_through(router: Bus, endpo
         block = zenoh.CongestionControl.BLOCK
         for size in (80_000, 100, 80_000, 65_536):
             router.session.put("junk/x", os.urandom(size), congestion_control=block)
-        assert wait_for(lambda: len(got) == 2)
+        assert within(lambda: len(got) == 2, 10.0)
         time.sleep(0.3)
         assert got == [100, 65_536]
         assert capped.stats.rejected["raw"] == 2
