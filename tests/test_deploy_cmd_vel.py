@@ -17,7 +17,8 @@ from robot_agent.config import AgentConfig
 from robot_agent.runtime import Agent
 from schemas import VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
-from tests.test_agent_command_gate import NoLidar, StillBase, wait_for
+from tests.fake_rplidar import within
+from tests.test_agent_command_gate import NoLidar, StillBase
 from tests.test_deploy_zenoh import DEPLOY, client, write_config
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
@@ -44,7 +45,7 @@ def test_only_the_server_commands_a_robot(tmp_path: Path) -> None:
         thread.start()
         try:
             # the agent learns the server's session through the rules (its token is readable)
-            assert wait_for(lambda: agent.gate.server == server.zid, 15.0)
+            assert within(lambda: agent.gate.server == server.zid, 15.0)
             deadline = time.monotonic() + 15.0
             while agent.counters["commands_received"] == 0 and time.monotonic() < deadline:
                 for stranger in (r2, dash):
