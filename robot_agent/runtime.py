@@ -40,6 +40,7 @@ from robot_agent.watchdog import Watchdog
 from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus
 from schemas.messages import RobotState
+from schemas.ratelog import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -64,7 +65,7 @@ class Agent:
         self.last_command_stamp_ns = -1
         self.server_alive = False
         self.gate = CommandGate(self.rid, cfg.command_max_age_s, cfg.command_max_ahead_s)
-        self._ignored_logged: dict[str, float] = {}
+        self._ignored_log = RateLimitedLog(log)
         self.counters: Counter[str] = Counter()
         self.seq: Counter[str] = Counter()
         self.last_sweep_wall = 0.0
@@ -262,13 +263,11 @@ class Agent:
         name = "foreign_commands" if reason == "other_robot" else f"commands_ignored_{reason}"
         self.counters[name] += 1
         self.counters["commands_ignored"] += 1
-        seen, n, t = self.counters[name], self.counters["commands_ignored"], time.monotonic()
-        if seen <= 5 or t - self._ignored_logged.get(reason, 0.0) >= 10.0:
-            self._ignored_logged[reason] = t
-            log.warning("ignored command (%s, %d of this kind, %d in all): for %s, stamp %d ns "
-                        "at robot time %d ns, from session %s; the server is %s", reason, seen,
-                        n, msg.robot_id, msg.stamp_ns, now_ns, source or "unknown",
-                        self.gate.server or "not known")
+        self._ignored_log.warning(
+            reason, "ignored command (%s, %d of this kind, %d in all): for %s, stamp %d ns at "
+            "robot time %d ns, from session %s; the server is %s", reason, self.counters[name],
+            self.counters["commands_ignored"], msg.robot_id, msg.stamp_ns, now_ns,
+            source or "unknown", self.gate.server or "not known")
 
     def _on_server_holder(self, zid: str, alive: bool) -> None:
         with self.cond:

@@ -131,7 +131,7 @@ class AdmissionConfig(_Model):
                                   "this long leave the registry (a robot that comes back "
                                   "starts afresh)")
     max_newcomers: int = Field(10_000, ge=1, description="ids waiting for admission at once; "
-                               "more are refused")
+                               "beyond this the oldest waiting goes")
 
 
 def _router() -> BusConfig:

@@ -56,7 +56,6 @@ class RobotRecord:
     #: (stream, stamp in server time, message) held while on probation
     held: list[tuple[str, int, Any]] = field(default_factory=list)
     accepted: Counter[str] = field(default_factory=Counter)
-    refused: Counter[str] = field(default_factory=Counter)
 
 
 class RobotRegistry:
@@ -170,9 +169,6 @@ class RobotRegistry:
         self.refused[reason] += 1
         if robot_id in self.robots or len(self.refused_by_robot) < 1000:
             self.refused_by_robot[(robot_id, reason)] += 1
-        rec = self.robots.get(robot_id)
-        if rec is not None:
-            rec.refused[reason] += 1
         err = Refused(robot_id, reason, detail)
         self._log.warning(reason, "refused message #%d: %s", self.refused[reason], err)
         return err

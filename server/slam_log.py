@@ -117,7 +117,7 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
                   "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
         task = bar.add_task("scans", total=len(scans))
         slam, stamps, rejected, plan = process(scans, cfg.slam,
-                                         lambda i: bar.update(task, completed=i))
+                                               lambda i: bar.update(task, completed=i))
         bar.update(task, completed=len(scans))
     t_slam = time.perf_counter()
     _, poses = slam.scan_poses()
