@@ -47,8 +47,8 @@ def call(command: str, fn: Callable[[], Any]) -> Any:
     """Run a command body; expected failures become one line on stderr and exit code 2."""
     import pydantic
 
-    from mrslam.config import ConfigError, describe
     from schemas.bus import BusError
+    from schemas.config_loading import ConfigError, describe
     from schemas.errors import SchemaError
 
     try:
@@ -275,9 +275,9 @@ ZenohConfigOpt = Annotated[Path | None, typer.Option(
 
 def _bus_config(connect: list[str] | None, listen: list[str] | None,
                 zenoh_config: Path | None) -> Any:
-    from mrslam.config import validate
     from schemas.bus import zenoh_config as read_zenoh_config
     from schemas.config import BusConfig
+    from schemas.config_loading import validate
 
     if zenoh_config is not None:   # named on the command line: read before anything else
         read_zenoh_config("client", config_file=str(zenoh_config))
@@ -371,7 +371,7 @@ def merge(
     check_out("merge", out)
 
     def body() -> Any:
-        from mrslam.config import load_config
+        from schemas.config_loading import load_config
         from server.config import ServerConfig
         from server.offline_merge import run_merge
 
@@ -465,6 +465,31 @@ def world_map(
         return fig
 
     call("world-map", body)
+
+
+@app.command("config")
+def config_defaults(
+    component: Annotated[str | None, typer.Argument(
+        help="server, agent, sim or demo (with --markdown: all of them when left out)")] = None,
+    markdown: Annotated[bool, typer.Option(
+        "--markdown", help="print the reference instead: every key's type, default and "
+        "meaning (what docs/config.md holds)")] = False,
+) -> None:
+    """Print a component's default configuration as YAML, a starting point for `-c FILE`."""
+
+    def body() -> Any:
+        from mrslam import configdoc
+
+        if markdown:
+            text = (configdoc.render_component(component) if component
+                    else configdoc.render_reference())
+        elif component is None:
+            _fail(f"config: name a component: {', '.join(configdoc.COMPONENTS)}")
+        else:
+            text = configdoc.default_yaml(component)
+        typer.echo(text, nl=False)
+
+    call("config", body)
 
 
 def main() -> None:

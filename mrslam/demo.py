@@ -15,21 +15,19 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from mrslam.config import ConfigError, load_config, write_resolved
 from mrslam.launch import ProcessGroup
-from schemas.config import Finite
+from schemas.config import ConfigModel, Finite
+from schemas.config_loading import ConfigError, load_config, write_resolved
 
 log = logging.getLogger(__name__)
 
 Pose = tuple[float, float, float]
 
 
-class DemoConfig(BaseModel):
+class DemoConfig(ConfigModel):
     """Everything a demo run is made of; saved as ``demo_config.yaml`` in the run folder."""
-
-    model_config = ConfigDict(extra="forbid")
 
     scenario: str | None = "thesis-case-2"
     scenarios_file: str | None = Field(

@@ -4,18 +4,14 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from schemas.config import BusConfig, Finite
+from schemas.config import BusConfig, ConfigModel, Finite
 from schemas.tags import CameraMount, TagLayout
 from schemas.types import ID_PATTERN
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class DetectorConfig(_Model):
+class DetectorConfig(ConfigModel):
     enabled: bool = True
     max_reprojection_px: float = Field(2.0, gt=0.0)
     range_a_m: float = Field(0.01, gt=0.0, description="σ_range = a + b r²")
@@ -42,7 +38,7 @@ class DetectorConfig(_Model):
                                        "frame's time; else the next sweep is awaited")
 
 
-class LockstepConfig(_Model):
+class LockstepConfig(ConfigModel):
     """How the agent answers a lockstep simulator."""
 
     wait_for_command: bool = Field(
@@ -50,7 +46,7 @@ class LockstepConfig(_Model):
     command_timeout_s: float = Field(5.0, gt=0.0, description="wall-clock wait for it")
 
 
-class RplidarConfig(_Model):
+class RplidarConfig(ConfigModel):
     """SLAMTEC RPLIDAR A-series on a serial port (standard scan mode)."""
 
     port: str = Field("/dev/rplidar", description="serial port (deploy/ installs this udev name)")
@@ -65,7 +61,7 @@ class RplidarConfig(_Model):
     reconnect_s: float = Field(1.0, gt=0.0)
 
 
-class MotorBaseConfig(_Model):
+class MotorBaseConfig(ConfigModel):
     """Differential-drive base behind a microcontroller (protocol: deploy/firmware/README.md)."""
 
     port: str = Field("/dev/mrslam-base", description="serial port of the microcontroller")
@@ -82,7 +78,7 @@ class MotorBaseConfig(_Model):
     reconnect_s: float = Field(1.0, gt=0.0)
 
 
-class CameraConfig(_Model):
+class CameraConfig(ConfigModel):
     enabled: bool = True
     device: int | str = Field(0, description="V4L2 index or path/URL for cv2.VideoCapture")
     calibration: str | None = Field(None, description="YAML/JSON with K and dist")
@@ -91,13 +87,13 @@ class CameraConfig(_Model):
     height: int | None = Field(None, gt=0)
 
 
-class HardwareConfig(_Model):
+class HardwareConfig(ConfigModel):
     lidar: RplidarConfig = RplidarConfig()
     base: MotorBaseConfig = MotorBaseConfig()
     camera: CameraConfig = CameraConfig()
 
 
-class AgentConfig(_Model):
+class AgentConfig(ConfigModel):
     robot_id: str = Field("r1", pattern=ID_PATTERN)
     bus: BusConfig = BusConfig()
     backend: Literal["sim", "hardware"] = "sim"

@@ -31,7 +31,6 @@ from typing import Any
 
 import msgspec
 
-from mrslam.config import load_config
 from robot_agent.aruco import Sighting, SigmaModel, TagDetector, in_line_of_sight, lidar_fix
 from robot_agent.backend import Backend, Frame, Sweep
 from robot_agent.command_gate import CommandGate, Reason
@@ -39,6 +38,7 @@ from robot_agent.config import AgentConfig
 from robot_agent.watchdog import Watchdog
 from schemas import RobotStatus, Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus
+from schemas.config_loading import load_config
 from schemas.messages import RobotState
 from schemas.ratelog import RateLimitedLog
 

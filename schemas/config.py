@@ -1,4 +1,5 @@
-"""The Zenoh connection settings every process shares (part of each process's config)."""
+"""The base of every config model, and the Zenoh connection settings every process shares (part
+of each process's config)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,14 @@ LOOPBACK_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
-class BusConfig(BaseModel):
+class ConfigModel(BaseModel):
+    """A section of a config file: an unknown key is an error (a typo must not pass silently
+    as a default)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class BusConfig(ConfigModel):
     """Where a process meets the bus.
 
     The server runs in ``router`` mode and ``listen``s; everyone else is a ``client`` that
@@ -27,8 +35,6 @@ class BusConfig(BaseModel):
     its ``zenoh_config`` is read here. A client's is read when its session opens (a config may
     be validated on another machine than the one it is for).
     """
-
-    model_config = ConfigDict(extra="forbid")
 
     mode: Literal["router", "client", "peer"] = "client"
     listen: list[str] = Field(default_factory=list)

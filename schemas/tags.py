@@ -26,7 +26,9 @@ import re
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from schemas.config import ConfigModel
 
 Side = Literal["front", "left", "back", "right"]
 SIDES: tuple[Side, ...] = ("front", "left", "back", "right")
@@ -42,10 +44,8 @@ class TagLayoutError(ValueError):
     user_error = True
 
 
-class TagLayout(BaseModel):
+class TagLayout(ConfigModel):
     """Marker dictionary, size and mounting shared by every robot."""
-
-    model_config = ConfigDict(extra="forbid")
 
     dictionary: str = Field("DICT_4X4_50", pattern=r"^DICT_[A-Z0-9_]+$")
     marker_size_m: float = Field(0.12, gt=0.0, le=2.0,
@@ -125,10 +125,8 @@ def square_corners(size_m: float) -> np.ndarray:
 R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
-class CameraMount(BaseModel):
+class CameraMount(ConfigModel):
     """Pose of the forward camera on the robot (optical axis horizontal, ``yaw_rad`` off x)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     x_m: float = Field(0.12, ge=-2.0, le=2.0)
     y_m: float = Field(0.0, ge=-2.0, le=2.0)

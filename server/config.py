@@ -4,17 +4,13 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
-from schemas.config import DEFAULT_PORT, BusConfig, Finite
+from schemas.config import DEFAULT_PORT, BusConfig, ConfigModel, Finite
 from server.slam.config import GridConfig, SlamConfig
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ExploreConfig(_Model):
+class ExploreConfig(ConfigModel):
     explorer: Literal["voronoi", "frontier"] = "voronoi"
     lam: float = Field(1.0, ge=0.0, le=1.0, description="C = λ·d_robot + (1−λ)·d_origin")
     seek_lam: float | None = Field(
@@ -32,7 +28,7 @@ class ExploreConfig(_Model):
         "from near its end closest to the robot, or from near its middle (teams: the middle)")
 
 
-class ControlConfig(_Model):
+class ControlConfig(ConfigModel):
     v_mps: float = Field(0.3, gt=0.0)
     omega_max_rps: float = Field(1.5, gt=0.0)
     lookahead_m: float = Field(1.0, gt=0.0)
@@ -44,7 +40,7 @@ class ControlConfig(_Model):
     stuck_min_progress_m: float = Field(0.15, gt=0.0)
 
 
-class TeamsConfig(_Model):
+class TeamsConfig(ConfigModel):
     """Rendezvous, merge verification and team coordination."""
 
     enabled: bool = Field(True, description="False: robots never merge (each explores alone)")
@@ -107,7 +103,7 @@ class TeamsConfig(_Model):
         "dissertation's rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
 
 
-class ClockConfig(_Model):
+class ClockConfig(ConfigModel):
     """Time: the server's own clock, and how robots' stamps are held to it (server.clock)."""
 
     source: Literal["wall", "sim", "stamps"] = Field(
@@ -121,7 +117,7 @@ class ClockConfig(_Model):
                               "stamps (its clock stepped)")
 
 
-class AdmissionConfig(_Model):
+class AdmissionConfig(ConfigModel):
     """Who is served: unknown robots, newcomers, robots that left (server.registry)."""
 
     probation_messages: int = Field(3, ge=1, description="a new robot without a liveliness "
@@ -139,7 +135,7 @@ def _router() -> BusConfig:
     return BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{DEFAULT_PORT}"], connect=[])
 
 
-class ServerConfig(_Model):
+class ServerConfig(ConfigModel):
     bus: BusConfig = Field(default_factory=_router)
     robots: list[str] | None = Field(
         None, description="robots allowed to join; None accepts any robot that appears")

@@ -21,7 +21,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         stop: threading.Event | None = None) -> dict[str, Any]:
     """Run the server until ``stop`` is set, a signal arrives, or (``exit_when_done``) the
     exploration has finished. Returns the summary."""
-    from mrslam.config import load_config, write_resolved
+    from schemas.config_loading import load_config, write_resolved
     from server.node import ServerNode
     from server.outputs import write_outputs
 

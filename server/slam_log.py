@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
 
+from schemas.config import ConfigModel
 from server.logs import (
     CarmenLog,
     OdometryScan,
@@ -35,9 +35,7 @@ from server.slam.robot import RobotSlam, SlamInputError
 log = logging.getLogger(__name__)
 
 
-class SlamLogConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class SlamLogConfig(ConfigModel):
     laser: Literal["front", "rear"] = "front"
     odometry: Literal["auto", "laser", "odom"] = "auto"
     write_maps: bool = True
@@ -98,7 +96,7 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     """Run SLAM on ``log_file`` and write the results into ``out``; returns the summary."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mrslam.config import load_config, write_resolved
+    from schemas.config_loading import load_config, write_resolved
 
     t0 = time.perf_counter()
     cfg = load_config(SlamLogConfig, config)

@@ -7,9 +7,9 @@ import re
 from pathlib import Path
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from schemas.config import BusConfig
+from schemas.config import BusConfig, ConfigModel
 from schemas.tags import CameraMount, TagLayout
 from schemas.types import ID_PATTERN
 from sim.errors import SimError
@@ -19,11 +19,7 @@ DEFAULT_SCENARIOS = Path(__file__).resolve().parent / "worlds" / "scenarios.yaml
 Pose = tuple[float, float, float]
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class LidarConfig(_Model):
+class LidarConfig(ConfigModel):
     beams: int = Field(400, ge=1, le=8192)
     fov_deg: float = Field(360.0, gt=0.0, le=360.0)
     range_min_m: float = Field(0.05, ge=0.0)
@@ -39,7 +35,7 @@ class LidarConfig(_Model):
         return self
 
 
-class DriveConfig(_Model):
+class DriveConfig(ConfigModel):
     track_width_m: float = Field(0.27, gt=0.0)
     radius_m: float = Field(0.13, gt=0.0)
     v_max_mps: float = Field(0.5, gt=0.0, le=5.0)
@@ -48,7 +44,7 @@ class DriveConfig(_Model):
     alpha_max_rps2: float = Field(4.0, gt=0.0)
 
 
-class OdometryConfig(_Model):
+class OdometryConfig(ConfigModel):
     alpha1: float = Field(4e-4, ge=0.0, description="rotation noise per rotation [rad²/rad]")
     alpha2: float = Field(1e-4, ge=0.0, description="rotation noise per distance [rad²/m]")
     alpha3: float = Field(1e-4, ge=0.0, description="distance noise per distance [m²/m]")
@@ -57,7 +53,7 @@ class OdometryConfig(_Model):
     turn_scale_sigma: float = Field(0.01, ge=0.0, le=0.5, description="σ of the turn scale")
 
 
-class CameraConfig(_Model):
+class CameraConfig(ConfigModel):
     enabled: bool = True
     width: int = Field(640, ge=16, le=8192)
     height: int = Field(480, ge=16, le=8192)
@@ -73,7 +69,7 @@ class CameraConfig(_Model):
                                  "tag behind a wall), to test merge verification")
 
 
-class SimConfig(_Model):
+class SimConfig(ConfigModel):
     world: str | None = Field(None, description="world file (.world/.sdf or nav2 .yaml)")
     scenario: str | None = Field(None, description="a case of scenarios_file")
     scenarios_file: str = str(DEFAULT_SCENARIOS)

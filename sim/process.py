@@ -28,7 +28,6 @@ from typing import IO, Any
 
 import msgspec
 
-from mrslam.config import load_config, write_resolved
 from schemas import (
     SimClock,
     SimGroundTruth,
@@ -43,6 +42,7 @@ from schemas import (
     quantise_ranges_mm,
 )
 from schemas.bus import Bus
+from schemas.config_loading import load_config, write_resolved
 from schemas.messages import Message
 from schemas.ratelog import RateLimitedLog
 from sim.camera import PinholeCamera

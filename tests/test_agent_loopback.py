@@ -138,8 +138,8 @@ def test_the_robot_stops_when_the_server_disappears(router: Bus, endpoint: str) 
 
 
 def test_agent_config_file_and_bad_config(tmp_path: Path) -> None:
-    from mrslam.config import ConfigError, load_config
     from robot_agent.config import AgentConfig
+    from schemas.config_loading import ConfigError, load_config
 
     f = tmp_path / "agent.yaml"
     f.write_text("robot_id: r4\nbus:\n  connect: [tcp/127.0.0.1:7999]\nlockstep:\n"

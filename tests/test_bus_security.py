@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from mrslam.config import ConfigError, load_config
 from schemas.bus import is_loopback_endpoint, listen_security, zenoh_config
 from schemas.config import BusConfig
+from schemas.config_loading import ConfigError, load_config
 from server.config import ServerConfig
 from tests.netsec import ROOT, connect, free_port, primary_ip, start_server, stop, wait_up
 

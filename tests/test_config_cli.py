@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from mrslam import __version__
 from mrslam.cli import app, call
-from mrslam.config import ConfigError, load_config, write_resolved
 from schemas.config import BusConfig
+from schemas.config_loading import ConfigError, load_config, write_resolved
 
 
 class Demo(BaseModel):

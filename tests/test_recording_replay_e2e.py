@@ -14,12 +14,12 @@ from pathlib import Path
 
 import yaml
 
-from mrslam.config import load_config
 from mrslam.demo import run as demo
 from recording.reader import read_recording
 from recording.replay import run as replay
 from schemas.bus import Bus, free_local_endpoint
 from schemas.config import BusConfig
+from schemas.config_loading import load_config
 from server.config import ServerConfig
 from server.node import ServerNode
 from server.outputs import write_outputs

@@ -3,14 +3,12 @@ is tuned to one log. Distances in metres, angles in degrees (converted where use
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from schemas.config import ConfigModel
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ScanConfig(_Model):
+class ScanConfig(ConfigModel):
     """Turning ranges into points."""
 
     min_range_m: float = Field(0.05, gt=0)
@@ -23,7 +21,7 @@ class ScanConfig(_Model):
         "(never beyond the sensor's own maximum range; 0: such beams say nothing)")
 
 
-class MatcherConfig(_Model):
+class MatcherConfig(ConfigModel):
     """Point-to-line ICP against the local map, with a correlative search as fallback."""
 
     enabled: bool = Field(True, description="False: odometry only (loop closure still runs)")
@@ -51,18 +49,18 @@ class MatcherConfig(_Model):
     odometry_jump_deg: float = Field(30.0, gt=0)
 
 
-class KeyframeConfig(_Model):
+class KeyframeConfig(ConfigModel):
     distance_m: float = Field(0.5, gt=0)
     angle_deg: float = Field(20.0, gt=0)
     max_interval_s: float = Field(10.0, gt=0, description="keyframe anyway after this long")
 
 
-class LocalMapConfig(_Model):
+class LocalMapConfig(ConfigModel):
     keyframes: int = Field(40, ge=1, description="recent keyframes matched against")
     voxel_m: float = Field(0.05, ge=0, description="points and normals averaged per cell")
 
 
-class GraphConfig(_Model):
+class GraphConfig(ConfigModel):
     """Noise of the factors; sigmas in m and deg."""
 
     prior_sigma_m: float = Field(1e-3, gt=0)
@@ -76,7 +74,7 @@ class GraphConfig(_Model):
     extra_iterations_after_loop: int = Field(3, ge=0)
 
 
-class LoopClosureConfig(_Model):
+class LoopClosureConfig(ConfigModel):
     enabled: bool = True
     block_keyframes: int = Field(15, ge=2, description="keyframes per loop-closure submap")
     every_keyframes: int = Field(3, ge=1, description="search on every n-th keyframe")
@@ -107,7 +105,7 @@ class LoopClosureConfig(_Model):
     max_chi2: float = Field(16.0, gt=0, description="loop factors more inconsistent: removed")
 
 
-class GridConfig(_Model):
+class GridConfig(ConfigModel):
     """Log-odds occupancy grid (probabilities, not log-odds, here)."""
 
     resolution_m: float = Field(0.05, gt=0)
@@ -121,7 +119,7 @@ class GridConfig(_Model):
     padding_m: float = Field(2.0, ge=0)
 
 
-class SlamConfig(_Model):
+class SlamConfig(ConfigModel):
     """Everything ``RobotSlam`` needs."""
 
     scan: ScanConfig = ScanConfig()

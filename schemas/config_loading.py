@@ -1,5 +1,8 @@
 """Load a run's configuration once: pydantic model <- YAML file <- environment overrides.
 
+Every process loads its config with this module (it needs only pydantic and PyYAML, which all
+of them have); the models themselves derive from ``schemas.config.ConfigModel``.
+
 Environment variables ``MRSLAM_<FIELD>[__<SUBFIELD>...]`` override the file, e.g.
 ``MRSLAM_BUS__CONNECT='["tcp/10.0.0.2:7447"]'`` or ``MRSLAM_ROBOT_ID=r2``; values are parsed
 as YAML scalars or lists. The resolved configuration is written next to a run's outputs.
