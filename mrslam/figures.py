@@ -54,7 +54,7 @@ def write_figures(report: dict[str, Any], out: Path) -> list[str]:
 
 
 def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
-    from mrslam.report import read_trajectory
+    from mrslam.run_files import read_trajectory
     from sim.grid import read_nav2
 
     written = []

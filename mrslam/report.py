@@ -10,46 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from mrslam.evaluate import (
-    anchor_transform,
-    ate_rmse,
-    compose,
-    inverse,
-    map_quality,
-    match_truth,
-    pose_errors,
-)
+from mrslam.run_files import read_trajectory, read_truth
+from schemas.se2 import compose, inverse, pose_distance
+from server.scoring import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
 
 log = logging.getLogger(__name__)
-
-
-def read_truth(path: Path) -> dict[str, dict[str, Any]]:
-    """Per robot: stamps_ns, poses (N, 3), and the last collisions / distance counters."""
-    rows: dict[str, dict[str, list[Any]]] = {}
-    last: dict[str, dict[str, Any]] = {}
-    with path.open() as f:
-        for line in f:
-            try:
-                rec = json.loads(line)
-            except json.JSONDecodeError:
-                continue  # a line cut short when the simulator was stopped
-            for p in rec.get("poses", []):
-                r = rows.setdefault(p["robot_id"], {"stamps": [], "poses": []})
-                r["stamps"].append(rec["stamp_ns"])
-                r["poses"].append(p["pose"])
-                last[p["robot_id"]] = p
-    return {rid: {"stamps_ns": np.asarray(r["stamps"], np.int64),
-                  "poses": np.asarray(r["poses"], np.float64).reshape(-1, 3),
-                  "collisions": int(last[rid].get("collisions", 0)),
-                  "distance_m": float(last[rid].get("distance_m", 0.0))}
-            for rid, r in rows.items()}
-
-
-def read_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    if data.size == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    return data[:, 0].astype(np.int64), data[:, 1:4]
 
 
 def _finite(x: float) -> float | None:
@@ -66,8 +31,7 @@ def _own_frame(stamps: np.ndarray, online: np.ndarray, t: dict[str, Any]) -> np.
 
 
 def _transform_error(T: Any, T_true: np.ndarray) -> tuple[float, float]:
-    d = compose(inverse(T_true), np.asarray(T, dtype=np.float64))
-    return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
+    return pose_distance(compose(inverse(T_true), np.asarray(T, dtype=np.float64)))
 
 
 def _pose_at(stamps: np.ndarray, poses: np.ndarray, stamp_ns: int) -> np.ndarray | None:

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from mrslam.evaluate import compose
 from mrslam.report import first_sight, merge_errors
+from schemas.se2 import compose
 
 A0 = np.array([-23.0, -22.0, 0.0])      # where robots a and b started (world)
 B0 = np.array([-5.0, 20.0, 0.3])

@@ -1,5 +1,8 @@
 """Scoring a run against the simulator's ground truth (pure numpy, no I/O).
 
+It scores the server's estimates (trajectories and its nav2 grid), so it sits beside
+``server.evaluation`` and needs what the server has (scipy); the truth arrives as plain arrays.
+
 Frames: a robot's estimates live in its team's map frame. The map frame is tied to the world
 by the first scan of the team's anchor robot: ``T_world_map = x_true(t0) ⊕ x_est(t0)⁻¹``.
 Nothing is fitted, so the errors include every bit of drift (as in the dissertation's plots).
@@ -16,29 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-F64 = NDArray[np.float64]
-
-
-def wrap(a: ArrayLike) -> F64:
-    """Angles wrapped to (−π, π]."""
-    a = np.asarray(a, dtype=np.float64)
-    return -np.remainder(-a + math.pi, 2 * math.pi) + math.pi
-
-
-def compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> F64:
-    """T_a_c = T_a_b ⊕ T_b_c for poses (…, 3)."""
-    a, b = np.asarray(T_a_b, np.float64), np.asarray(T_b_c, np.float64)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    return np.stack([a[..., 0] + c * b[..., 0] - s * b[..., 1],
-                     a[..., 1] + s * b[..., 0] + c * b[..., 1],
-                     wrap(a[..., 2] + b[..., 2])], axis=-1)
-
-
-def inverse(T: ArrayLike) -> F64:
-    t = np.asarray(T, np.float64)
-    c, s = np.cos(t[..., 2]), np.sin(t[..., 2])
-    return np.stack([-c * t[..., 0] - s * t[..., 1], s * t[..., 0] - c * t[..., 1],
-                     wrap(-t[..., 2])], axis=-1)
+from schemas.se2 import F64, compose, inverse, transform_points, wrap_angle
 
 
 def anchor_transform(true_first: ArrayLike, est_first: ArrayLike) -> F64:
@@ -83,7 +64,7 @@ def pose_errors(stamps_ns: ArrayLike, est_map: ArrayLike, T_world_map: ArrayLike
     est = compose(T_world_map, np.asarray(est_map, np.float64).reshape(-1, 3)[idx])
     d = est - truth
     return PoseErrors(np.asarray(stamps_ns, np.int64)[idx], np.hypot(d[:, 0], d[:, 1]),
-                      wrap(d[:, 2]))
+                      wrap_angle(d[:, 2]))
 
 
 def align_se2(est_xy: ArrayLike, true_xy: ArrayLike) -> F64:
@@ -133,7 +114,7 @@ def map_quality(est: ArrayLike, est_resolution_m: float, est_origin_xy: ArrayLik
     rows, cols = np.nonzero(true_free)
     xy_w = np.column_stack([to[0] + (cols + 0.5) * truth_resolution_m,
                             to[1] + (rows + 0.5) * truth_resolution_m])
-    xy_m = _to_frame(inverse(T_world_map), xy_w)
+    xy_m = transform_points(inverse(T_world_map), xy_w)
     v = _sample(e, est_resolution_m, eo, xy_m, -1)
     seen_free = (v >= 0) & (v < 40)
     cell_t = truth_resolution_m ** 2
@@ -146,16 +127,10 @@ def map_quality(est: ArrayLike, est_resolution_m: float, est_origin_xy: ArrayLik
                             eo[1] + (r2 + 0.5) * est_resolution_m])
     inside = true_free | walls
     w = _sample(inside.astype(np.int8), truth_resolution_m, to,
-                _to_frame(T_world_map, xy_e), 0)
+                transform_points(T_world_map, xy_e), 0)
     phantom = float((w == 0).sum()) * est_resolution_m ** 2
     return MapQuality(explored / true_free_m2 if true_free_m2 else float("nan"), explored,
                       true_free_m2, phantom)
-
-
-def _to_frame(T: ArrayLike, xy: F64) -> F64:
-    t = np.asarray(T, np.float64)
-    c, s = math.cos(t[2]), math.sin(t[2])
-    return xy @ np.array([[c, s], [-s, c]]) + t[:2]
 
 
 def _sample(grid: NDArray[np.int8], res: float, origin: F64, xy: F64,
