@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.noise import NoiseError, robust
+from schemas.se2 import adjoint, between, compose, inverse, wrap_angle
 
 F64 = NDArray[np.float64]
 
@@ -79,35 +80,6 @@ class Sighting:
         return J @ np.diag(self.sigmas ** 2) @ J.T
 
 
-# -- Pose2 helpers (x, y, θ arrays) --------------------------------------------------------
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def compose(a: ArrayLike, b: ArrayLike) -> F64:
-    ax, ay, at = np.asarray(a, dtype=np.float64)
-    bx, by, bt = np.asarray(b, dtype=np.float64)
-    c, s = math.cos(at), math.sin(at)
-    return np.array([ax + c * bx - s * by, ay + s * bx + c * by, _wrap(at + bt)])
-
-
-def inverse(a: ArrayLike) -> F64:
-    x, y, t = np.asarray(a, dtype=np.float64)
-    c, s = math.cos(t), math.sin(t)
-    return np.array([-c * x - s * y, s * x - c * y, _wrap(-t)])
-
-
-def between(a: ArrayLike, b: ArrayLike) -> F64:
-    return compose(inverse(a), b)
-
-
-def adjoint(T: ArrayLike) -> F64:
-    """Adjoint of a Pose2 for tangent vectors (vx, vy, ω) (GTSAM's ``AdjointMap``)."""
-    x, y, t = np.asarray(T, dtype=np.float64)
-    c, s = math.cos(t), math.sin(t)
-    return np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
-
-
 def direct_transform(T_c: ArrayLike, sighting: Sighting | ArrayLike, T_o: ArrayLike) -> F64:
     """``T = T_c · T_r · T_o⁻¹``: maps the observed robot's map frame into the observer's.
 
@@ -140,7 +112,7 @@ def sighting_error(X_o: ArrayLike, X_b: ArrayLike, T_kf_o: ArrayLike, T_kf_b: Ar
     rel = between(P_o, P_b)
     h, Jh = predict(rel)
     zz = np.asarray(z, dtype=np.float64)
-    e = np.array([h[0] - zz[0], _wrap(h[1] - zz[1]), _wrap(h[2] - zz[2])])
+    e = np.array([h[0] - zz[0], wrap_angle(h[1] - zz[1]), wrap_angle(h[2] - zz[2])])
     H_o = Jh @ (-adjoint(inverse(rel))) @ adjoint(inverse(T_kf_o))
     H_b = Jh @ adjoint(inverse(T_kf_b))
     return e, H_o, H_b
@@ -216,12 +188,12 @@ def fuse_transforms(transforms: Sequence[ArrayLike], covariances: Sequence[Array
         raise NoiseError("nothing to fuse")
     Ts = np.array([np.asarray(t, dtype=np.float64) for t in transforms])
     ref = Ts[0, 2]
-    Ts[:, 2] = ref + np.array([_wrap(t - ref) for t in Ts[:, 2]])
+    Ts[:, 2] = ref + np.array([wrap_angle(t - ref) for t in Ts[:, 2]])
     infos = [np.linalg.inv(np.asarray(c, dtype=np.float64)) for c in covariances]
     info = np.sum(infos, axis=0)
     cov = np.linalg.inv(info)
     mean = cov @ np.sum([w @ T for w, T in zip(infos, Ts, strict=True)], axis=0)
-    mean[2] = _wrap(mean[2])
+    mean[2] = wrap_angle(mean[2])
     return mean, 0.5 * (cov + cov.T)
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from server.slam.geometry import between, compose, inverse
+from schemas.se2 import between, compose, inverse
 
 log = logging.getLogger(__name__)
 

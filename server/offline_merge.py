@@ -29,11 +29,11 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from factors.rendezvous import compose, inverse
 from recording.reader import ReadReport, read_recording
 from schemas import Scan, TagDetections, keys
 from schemas.codec import decode
 from schemas.errors import SchemaError
+from schemas.se2 import compose, inverse, wrap_angle
 from schemas.types import ID_PATTERN
 from server.config import ServerConfig
 from server.core import MergeRecord, ServerCore
@@ -73,7 +73,7 @@ def parse_marker(text: str) -> F64:
         raise MergeError(f"marker {text!r}: expected X,Y,YAW as numbers") from None
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise MergeError(f"marker {text!r}: expected three finite numbers X,Y,YAW")
-    return np.array([vals[0], vals[1], math.remainder(vals[2], 2 * math.pi)])
+    return np.array([vals[0], vals[1], wrap_angle(vals[2])])
 
 
 def load_session(path: str | Path) -> Session:

@@ -21,7 +21,6 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from factors.rendezvous import between
 from mrslam.cli import app
 from recording.reader import RecordingError, read_recording
 from recording.writer import McapRecorder
@@ -29,6 +28,7 @@ from robot_agent.aruco import TagDetector
 from schemas import Scan, TagDetection, TagDetections, keys
 from schemas.codec import encode
 from schemas.messages import quantise_ranges_mm
+from schemas.se2 import between, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server.config import ServerConfig
 from server.core import ServerCore
@@ -111,8 +111,7 @@ def halves(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 
 def error(T: dict[str, float]) -> tuple[float, float]:
-    d = between(T_TRUE, np.array([T["x_m"], T["y_m"], T["theta_rad"]]))
-    return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
+    return pose_distance(between(T_TRUE, np.array([T["x_m"], T["y_m"], T["theta_rad"]])))
 
 
 def test_halves_merge_from_the_recorded_sighting(halves: tuple[Path, Path],

@@ -6,9 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-from factors.rendezvous import Sighting, between, compose, inverse
 from server.teams import MergeVerifier, VerifierParams, make_record, rigid_fit
+
+from factors.rendezvous import Sighting
+from schemas.se2 import between, compose, inverse, wrap_angle
 
 T_XY = np.array([3.0, -2.0, 0.8])   # team Y's frame in team X's
 SIG = (0.03, 0.03, math.radians(0.5))
@@ -67,7 +68,7 @@ def test_positions_alone_give_the_transform_once_the_robot_moved() -> None:
     assert math.sqrt(got.cov_ab[2, 2]) <= math.radians(1.0)
     assert got.team_a == "X" and got.team_b == "Y"
     assert math.hypot(*(got.T_ab[:2] - T_XY[:2])) < 0.05
-    assert abs(math.remainder(got.T_ab[2] - T_XY[2], 2 * math.pi)) < math.radians(1.5)
+    assert abs(wrap_angle(got.T_ab[2] - T_XY[2])) < math.radians(1.5)
 
 
 def test_sightings_from_the_other_side_agree() -> None:

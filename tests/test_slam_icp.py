@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
+from schemas.se2 import compose, rotate_vectors, transform_points
 from server.slam.config import MatcherConfig
 from server.slam.correlative import LikelihoodField, search
 from server.slam.frontend import MatchKind, icp_params, match_scan, odometry_prior
-from server.slam.geometry import compose, rotate_vectors, transform_points
 from server.slam.icp import IcpParams, PointMap, icp, translation_degeneracy
 from server.slam.scan import scan_to_points
 from tests.test_slam_synthetic import box, cast, room_world

@@ -114,7 +114,7 @@ def test_relation_error_is_frame_invariant() -> None:
     d = rng.normal(size=(20, 3)) * 0.3
     t1, r1 = relation_errors(a, b, d)
     shift = np.array([5.0, -2.0, 1.0])
-    from server.slam.geometry import compose
+    from schemas.se2 import compose
 
     S = np.broadcast_to(shift, a.shape)
     t2, r2 = relation_errors(compose(S, a), compose(S, b), d)

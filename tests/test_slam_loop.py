@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 
+from schemas.se2 import between, compose
 from server.slam import RobotSlam, SlamConfig
 from server.slam.config import LoopClosureConfig
-from server.slam.geometry import between, compose
 from server.slam.icp import IcpParams
 from server.slam.keyframes import Keyframe
 from server.slam.loop_closure import LoopCloser, LoopClosure

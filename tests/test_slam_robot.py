@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from factors.scan_match import scan_match_factor
+from schemas.se2 import between, compose, inverse, transform_points, wrap_angle
 from server.slam import RobotSlam, SlamConfig, SlamInputError
 from server.slam.backend import PoseGraph
-from server.slam.geometry import between, compose, inverse, transform_points, wrap_angle
 from tests.test_slam_synthetic import align_error, cast, drive, room_world, waypoints_path
 
 PATH = [(1.0, 1.0), (8.5, 1.0), (8.5, 4.5), (1.5, 4.5), (1.5, 2.0)]

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from server.slam.geometry import between, compose
+from schemas.se2 import between, compose
 
 F64 = NDArray[np.float64]
 Segment = tuple[tuple[float, float], tuple[float, float]]

@@ -14,10 +14,10 @@ import gtsam
 import numpy as np
 import pytest
 
-from factors.rendezvous import between, compose
 from robot_agent.aruco import TagDetector
 from schemas import Scan, TagDetection, TagDetections
 from schemas.messages import quantise_ranges_mm
+from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server.config import ServerConfig
 from server.core import ServerCore
@@ -113,8 +113,7 @@ def test_the_merge_transform_is_accurate_and_beats_the_direct_method(
     T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
 
     def err(T: np.ndarray) -> tuple[float, float]:
-        d = between(T_true, T)
-        return math.hypot(d[0], d[1]), abs(math.remainder(d[2], 2 * math.pi))
+        return pose_distance(between(T_true, T))
 
     joint, direct = err(m.T_joint), err(m.T_direct_first)
     assert joint[0] <= 0.05 and joint[1] <= math.radians(1.0)

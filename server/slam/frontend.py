@@ -17,9 +17,9 @@ from enum import Enum
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.se2 import compose, pose_distance
 from server.slam.config import MatcherConfig
 from server.slam.correlative import LikelihoodField, search
-from server.slam.geometry import compose, pose_distance
 from server.slam.icp import IcpParams, MatchResult, PointMap, icp
 from server.slam.scan import ScanPoints
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from server.slam.geometry import between
+from schemas.se2 import between
 from server.slam.icp import PointMap
 from server.slam.scan import ScanPoints
 

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.se2 import between, compose, inverse, pose_distance
 from server.slam.config import LoopClosureConfig
 from server.slam.correlative import LikelihoodField, search
-from server.slam.geometry import between, compose, inverse, pose_distance
 from server.slam.icp import IcpParams, MatchResult, PointMap, icp
 from server.slam.keyframes import Keyframe, points_in_frame, voxel_thin
 

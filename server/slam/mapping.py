@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from server.slam.geometry import transform_points
+from schemas.se2 import transform_points
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.keyframes import Keyframe, voxel_thin
 

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
+from schemas.se2 import between, compose, pose_distance
 from server.slam.backend import (
     FactorRecord,
     PoseGraph,
@@ -31,7 +32,6 @@ from server.slam.frontend import (
     odometry_prior,
     odometry_step_suspicious,
 )
-from server.slam.geometry import between, compose, pose_distance
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, local_point_map
