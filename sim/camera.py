@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from schemas.se2 import wrap_angle
 from schemas.tags import SIDES, CameraMount, Side, TagLayout
 from sim.geometry import inverse, planar_transform
 
@@ -93,8 +94,7 @@ def visible_tags(observer: str, poses: dict[str, tuple[float, float, float]],
         d = math.hypot(pose[0] - cam_xy[0], pose[1] - cam_xy[1])
         if d > max_range_m + reach:
             continue
-        off = abs(math.remainder(math.atan2(pose[1] - cam_xy[1], pose[0] - cam_xy[0]) - axis,
-                                 2 * math.pi))
+        off = abs(wrap_angle(math.atan2(pose[1] - cam_xy[1], pose[0] - cam_xy[0]) - axis))
         if d > reach and off > half_fov + math.asin(min(1.0, reach / d)):
             continue
         T_world_robot = planar_transform(pose)

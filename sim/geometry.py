@@ -1,4 +1,5 @@
-"""Small pose helpers: planar poses (x, y, theta) and 4x4 homogeneous transforms."""
+"""Small pose helpers: 4x4 homogeneous transforms (planar poses (x, y, theta) are in
+``schemas.se2``)."""
 
 from __future__ import annotations
 
@@ -6,26 +7,14 @@ import math
 
 import numpy as np
 
-
-def wrap_angle(a: float) -> float:
-    """Wrap an angle to (-pi, pi] [rad]."""
-    w = math.remainder(a, 2 * math.pi)
-    return math.pi if w == -math.pi else w
-
-
-def compose2(a: tuple[float, float, float], b: tuple[float, float, float]
-             ) -> tuple[float, float, float]:
-    """Planar ``a ⊕ b``: pose ``b`` given in frame ``a``, expressed in ``a``'s parent."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
+from schemas.se2 import between
 
 
 def between2(a: tuple[float, float, float], b: tuple[float, float, float]
              ) -> tuple[float, float, float]:
-    """Planar ``a⁻¹ ⊕ b``: pose ``b`` expressed in frame ``a``."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, wrap_angle(b[2] - a[2]))
+    """``schemas.se2.between`` on tuples: pose ``b`` expressed in frame ``a``."""
+    x, y, t = between(a, b).tolist()
+    return x, y, t
 
 
 def rpy_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.se2 import wrap_angle
+
 
 @dataclass(frozen=True)
 class OdometryNoise:
@@ -78,6 +80,5 @@ def integrate(pose: np.ndarray, ds_m: np.ndarray | float, dtheta_rad: np.ndarray
     out = np.empty_like(p)
     out[..., 0] = p[..., 0] + chord * np.cos(mid)
     out[..., 1] = p[..., 1] + chord * np.sin(mid)
-    th = np.remainder(p[..., 2] + dth + np.pi, 2 * np.pi) - np.pi
-    out[..., 2] = np.where(th == -np.pi, np.pi, th)
+    out[..., 2] = wrap_angle(np.asarray(p[..., 2] + dth))   # an array even for one pose
     return out

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.se2 import wrap_angle
+
 
 @dataclass(frozen=True)
 class DriveLimits:
@@ -47,9 +49,7 @@ def arc_step(pose: tuple[float, float, float], v: float, w: float, dt_s: float
     half = 0.5 * dth
     chord = v * dt_s * (math.sin(half) / half if abs(half) > 1e-12 else 1.0)
     mid = th + half
-    th2 = math.remainder(th + dth, 2 * math.pi)
-    return (x + chord * math.cos(mid), y + chord * math.sin(mid),
-            math.pi if th2 == -math.pi else th2)
+    return (x + chord * math.cos(mid), y + chord * math.sin(mid), wrap_angle(th + dth))
 
 
 def point_in_polygons(points: np.ndarray, polygons: tuple[np.ndarray, ...]) -> np.ndarray:

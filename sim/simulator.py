@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from schemas.se2 import wrap_angle
 from schemas.tags import CameraMount, TagLayout
 from sim.camera import PinholeCamera, TagRenderer, TagView, visible_tags
 from sim.errors import SimError
@@ -150,7 +151,7 @@ class Simulator:
             lidar, odom, cam = (np.random.Generator(np.random.PCG64(s))
                                 for s in robot_seed(seed, rid).spawn(3))
             bias = params.odometry.draw_bias(odom)
-            p = (float(pose[0]), float(pose[1]), math.remainder(float(pose[2]), 2 * math.pi))
+            p = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
             self.robots[rid] = RobotState(rid, p, p, bias, lidar, odom, cam)
         self._check_spawn()
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from robot_agent.aruco import Sighting, TagDetector, lidar_fix
+from schemas.se2 import wrap_angle
 from sim.simulator import Observation, SimParams, Simulator
 from sim.world import World
 from tests.test_sim_camera import LAYOUT, MOUNT, empty, facing_pose
@@ -44,8 +45,7 @@ def test_far_sightings_get_the_lidar_range_and_bearing(distance_m: float) -> Non
         assert fix is not None and fix.beams >= 2
         tag_err.append(abs(s.range_m - true_r))
         fix_err.append(abs(fix.range_m - true_r))
-        bearing_err.append(abs(math.degrees(math.remainder(fix.bearing_rad - true_b,
-                                                           2 * math.pi))))
+        bearing_err.append(abs(math.degrees(wrap_angle(fix.bearing_rad - true_b))))
         # the reported σ covers the error
         assert abs(fix.range_m - true_r) <= 3 * fix.sigma_range_m
         assert fix.sigma_range_m < s.sigma_range_m

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from robot_agent.aruco import TagDetector
+from schemas.se2 import wrap_angle
 from schemas.tags import SIDES, CameraMount, TagLayout, TagLayoutError
 from sim.simulator import SimParams, Simulator
 from sim.world import World
@@ -27,8 +28,7 @@ def facing_pose(distance_m: float, bearing: float, turn: float) -> tuple[float, 
     tx, ty = cam + distance_m * math.cos(bearing), distance_m * math.sin(bearing)
     heading = bearing + math.pi + turn
     h = LAYOUT.mast_half_width_m
-    return tx + h * math.cos(heading), ty + h * math.sin(heading), math.remainder(heading,
-                                                                                 2 * math.pi)
+    return tx + h * math.cos(heading), ty + h * math.sin(heading), wrap_angle(heading)
 
 
 def test_tag_at_1_5_m_is_detected_within_2_cm_and_half_a_degree() -> None:
@@ -47,7 +47,7 @@ def test_tag_at_1_5_m_is_detected_within_2_cm_and_half_a_degree() -> None:
         assert s.robot_id == "r2" and s.side == "front"
         assert abs(s.range_m - math.hypot(rel[0], rel[1])) <= 0.02
         assert abs(math.degrees(s.bearing_rad - math.atan2(rel[1], rel[0]))) <= 0.5
-        assert abs(math.degrees(math.remainder(s.yaw_rad - rel[2], 2 * math.pi))) < 5.0
+        assert abs(math.degrees(wrap_angle(s.yaw_rad - rel[2]))) < 5.0
         assert s.sigma_range_m > 0 and s.sigma_yaw_rad > s.sigma_bearing_rad > 0
         checked += 1
     assert checked == 12
@@ -120,7 +120,7 @@ def test_spurious_views_are_drawn_false_and_flagged() -> None:
             rel = next(r for o, _, r in frame.relatives if o == "r2")
             far = math.hypot(s.range_m * math.cos(s.bearing_rad) - rel[0],
                              s.range_m * math.sin(s.bearing_rad) - rel[1]) > 0.5
-            turned = abs(math.remainder(s.yaw_rad - rel[2], 2 * math.pi)) > 0.4
+            turned = abs(wrap_angle(s.yaw_rad - rel[2])) > 0.4
             wrong += s.robot_id != "r2" or far or turned
     assert {"id", "pose"} <= kinds
     assert wrong >= 10

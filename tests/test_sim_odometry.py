@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from schemas.se2 import wrap_angle
 from sim.odometry import OdometryNoise, integrate
 from sim.robot import DriveLimits, arc_step, limit_command
 from sim.simulator import SimParams, Simulator
@@ -62,7 +63,7 @@ def test_odometry_drift_over_a_driven_square_matches_the_noise_model() -> None:
     assert np.allclose(truth[:, 2], truth[0, 2]) and sum(r.collisions for r in
                                                          sim.robots.values()) == 0
     err = odom - truth
-    err[:, 2] = np.remainder(err[:, 2] + math.pi, 2 * math.pi) - math.pi
+    err[:, 2] = wrap_angle(err[:, 2])
     S = predicted_covariance(increments, NOISE)
     emp = np.cov(err.T)
     # variances within ±30 % (the estimate's own spread is ±8 % at n = 300)
