@@ -11,7 +11,9 @@ from schemas.config import ConfigModel
 class ScanConfig(ConfigModel):
     """Turning ranges into points."""
 
-    min_range_m: float = Field(0.05, gt=0)
+    min_range_m: float = Field(
+        0.05, gt=0, description="readings closer than this are dropped (the robot's own body, "
+        "noise)")
     max_range_m: float = Field(40.0, gt=0, description="readings at or beyond: no return")
     min_point_spacing_m: float = Field(0.08, ge=0, description="thin points closer than this")
     normal_window: int = Field(2, ge=1, description="beams each side used for a normal")
@@ -26,32 +28,44 @@ class MatcherConfig(ConfigModel):
 
     enabled: bool = Field(True, description="False: odometry only (loop closure still runs)")
 
-    max_iterations: int = Field(25, ge=1)
+    max_iterations: int = Field(25, ge=1, description="ICP iterations at most per match")
     converged_m: float = Field(5e-4, gt=0, description="stop when a step moves less")
-    converged_deg: float = Field(0.03, gt=0)
+    converged_deg: float = Field(0.03, gt=0, description="stop when a step turns less")
     max_correspondence_m: float = Field(0.5, gt=0, description="first iterations")
     min_correspondence_m: float = Field(0.15, gt=0, description="last iterations")
     kernel_m: float = Field(0.05, gt=0, description="Cauchy kernel width on point-to-line")
-    min_normal_cos: float = Field(0.6, ge=0, le=1)
-    min_points: int = Field(30, ge=3)
-    min_inlier_fraction: float = Field(0.35, ge=0, le=1)
+    min_normal_cos: float = Field(
+        0.6, ge=0, le=1, description="a scan point pairs with a map line only when their normals "
+        "differ by less than acos of this")
+    min_points: int = Field(
+        30, ge=3, description="fewer points in the scan or the local map: no match, odometry only")
+    min_inlier_fraction: float = Field(
+        0.35, ge=0, le=1, description="a match with fewer inliers tries the correlative search, "
+        "then falls back on odometry")
     degenerate_eigen_ratio: float = Field(0.02, gt=0,
                                           description="λmin/λmax of the translation information")
     point_sigma_m: float = Field(0.03, gt=0, description="point-to-line noise, weighs the prior")
-    use_odometry_prior: bool = True
+    use_odometry_prior: bool = Field(
+        True, description="weigh the odometry prediction in the match (ignored when odometry "
+        "jumped)")
     prior_sigma_m: float = Field(0.02, gt=0, description="odometry prediction, per scan")
-    prior_sigma_per_m: float = Field(0.1, ge=0)
-    prior_sigma_deg: float = Field(1.0, gt=0)
-    prior_sigma_per_rad: float = Field(0.1, ge=0)
-    fallback_window_m: float = Field(0.5, gt=0)
-    fallback_window_deg: float = Field(45.0, gt=0)
+    prior_sigma_per_m: float = Field(
+        0.1, ge=0, description="σ of the prediction grows by this per metre of the step [m/m]")
+    prior_sigma_deg: float = Field(1.0, gt=0, description="σ of the prediction's heading per scan")
+    prior_sigma_per_rad: float = Field(
+        0.1, ge=0, description="heading σ grows by this per radian turned [rad/rad]")
+    fallback_window_m: float = Field(
+        0.5, gt=0, description="half-width of the correlative search around the last pose")
+    fallback_window_deg: float = Field(
+        45.0, gt=0, description="half-angle of the correlative search")
     odometry_jump_m: float = Field(0.5, gt=0, description="larger step per scan: distrust odometry")
-    odometry_jump_deg: float = Field(30.0, gt=0)
+    odometry_jump_deg: float = Field(
+        30.0, gt=0, description="larger turn per scan: distrust odometry")
 
 
 class KeyframeConfig(ConfigModel):
-    distance_m: float = Field(0.5, gt=0)
-    angle_deg: float = Field(20.0, gt=0)
+    distance_m: float = Field(0.5, gt=0, description="a new keyframe after moving this far")
+    angle_deg: float = Field(20.0, gt=0, description="... or after turning this much")
     max_interval_s: float = Field(10.0, gt=0, description="keyframe anyway after this long")
 
 
@@ -63,60 +77,79 @@ class LocalMapConfig(ConfigModel):
 class GraphConfig(ConfigModel):
     """Noise of the factors; sigmas in m and deg."""
 
-    prior_sigma_m: float = Field(1e-3, gt=0)
-    prior_sigma_deg: float = Field(0.05, gt=0)
-    match_sigma_floor_m: float = Field(0.01, gt=0)
-    match_sigma_floor_deg: float = Field(0.2, gt=0)
+    prior_sigma_m: float = Field(1e-3, gt=0, description="σ of the prior on the first pose")
+    prior_sigma_deg: float = Field(0.05, gt=0, description="σ of the prior's heading")
+    match_sigma_floor_m: float = Field(
+        0.01, gt=0, description="scan-match factors are never more certain than this")
+    match_sigma_floor_deg: float = Field(0.2, gt=0, description="... nor than this in heading")
     match_cov_scale: float = Field(4.0, gt=0, description="ICP covariances are optimistic")
     odometry_sigma_m_per_m: float = Field(0.1, gt=0, description="fallback on odometry")
-    odometry_sigma_deg_per_rad: float = Field(10.0, gt=0)
-    relinearize_threshold: float = Field(0.01, gt=0)
-    extra_iterations_after_loop: int = Field(3, ge=0)
+    odometry_sigma_deg_per_rad: float = Field(
+        10.0, gt=0, description="heading σ of an odometry factor per radian turned")
+    relinearize_threshold: float = Field(
+        0.01, gt=0, description="ISAM2 relinearises variables that moved more than this")
+    extra_iterations_after_loop: int = Field(
+        3, ge=0, description="ISAM2 updates run after a loop closure or map match is added")
 
 
 class LoopClosureConfig(ConfigModel):
-    enabled: bool = True
+    enabled: bool = Field(True, description="False: no loop closure")
     block_keyframes: int = Field(15, ge=2, description="keyframes per loop-closure submap")
     every_keyframes: int = Field(3, ge=1, description="search on every n-th keyframe")
     query_keyframes: int = Field(5, ge=1, description="recent keyframes forming the query")
     min_graph_distance_m: float = Field(5.0, ge=0, description="skip submaps closer in the graph")
-    radius_base_m: float = Field(0.5, gt=0)
+    radius_base_m: float = Field(
+        0.5, gt=0, description="search radius around the estimate for a submap next to the robot "
+        "in the graph")
     radius_per_m: float = Field(0.04, ge=0, description="drift allowance per metre travelled")
-    radius_max_m: float = Field(10.0, gt=0)
-    angle_base_deg: float = Field(5.0, gt=0)
-    angle_per_m_deg: float = Field(0.3, ge=0)
-    angle_max_deg: float = Field(30.0, gt=0)
-    max_candidates: int = Field(3, ge=1)
+    radius_max_m: float = Field(10.0, gt=0, description="largest search radius")
+    angle_base_deg: float = Field(
+        5.0, gt=0, description="search half-angle for a submap next to the robot in the graph")
+    angle_per_m_deg: float = Field(
+        0.3, ge=0, description="drift allowance in heading per metre travelled")
+    angle_max_deg: float = Field(30.0, gt=0, description="largest search half-angle")
+    max_candidates: int = Field(3, ge=1, description="submaps searched per query, nearest first")
     resolution_m: float = Field(0.1, gt=0, description="of the search; ICP refines after")
     search_voxel_m: float = Field(0.1, gt=0, description="query thinning for the search")
     submap_range_m: float = Field(20.0, gt=0, description="submap points beyond: dropped")
-    min_score: float = Field(0.55, gt=0, le=1)
-    min_inlier_fraction: float = Field(0.5, gt=0, le=1)
+    min_score: float = Field(
+        0.55, gt=0, le=1, description="correlative search score a candidate needs")
+    min_inlier_fraction: float = Field(
+        0.5, gt=0, le=1, description="the refining ICP needs this share of inliers")
     ambiguity_ratio: float = Field(0.9, gt=0, le=1,
                                    description="reject if a distinct pose scores this × best")
     confirm_correction_m: float = Field(0.5, gt=0, description="larger jumps need a second closure")
     confirm_min_score: float = Field(0.7, gt=0, le=1, description="... and both must score this "
                                      "well (a place that repeats itself scores ~0.6 offset)")
     pending_keyframes: int = Field(40, ge=1, description="an unconfirmed closure expires after")
-    confirm_tolerance_m: float = Field(0.3, gt=0)
-    confirm_tolerance_deg: float = Field(3.0, gt=0)
+    confirm_tolerance_m: float = Field(
+        0.3, gt=0, description="two closures agree when their corrections differ by less than "
+        "this")
+    confirm_tolerance_deg: float = Field(3.0, gt=0, description="... and this in heading")
     huber_k: float = Field(1.345, gt=0, description="robust kernel on loop factors")
-    sigma_scale: float = Field(2.0, gt=0)
+    sigma_scale: float = Field(2.0, gt=0, description="loop factors' σ are the match's times this")
     max_chi2: float = Field(16.0, gt=0, description="loop factors more inconsistent: removed")
 
 
 class GridConfig(ConfigModel):
     """Log-odds occupancy grid (probabilities, not log-odds, here)."""
 
-    resolution_m: float = Field(0.05, gt=0)
-    p_hit: float = Field(0.75, gt=0.5, lt=1)
-    p_miss: float = Field(0.35, gt=0, lt=0.5)
-    p_min: float = Field(0.12, gt=0, lt=0.5)
-    p_max: float = Field(0.97, gt=0.5, lt=1)
-    free_below: float = Field(0.4, gt=0, lt=1)
-    occupied_above: float = Field(0.7, gt=0, lt=1)
+    resolution_m: float = Field(0.05, gt=0, description="cell size")
+    p_hit: float = Field(
+        0.75, gt=0.5, lt=1, description="occupancy probability a beam's endpoint gives its cell")
+    p_miss: float = Field(
+        0.35, gt=0, lt=0.5, description="occupancy probability a beam gives the cells it passes "
+        "through")
+    p_min: float = Field(
+        0.12, gt=0, lt=0.5, description="log-odds are clamped to this probability from below, so "
+        "the map stays revisable")
+    p_max: float = Field(0.97, gt=0.5, lt=1, description="... and to this from above")
+    free_below: float = Field(
+        0.4, gt=0, lt=1, description="cells less likely occupied than this are free")
+    occupied_above: float = Field(
+        0.7, gt=0, lt=1, description="cells more likely occupied than this are occupied")
     max_ray_m: float = Field(20.0, gt=0, description="free space is cleared up to this range")
-    padding_m: float = Field(2.0, ge=0)
+    padding_m: float = Field(2.0, ge=0, description="unknown margin kept around the mapped area")
 
 
 class SlamConfig(ConfigModel):
