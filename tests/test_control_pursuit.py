@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from server.control import PurePursuit, PursuitParams, Twist, closest_point, wrap_angle
+from schemas.se2 import wrap_angle
+from server.control import PurePursuit, PursuitParams, Twist, closest_point
 
 DT = 0.05
 PARAMS = PursuitParams(lookahead_m=1.0, v_mps=0.3, omega_max_rps=1.5, goal_tolerance_m=0.2)

@@ -8,7 +8,7 @@ All return :class:`Twist` (v [m/s], ω [rad/s]) and do no I/O:
     if stuck.update(stamp_s, pose): recovery.start(stamp_s, scan_points_robot_xy)
 """
 
-from server.control.geometry import STOP, Twist, clip, world_to_robot, wrap_angle
+from server.control.geometry import STOP, Twist, clip, world_to_robot
 from server.control.pure_pursuit import PurePursuit, PursuitParams, PursuitStep, closest_point
 from server.control.stuck import (
     Recovery,
@@ -34,5 +34,4 @@ __all__ = [
     "clip",
     "closest_point",
     "world_to_robot",
-    "wrap_angle",
 ]

@@ -19,11 +19,6 @@ class Twist(NamedTuple):
 STOP = Twist(0.0, 0.0)
 
 
-def wrap_angle(a: float) -> float:
-    """Angle wrapped to (−π, π]."""
-    return math.pi - (math.pi - a) % (2.0 * math.pi)
-
-
 def world_to_robot(pose: ArrayLike, xy_world: ArrayLike) -> NDArray[np.float64]:
     """Points (…, 2) from the world frame into the frame of a robot at pose (x, y, θ):
     p_robot = R(θ)ᵀ (p_world − t)."""

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from server.control.geometry import Twist, clip, wrap_angle
+from schemas.se2 import wrap_angle
+from server.control.geometry import Twist, clip
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class Vfh:
         gamma = np.arcsin(np.minimum(1.0, r / d))
         # Sector k is blocked by a point when |wrap(centre_k − β)| ≤ γ + half a sector.
         half = math.pi / p.sectors
-        diff = np.abs((self._centres[None, :] - beta[:, None] + math.pi) % (2 * math.pi) - math.pi)
+        diff = np.abs(wrap_angle(self._centres[None, :] - beta[:, None]))
         blocked = np.any(diff <= (gamma + half)[:, None], axis=0)
         return blocked, nearest
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from schemas.se2 import wrap_angle
 from server.logs.records import F64, CarmenError, CarmenLog, LaserRecord, OdometryRecord
 
 FRONT_KINDS = ("ROBOTLASER1", "FLASER", "RAWLASER1", "LASER1")
@@ -44,9 +45,9 @@ def _interpolate(stamps: F64, poses: F64, t: float) -> F64:
     t0, t1 = stamps[j - 1], stamps[j]
     a = 0.0 if t1 <= t0 else (t - t0) / (t1 - t0)
     p0, p1 = poses[j - 1], poses[j]
-    d_theta = math.remainder(p1[2] - p0[2], 2 * math.pi)
+    d_theta = wrap_angle(p1[2] - p0[2])
     return np.array([p0[0] + a * (p1[0] - p0[0]), p0[1] + a * (p1[1] - p0[1]),
-                     math.remainder(p0[2] + a * d_theta, 2 * math.pi)])
+                     wrap_angle(p0[2] + a * d_theta)])
 
 
 def laser_poses_are_stale(scans: list[LaserRecord], stamps: F64, poses: F64) -> bool:

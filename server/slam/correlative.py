@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.se2 import wrap_angle
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 MAX_SURVIVORS = 30000
@@ -179,5 +181,5 @@ def search(field: LikelihoodField, points: F64, T_center: F64, window_m: float,
         (np.abs(a - a[j]) * step > separation_rad)
     second = float(scores[far].max()) if far.any() else 0.0
     T = np.array([T_center[0] + dx[j] * res, T_center[1] + dy[j] * res,
-                  math.remainder(float(thetas[a[j]]), 2 * math.pi)])
+                  wrap_angle(float(thetas[a[j]]))])
     return CorrelativeMatch(T, best_score, second if second >= ratio * best_score else 0.0)

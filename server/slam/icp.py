@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from schemas.se2 import wrap_angle
+
 F64 = NDArray[np.float64]
 
 
@@ -168,7 +170,7 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
         if prior_info is not None:
             # MAP step: (H/σ² + Λ) δ = g/σ² + Λ (x − x_prior)
             e = np.array([tx - prior_T[0], ty - prior_T[1],
-                          math.remainder(th - prior_T[2], 2.0 * math.pi)])
+                          wrap_angle(th - prior_T[2])])
             delta = _solve3(H * inv_var + prior_info, g * inv_var + prior_info @ e)
         else:
             delta = _solve3(H, g)
@@ -176,7 +178,7 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
             break
         tx -= delta[0]
         ty -= delta[1]
-        th = math.remainder(th - delta[2], 2.0 * math.pi)
+        th = wrap_angle(th - delta[2])
         if d_max <= p.min_correspondence_m:
             tol_m, tol_rad = p.converged_m, p.converged_rad
             small = abs(delta[0]) + abs(delta[1]) < tol_m and abs(delta[2]) < tol_rad
@@ -186,7 +188,7 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
             if flip:
                 tx += 0.5 * delta[0]
                 ty += 0.5 * delta[1]
-                th = math.remainder(th + 0.5 * delta[2], 2.0 * math.pi)
+                th = wrap_angle(th + 0.5 * delta[2])
             if small or flip:
                 converged = True
                 break

@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import transform_points
+from schemas.se2 import transform_points, wrap_angle
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.keyframes import Keyframe, voxel_thin
 
@@ -64,7 +64,7 @@ class GridMapper:
             return True
         d = poses[:n] - inserted
         shift = np.hypot(d[:, 0], d[:, 1])
-        turn = np.abs(np.remainder(d[:, 2] + math.pi, 2 * math.pi) - math.pi)
+        turn = np.abs(wrap_angle(d[:, 2]))
         return bool((shift > self.shift_m).any() or (turn > self.turn_rad).any())
 
     def update(self, keyframes: Sequence[Keyframe], poses: F64) -> OccupancyGrid:
