@@ -11,15 +11,19 @@ from server.slam.config import GridConfig, SlamConfig
 
 
 class ExploreConfig(ConfigModel):
-    explorer: Literal["voronoi", "frontier"] = "voronoi"
+    explorer: Literal["voronoi", "frontier"] = Field(
+        "voronoi", description="voronoi: targets on the skeleton of free space near frontiers; "
+        "frontier: near and large frontier clusters first (a baseline)")
     lam: float = Field(1.0, ge=0.0, le=1.0, description="C = λ·d_robot + (1−λ)·d_origin")
     seek_lam: float | None = Field(
         1.0, ge=0.0, le=1.0, description="λ while robots outside the robot's team remain: "
         "nearest targets first, no pull back to the start, so robots that have not met range "
-        "out sooner (None: lam throughout)")
+        "out sooner (null: lam throughout)")
     total_area_m2: float | None = Field(
         None, gt=0.0, description="area to cover; unknown: stop when no frontier is reachable")
-    coverage_threshold: float = Field(0.98, gt=0.0, le=1.0)
+    coverage_threshold: float = Field(
+        0.98, gt=0.0, le=1.0, description="a team is done when its coverage reaches this share of "
+        "total_area_m2")
     replan_period_s: float = Field(4.0, gt=0.0, description="re-decide the target this often")
     visited_radius_m: float = Field(1.0, gt=0.0, description="targets this close count as visited")
     unknown_as_obstacle: bool = Field(True, description="plan only through observed free space")
@@ -29,15 +33,23 @@ class ExploreConfig(ConfigModel):
 
 
 class ControlConfig(ConfigModel):
-    v_mps: float = Field(0.3, gt=0.0)
-    omega_max_rps: float = Field(1.5, gt=0.0)
-    lookahead_m: float = Field(1.0, gt=0.0)
-    goal_tolerance_m: float = Field(0.3, gt=0.0)
-    robot_radius_m: float = Field(0.13, gt=0.0)
-    command_ttl_s: float = Field(0.5, gt=0.0, le=10.0)
-    vfh: bool = True
-    stuck_window_s: float = Field(8.0, gt=0.0)
-    stuck_min_progress_m: float = Field(0.15, gt=0.0)
+    v_mps: float = Field(0.3, gt=0.0, description="forward speed while following a path")
+    omega_max_rps: float = Field(1.5, gt=0.0, description="largest turn rate commanded")
+    lookahead_m: float = Field(
+        1.0, gt=0.0, description="pure pursuit steers toward the path point this far ahead")
+    goal_tolerance_m: float = Field(0.3, gt=0.0, description="a target this close is reached")
+    robot_radius_m: float = Field(
+        0.13, gt=0.0, description="the robots' radius, for clearance in planning and avoidance")
+    command_ttl_s: float = Field(
+        0.5, gt=0.0, le=10.0, description="each velocity command holds this long; without a newer "
+        "one the robot stops")
+    vfh: bool = Field(
+        True, description="steer around obstacles and teammates close ahead (vector field "
+        "histogram)")
+    stuck_window_s: float = Field(
+        8.0, gt=0.0, description="a robot that moved less than stuck_min_progress_m in this long "
+        "is stuck and recovers")
+    stuck_min_progress_m: float = Field(0.15, gt=0.0, description="see stuck_window_s")
 
 
 class TeamsConfig(ConfigModel):
@@ -53,7 +65,7 @@ class TeamsConfig(ConfigModel):
                                    "the map check cannot object")
     pose_sigma_m: float = Field(0.03, gt=0.0, description="each robot's own pose uncertainty "
                                 "at a sighting (weighs sightings against each other)")
-    pose_sigma_deg: float = Field(0.5, gt=0.0)
+    pose_sigma_deg: float = Field(0.5, gt=0.0, description="... and in heading")
     max_sighting_range_m: float = Field(2.0, gt=0.0, description="farther tag sightings are "
                                         "not used (their range is biased, their yaw unreliable)")
     max_lidar_sighting_range_m: float = Field(
@@ -97,10 +109,10 @@ class TeamsConfig(ConfigModel):
         "the others join by rendezvous")
     start_pose_sigma_m: float = Field(0.05, gt=0.0, description="how well the start poses "
                                       "are known")
-    start_pose_sigma_deg: float = Field(1.0, gt=0.0)
+    start_pose_sigma_deg: float = Field(1.0, gt=0.0, description="... and in heading")
     coordination: Literal["optimal", "thesis"] = Field(
         "optimal", description="team targets by optimal assignment on path costs, or the "
-        "dissertation's rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
+        "greedy rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
 
 
 class ClockConfig(ConfigModel):
@@ -138,7 +150,7 @@ def _router() -> BusConfig:
 class ServerConfig(ConfigModel):
     bus: BusConfig = Field(default_factory=_router)
     robots: list[str] | None = Field(
-        None, description="robots allowed to join; None accepts any robot that appears")
+        None, description="robots allowed to join; null accepts any robot that appears")
     clock: ClockConfig = ClockConfig()
     admission: AdmissionConfig = AdmissionConfig()
     # one observation decides a cell for exploration: a beam through it makes it free
@@ -149,7 +161,9 @@ class ServerConfig(ConfigModel):
     teams: TeamsConfig = TeamsConfig()
     map_period_s: float = Field(
         1.0, gt=0.0, description="map updates and coverage checks, every this much scan time")
-    states_period_s: float = Field(0.25, gt=0.0)
+    states_period_s: float = Field(
+        0.25, gt=0.0, description="robot states (poses, modes, coverage) are published this often "
+        "(wall-clock time)")
     queue_per_robot: int = Field(50, ge=1, description="scans waiting beyond this are dropped")
     out: str | None = Field(None, description="folder for maps, trajectories and the summary")
     exit_when_done: bool = Field(False, description="stop once every team has finished")
