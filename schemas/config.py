@@ -36,12 +36,20 @@ class BusConfig(ConfigModel):
     be validated on another machine than the one it is for).
     """
 
-    mode: Literal["router", "client", "peer"] = "client"
-    listen: list[str] = Field(default_factory=list)
-    connect: list[str] = Field(default_factory=lambda: [LOOPBACK_ENDPOINT])
-    zenoh_config: str | None = None
+    mode: Literal["router", "client", "peer"] = Field(
+        "client", description="router: others connect to it (the server); client: connects to a "
+        "router (everyone else); peer: both, without a router")
+    listen: list[str] = Field(
+        default_factory=list, description="endpoints a router or peer listens on, e.g. "
+        "tcp/127.0.0.1:7447 (beyond loopback only with TLS and access rules, or insecure_listen)")
+    connect: list[str] = Field(
+        default_factory=lambda: [LOOPBACK_ENDPOINT], description="router endpoints to connect to, "
+        "e.g. tcp/10.0.0.2:7447")
+    zenoh_config: str | None = Field(
+        None, description="a Zenoh json5 file (TLS, access control, credentials); the settings "
+        "here are applied on top of it")
     connect_timeout_ms: int | None = Field(
-        default=None, description="-1 waits for the router forever; None keeps Zenoh's default")
+        default=None, description="-1 waits for the router forever; null keeps Zenoh's default")
     insecure_listen: bool = Field(
         False, description="listen on other machines' reach without TLS and access control "
         "(logged as a warning at every start); otherwise such a config is refused")

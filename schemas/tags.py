@@ -47,7 +47,9 @@ class TagLayoutError(ValueError):
 class TagLayout(ConfigModel):
     """Marker dictionary, size and mounting shared by every robot."""
 
-    dictionary: str = Field("DICT_4X4_50", pattern=r"^DICT_[A-Z0-9_]+$")
+    dictionary: str = Field(
+        "DICT_4X4_50", pattern=r"^DICT_[A-Z0-9_]+$", description="OpenCV ArUco dictionary of the "
+        "markers")
     marker_size_m: float = Field(0.12, gt=0.0, le=2.0,
                                  description="edge of the marker's black square [m]")
     plate_size_m: float = Field(0.16, gt=0.0, le=2.0,
@@ -128,10 +130,12 @@ R_BODY_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 class CameraMount(ConfigModel):
     """Pose of the forward camera on the robot (optical axis horizontal, ``yaw_rad`` off x)."""
 
-    x_m: float = Field(0.12, ge=-2.0, le=2.0)
-    y_m: float = Field(0.0, ge=-2.0, le=2.0)
-    z_m: float = Field(0.30, gt=0.0, le=5.0)
-    yaw_rad: float = Field(0.0, ge=-math.pi, le=math.pi)
+    x_m: float = Field(0.12, ge=-2.0, le=2.0, description="camera forward of the robot's centre")
+    y_m: float = Field(0.0, ge=-2.0, le=2.0, description="camera left of the robot's centre")
+    z_m: float = Field(0.30, gt=0.0, le=5.0, description="camera height above the floor")
+    yaw_rad: float = Field(
+        0.0, ge=-math.pi, le=math.pi, description="camera's optical axis, counter-clockwise from "
+        "the robot's forward axis")
 
     def T_robot_camera(self) -> np.ndarray:
         """4x4 transform of the optical frame into the robot base frame."""
