@@ -12,19 +12,25 @@ from schemas.types import ID_PATTERN
 
 
 class DetectorConfig(ConfigModel):
-    enabled: bool = True
-    max_reprojection_px: float = Field(2.0, gt=0.0)
+    enabled: bool = Field(True, description="False: no tag detection")
+    max_reprojection_px: float = Field(
+        2.0, gt=0.0, description="a marker pose whose RMS reprojection error is larger is dropped")
     range_a_m: float = Field(0.01, gt=0.0, description="σ_range = a + b r²")
-    range_b_per_m: float = Field(0.01, ge=0.0)
+    range_b_per_m: float = Field(0.01, ge=0.0, description="b of σ_range [1/m]")
     bearing_a_rad: float = Field(0.005, gt=0.0, description="σ_bearing = a + b r")
-    bearing_b_rad_per_m: float = Field(0.002, ge=0.0)
+    bearing_b_rad_per_m: float = Field(0.002, ge=0.0, description="b of σ_bearing [rad/m]")
     yaw_a_rad: float = Field(0.03, gt=0.0, description="σ_yaw = a + b r²")
-    yaw_b_rad_per_m2: float = Field(0.03, ge=0.0)
-    ambiguous_ratio: float = Field(3.0, ge=1.0)
-    ambiguous_sigma_yaw_rad: float = Field(1.5, gt=0.0)
+    yaw_b_rad_per_m2: float = Field(0.03, ge=0.0, description="b of σ_yaw [rad/m²]")
+    ambiguous_ratio: float = Field(
+        3.0, ge=1.0, description="when the mirrored pose solution fits within this factor of the "
+        "best, the tag's heading is ambiguous")
+    ambiguous_sigma_yaw_rad: float = Field(
+        1.5, gt=0.0, description="σ_yaw given to an ambiguous heading")
     line_of_sight: bool = Field(True, description="drop sightings with a closer LIDAR return "
                                 "toward the tag (seen through a gap in a wall)")
-    los_half_width_deg: float = Field(3.0, gt=0.0, le=45.0)
+    los_half_width_deg: float = Field(
+        3.0, gt=0.0, le=45.0, description="LIDAR beams this close to the tag's bearing are "
+        "checked")
     los_margin_m: float = Field(0.4, ge=0.0, description="returns this much nearer than the "
                                 "tag are not the observed robot itself")
     los_max_age_s: float = Field(0.3, gt=0.0, description="the scan must be this recent")
@@ -52,22 +58,22 @@ class RplidarConfig(ConfigModel):
     port: str = Field("/dev/rplidar", description="serial port (deploy/ installs this udev name)")
     baud: int = Field(115200, description="A1/A2: 115200, A3: 256000")
     beams: int = Field(360, ge=8, le=8192, description="fixed beams per sweep, from -pi")
-    range_min_m: float = Field(0.15, ge=0.0)
-    range_max_m: float = Field(12.0, gt=0.0, le=65.0)
+    range_min_m: float = Field(0.15, ge=0.0, description="readings closer are no-returns")
+    range_max_m: float = Field(12.0, gt=0.0, le=65.0, description="readings farther are no-returns")
     mount_yaw_rad: float = Field(0.0, ge=-7.0, le=7.0,
                                  description="yaw of the device's 0 deg mark on the robot")
     clockwise: bool = Field(True, description="device angles grow clockwise (RPLIDAR: yes)")
     motor_dtr: bool = Field(True, description="motor on/off through DTR (A2 USB adapter)")
-    reconnect_s: float = Field(1.0, gt=0.0)
+    reconnect_s: float = Field(1.0, gt=0.0, description="retry period after the device is lost")
 
 
 class MotorBaseConfig(ConfigModel):
     """Differential-drive base behind a microcontroller (protocol: deploy/firmware/README.md)."""
 
     port: str = Field("/dev/mrslam-base", description="serial port of the microcontroller")
-    baud: int = 115200
+    baud: int = Field(115200, description="serial baud rate")
     track_m: float = Field(0.30, gt=0.0, le=5.0, description="distance between the wheels b")
-    wheel_radius_m: float = Field(0.05, gt=0.0, le=1.0)
+    wheel_radius_m: float = Field(0.05, gt=0.0, le=1.0, description="radius of the drive wheels")
     ticks_per_rev: float = Field(1000.0, gt=0.0, description="encoder ticks per wheel turn")
     keepalive_s: float = Field(0.05, gt=0.0, le=0.2, description="command re-send period")
     hold_s: float = Field(0.4, gt=0.0, le=0.5,
@@ -75,16 +81,18 @@ class MotorBaseConfig(ConfigModel):
     firmware_timeout_ms: int = Field(300, ge=50, le=500,
                                      description="the firmware stops without frames this long")
     link_timeout_s: float = Field(0.5, gt=0.0, description="no encoder frames: reconnect")
-    reconnect_s: float = Field(1.0, gt=0.0)
+    reconnect_s: float = Field(1.0, gt=0.0, description="retry period after the link is lost")
 
 
 class CameraConfig(ConfigModel):
-    enabled: bool = True
+    enabled: bool = Field(True, description="False: no camera (no tag sightings)")
     device: int | str = Field(0, description="V4L2 index or path/URL for cv2.VideoCapture")
     calibration: str | None = Field(None, description="YAML/JSON with K and dist")
     rate_hz: float = Field(5.0, gt=0.0, le=60.0, description="frames handed to the detector")
-    width: int | None = Field(None, gt=0)
-    height: int | None = Field(None, gt=0)
+    width: int | None = Field(
+        None, gt=0, description="capture width [px]; null: the calibration's or the device's")
+    height: int | None = Field(
+        None, gt=0, description="capture height [px]; null: the calibration's or the device's")
 
 
 class HardwareConfig(ConfigModel):
@@ -94,14 +102,19 @@ class HardwareConfig(ConfigModel):
 
 
 class AgentConfig(ConfigModel):
-    robot_id: str = Field("r1", pattern=ID_PATTERN)
+    robot_id: str = Field(
+        "r1", pattern=ID_PATTERN, description="this robot's id (r1, r2, ...): its keys, its tag "
+        "ids")
     bus: BusConfig = BusConfig()
-    backend: Literal["sim", "hardware"] = "sim"
+    backend: Literal["sim", "hardware"] = Field(
+        "sim", description="sim: the simulator's sensors and motors over the bus; hardware: the "
+        "drivers in hardware (LIDAR, motor base, camera)")
     hardware: HardwareConfig = HardwareConfig()
-    status_period_s: float = Field(1.0, gt=0.0)
+    status_period_s: float = Field(1.0, gt=0.0, description="a RobotStatus is published this often")
     v_max_mps: float = Field(0.5, gt=0.0, le=5.0, description="commands are clipped to this")
-    omega_max_rps: float = Field(2.0, gt=0.0, le=20.0)
-    stop_on_server_loss: bool = True
+    omega_max_rps: float = Field(2.0, gt=0.0, le=20.0, description="turn rates are clipped to this")
+    stop_on_server_loss: bool = Field(
+        True, description="stop the motors when the server's liveliness token disappears")
     command_max_age_s: float = Field(10.0, gt=0.0, description="commands stamped longer ago "
                                      "on the robot's clock are ignored (a replay, a stamp-0 "
                                      "stranger); the server stamps each with its scan's time")
