@@ -20,12 +20,14 @@ Pose = tuple[float, float, float]
 
 
 class LidarConfig(ConfigModel):
-    beams: int = Field(400, ge=1, le=8192)
-    fov_deg: float = Field(360.0, gt=0.0, le=360.0)
-    range_min_m: float = Field(0.05, ge=0.0)
-    range_max_m: float = Field(10.0, gt=0.0, le=65.0)
-    sigma_m: float = Field(0.008, ge=0.0, le=1.0)
-    rate_hz: float = Field(10.0, gt=0.0, le=1000.0)
+    beams: int = Field(400, ge=1, le=8192, description="beams per sweep")
+    fov_deg: float = Field(
+        360.0, gt=0.0, le=360.0, description="field of view, centred on the robot's forward axis")
+    range_min_m: float = Field(0.05, ge=0.0, description="readings closer are no-returns")
+    range_max_m: float = Field(10.0, gt=0.0, le=65.0, description="readings farther are no-returns")
+    sigma_m: float = Field(0.008, ge=0.0, le=1.0, description="σ of the Gaussian range noise")
+    rate_hz: float = Field(
+        10.0, gt=0.0, le=1000.0, description="sweeps per second; one simulation step per sweep")
     height_m: float = Field(0.2, gt=0.0, le=10.0, description="the horizontal scan plane")
 
     @model_validator(mode="after")
@@ -36,12 +38,15 @@ class LidarConfig(ConfigModel):
 
 
 class DriveConfig(ConfigModel):
-    track_width_m: float = Field(0.27, gt=0.0)
-    radius_m: float = Field(0.13, gt=0.0)
-    v_max_mps: float = Field(0.5, gt=0.0, le=5.0)
-    omega_max_rps: float = Field(2.0, gt=0.0, le=20.0)
-    accel_max_mps2: float = Field(1.0, gt=0.0)
-    alpha_max_rps2: float = Field(4.0, gt=0.0)
+    track_width_m: float = Field(0.27, gt=0.0, description="distance between the wheels")
+    radius_m: float = Field(
+        0.13, gt=0.0, description="the robot's round body (collisions, other robots' LIDAR and "
+        "camera)")
+    v_max_mps: float = Field(0.5, gt=0.0, le=5.0, description="forward speed is clipped to this")
+    omega_max_rps: float = Field(2.0, gt=0.0, le=20.0, description="turn rate is clipped to this")
+    accel_max_mps2: float = Field(
+        1.0, gt=0.0, description="largest change of forward speed per second")
+    alpha_max_rps2: float = Field(4.0, gt=0.0, description="largest change of turn rate per second")
 
 
 class OdometryConfig(ConfigModel):
@@ -54,15 +59,16 @@ class OdometryConfig(ConfigModel):
 
 
 class CameraConfig(ConfigModel):
-    enabled: bool = True
-    width: int = Field(640, ge=16, le=8192)
-    height: int = Field(480, ge=16, le=8192)
-    hfov_deg: float = Field(60.0, gt=1.0, lt=170.0)
-    rate_hz: float = Field(5.0, gt=0.0)
-    max_range_m: float = Field(7.0, gt=0.0)
+    enabled: bool = Field(True, description="False: no camera images (no tag sightings)")
+    width: int = Field(640, ge=16, le=8192, description="image width [px]")
+    height: int = Field(480, ge=16, le=8192, description="image height [px]")
+    hfov_deg: float = Field(60.0, gt=1.0, lt=170.0, description="horizontal field of view")
+    rate_hz: float = Field(5.0, gt=0.0, description="frames per second")
+    max_range_m: float = Field(7.0, gt=0.0, description="tags farther away are not drawn")
     min_facing_cos: float = Field(0.2, ge=0.0, le=1.0,
                                   description="cos of the largest viewing angle off the tag normal")
-    blur_sigma_px: float = Field(0.6, ge=0.0, le=10.0)
+    blur_sigma_px: float = Field(
+        0.6, ge=0.0, le=10.0, description="σ of the Gaussian blur on each image")
     noise_sigma: float = Field(2.0, ge=0.0, le=50.0, description="pixel noise [grey levels]")
     spurious_rate: float = Field(0.0, ge=0.0, le=1.0, description="share of tag views drawn "
                                  "false (another robot's id, a pose ≥ 1 m or ≥ 30° off, or a "
@@ -72,15 +78,23 @@ class CameraConfig(ConfigModel):
 class SimConfig(ConfigModel):
     world: str | None = Field(None, description="world file (.world/.sdf or nav2 .yaml)")
     scenario: str | None = Field(None, description="a case of scenarios_file")
-    scenarios_file: str = str(DEFAULT_SCENARIOS)
-    model_path: list[str] = Field(default_factory=list)
+    scenarios_file: str = Field(
+        str(DEFAULT_SCENARIOS), description="the file the scenario is looked up in")
+    model_path: list[str] = Field(
+        default_factory=list, description="folders searched for Gazebo models a world includes")
     robots: dict[str, Pose] = Field(default_factory=dict, description="robot id -> spawn pose")
-    seed: int = Field(0, ge=0, le=2**63 - 1)
-    lockstep: bool = False
-    real_time_factor: float = Field(1.0, gt=0.0, le=1e4)
-    physics_rate_hz: float = Field(50.0, gt=0.0, le=10000.0)
+    seed: int = Field(
+        0, ge=0, le=2**63 - 1, description="random seed (noise, spurious views): one seed, one "
+        "run")
+    lockstep: bool = Field(
+        False, description="advance a step only after every agent has acknowledged the last one "
+        "(deterministic); otherwise real time × real_time_factor")
+    real_time_factor: float = Field(
+        1.0, gt=0.0, le=1e4, description="simulated seconds per wall second, when not in lockstep")
+    physics_rate_hz: float = Field(
+        50.0, gt=0.0, le=10000.0, description="integration steps per second of simulated time")
     duration_s: float | None = Field(None, gt=0.0, description="stop after this sim time")
-    max_steps: int | None = Field(None, ge=1)
+    max_steps: int | None = Field(None, ge=1, description="stop after this many steps")
     out: str | None = Field(None, description="folder for truth.jsonl and summary.json")
     lidar: LidarConfig = LidarConfig()
     drive: DriveConfig = DriveConfig()
