@@ -29,31 +29,45 @@ Pose = tuple[float, float, float]
 class DemoConfig(ConfigModel):
     """Everything a demo run is made of; saved as ``demo_config.yaml`` in the run folder."""
 
-    scenario: str | None = "thesis-case-2"
+    scenario: str | None = Field(
+        "thesis-case-2", description="a case of scenarios_file: world, robots, area, threshold and "
+        "controller settings")
     scenarios_file: str | None = Field(
         None, description="where the scenario is defined; default: the cases that ship with "
         "mrslam (sim/worlds/scenarios.yaml)")
-    world: str | None = None
-    robots: dict[str, Pose] = Field(default_factory=dict)
+    world: str | None = Field(
+        None, description="a world file (.world/.sdf or nav2 .yaml) instead of the scenario's")
+    robots: dict[str, Pose] = Field(
+        default_factory=dict, description="robot id -> spawn pose [x, y, yaw]; replaces the "
+        "scenario's robots")
     area_m2: float | None = Field(
         None, gt=0, description="area to cover (free space and the wall faces bounding it, "
         "as coverage counts both); default: the world's, from its geometry")
     coverage: float | None = Field(None, gt=0, le=1, description="default: the scenario's")
-    seed: int = 0
-    lockstep: bool = True
+    seed: int = Field(0, description="the simulator's random seed")
+    lockstep: bool = Field(
+        True, description="the simulator waits for every agent each step (deterministic); false: "
+        "real time × rtf")
     rtf: float = Field(5.0, gt=0, description="real-time factor when not in lockstep")
-    explorer: Literal["voronoi", "frontier"] = "voronoi"
+    explorer: Literal["voronoi", "frontier"] = Field(
+        "voronoi", description="voronoi or frontier (the server's explore.explorer)")
     cells_per_m: float | None = Field(None, gt=0, description="default: the scenario's, else 15")
     # λ of the Voronoi explorer; default 0.5, not the scenario's: the dissertation's λ = 0 for
     # the large world (cost = distance from the start only) sends a robot to and fro across the
     # map; pass the scenario's value to reproduce it
-    lam: float | None = Field(None, ge=0, le=1)
-    v_mps: float | None = None
-    omega_max_rps: float | None = None
-    lookahead_m: float | None = None
+    lam: float | None = Field(
+        None, ge=0, le=1, description="λ once all robots are in one team (explore.lam); default "
+        "0.5, not the scenario's")
+    v_mps: float | None = Field(
+        None, description="forward speed; default: the scenario's, else 0.3")
+    omega_max_rps: float | None = Field(
+        None, description="largest turn rate; default: the scenario's, else 1.5")
+    lookahead_m: float | None = Field(
+        None, description="pure pursuit look-ahead; default: the scenario's, else 1.0")
     spurious_detections: float = Field(0.0, ge=0, le=1, description="share of tag views "
                                        "the simulator draws false (merge verification test)")
-    coordination: Literal["optimal", "thesis"] = "optimal"
+    coordination: Literal["optimal", "thesis"] = Field(
+        "optimal", description="team targets: optimal or thesis (the server's teams.coordination)")
     merge: bool = Field(True, description="False: robots never merge their maps")
     known_starts: bool = Field(False, description="tell the server where the robots start: "
                                "one team from the first scan (no rendezvous needed)")
@@ -61,9 +75,11 @@ class DemoConfig(ConfigModel):
     clock_steps: dict[str, list[tuple[Finite, Finite]]] = Field(
         default_factory=dict, description="robots whose own clocks step: {r2: [[at_s, "
         "step_s]]} (sim time, step), to try the server's clock handling")
-    max_sim_time_s: float = Field(3600.0, gt=0)
-    wall_timeout_s: float = Field(1800.0, gt=0)
-    out: str = ""
+    max_sim_time_s: float = Field(
+        3600.0, gt=0, description="the simulator stops after this much simulated time")
+    wall_timeout_s: float = Field(
+        1800.0, gt=0, description="the demo gives up after this much wall-clock time")
+    out: str = Field("", description="the run folder; empty: runs/<scenario>-<date>-<time>")
 
 
 def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
