@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from schemas.se2 import wrap_angle
 from schemas.tags import SIDE_YAW_RAD, CameraMount, Side, TagLayout
 
 #: cos of the largest tilt between a tag's "up" axis and the camera's up that is accepted.
@@ -181,7 +182,7 @@ class TagDetector:
         x = T_base_tag[0, 3] - h * math.cos(psi)
         y = T_base_tag[1, 3] - h * math.sin(psi)
         rng = math.hypot(x, y)
-        yaw = math.remainder(psi - SIDE_YAW_RAD[side], 2 * math.pi)
+        yaw = wrap_angle(psi - SIDE_YAW_RAD[side])
         s_r, s_b, s_y = self.sigma.sigmas(rng)
         if m.ambiguity > 1.0 / self.sigma.ambiguous_ratio:
             s_y = max(s_y, self.sigma.ambiguous_sigma_yaw_rad)
@@ -256,7 +257,7 @@ def in_line_of_sight(range_m: float, bearing_rad: float, ranges_m: np.ndarray,
     never object."""
     r = np.asarray(ranges_m, dtype=np.float64)
     a = np.asarray(angles_rad, dtype=np.float64)
-    off = np.abs(np.remainder(a - bearing_rad + math.pi, 2 * math.pi) - math.pi)
+    off = np.abs(wrap_angle(a - bearing_rad))
     near = (off <= half_width_rad) & np.isfinite(r)
     return not bool(np.any(r[near] < range_m - margin_m))
 
@@ -295,7 +296,7 @@ def lidar_fix(range_m: float, bearing_rad: float, ranges_m: np.ndarray, angles_r
     a = np.asarray(angles_rad, dtype=np.float64)
     along = 0.1 + 0.15 * range_m                      # covers the tag's range bias
     half = math.atan2(rho + across_tolerance_m, range_m)
-    off = np.remainder(a - bearing_rad + math.pi, 2 * math.pi) - math.pi
+    off = wrap_angle(a - bearing_rad)
     front = range_m - rho
     sel = (np.abs(off) <= half) & np.isfinite(r) & (np.abs(r - front) <= along)
     if sel.sum() < min_beams:
@@ -325,7 +326,7 @@ def lidar_fix(range_m: float, bearing_rad: float, ranges_m: np.ndarray, angles_r
     if rms > 3 * sigma_m or float(np.dot(c - pts.mean(axis=0), u)) <= 0:
         return None
     rng, brg = float(np.hypot(*c)), float(math.atan2(c[1], c[0]))
-    if abs(rng - range_m) > along or abs(math.remainder(brg - bearing_rad, 2 * math.pi)) * \
+    if abs(rng - range_m) > along or abs(wrap_angle(brg - bearing_rad)) * \
             range_m > across_tolerance_m + 0.1 * rho:
         return None
     JtJ = J.T @ J

@@ -41,6 +41,7 @@ from schemas.bus import Bus
 from schemas.config_loading import load_config
 from schemas.messages import RobotState
 from schemas.ratelog import RateLimitedLog
+from schemas.se2 import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -205,8 +206,7 @@ class Agent:
             return det
         self.counters["tags_lidar_fixed"] += 1
         return msgspec.structs.replace(
-            det, range_m=fix.range_m, bearing_rad=math.remainder(fix.bearing_rad - turn,
-                                                                 2 * math.pi),
+            det, range_m=fix.range_m, bearing_rad=wrap_angle(fix.bearing_rad - turn),
             sigma_range_m=fix.sigma_range_m, sigma_bearing_rad=fix.sigma_bearing_rad,
             located_by="lidar")
 

@@ -33,6 +33,7 @@ import serial
 
 from robot_agent.backend import Odometry, Pose
 from robot_agent.drivers import base_protocol as proto
+from schemas.se2 import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -109,15 +110,15 @@ class SerialBase:
             dt = dt_ns * 1e-9
             return Odometry(stamp_ns, (x + last.v_mps * dt * math.cos(th),
                                        y + last.v_mps * dt * math.sin(th),
-                                       math.remainder(th + last.omega_rps * dt, 2 * math.pi)),
+                                       wrap_angle(th + last.omega_rps * dt)),
                             last.v_mps, last.omega_rps)
         i = bisect.bisect_right([o.stamp_ns for o in h], stamp_ns)
         a, b = h[i - 1], h[i]
         s = (stamp_ns - a.stamp_ns) / max(b.stamp_ns - a.stamp_ns, 1)
-        dth = math.remainder(b.pose[2] - a.pose[2], 2 * math.pi)
+        dth = wrap_angle(b.pose[2] - a.pose[2])
         return Odometry(stamp_ns, (a.pose[0] + s * (b.pose[0] - a.pose[0]),
                                    a.pose[1] + s * (b.pose[1] - a.pose[1]),
-                                   math.remainder(a.pose[2] + s * dth, 2 * math.pi)),
+                                   wrap_angle(a.pose[2] + s * dth)),
                         a.v_mps + s * (b.v_mps - a.v_mps),
                         a.omega_rps + s * (b.omega_rps - a.omega_rps))
 

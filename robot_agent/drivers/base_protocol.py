@@ -22,6 +22,8 @@ import math
 import struct
 from dataclasses import dataclass
 
+from schemas.se2 import wrap_angle
+
 PREAMBLE = b"\xaa\x55"
 SPEED = 0x01
 STOP = 0x02
@@ -155,7 +157,7 @@ def integrate(pose: tuple[float, float, float], d_left_m: float, d_right_m: floa
     chord = ds if abs(dth) < 1e-9 else 2.0 * ds / dth * math.sin(0.5 * dth)
     x += chord * math.cos(th + 0.5 * dth)
     y += chord * math.sin(th + 0.5 * dth)
-    return x, y, math.remainder(th + dth, 2 * math.pi)
+    return x, y, wrap_angle(th + dth)
 
 
 def tick_delta(new: int, old: int) -> int:

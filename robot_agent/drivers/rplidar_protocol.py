@@ -26,6 +26,7 @@ import numpy as np
 
 from robot_agent.backend import Sweep
 from robot_agent.drivers.beams import to_beams
+from schemas.se2 import wrap_angle
 
 SYNC = 0xA5
 SYNC2 = 0x5A
@@ -265,14 +266,14 @@ class RevolutionAssembler:
 
 def robot_angles_rad(angle_deg: np.ndarray, mount_yaw_rad: float = 0.0,
                      clockwise: bool = True) -> np.ndarray:
-    """Device angles [deg] -> robot-frame angles [rad], counter-clockwise, wrapped to [−π, π).
+    """Device angles [deg] -> robot-frame angles [rad], counter-clockwise, wrapped to (−π, π].
 
     The RPLIDAR measures clockwise seen from above; the robot frame turns counter-clockwise.
     ``mount_yaw_rad`` is the yaw of the device's 0° direction in the robot frame.
     """
     a = np.radians(angle_deg)
     a = mount_yaw_rad + (-a if clockwise else a)
-    return (a + math.pi) % (2 * math.pi) - math.pi
+    return wrap_angle(np.asarray(a))
 
 
 def to_sweep(rev: Revolution, beams: int, range_min_mm: int, range_max_mm: int,
