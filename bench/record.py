@@ -42,6 +42,7 @@ from schemas import (  # noqa: E402
     quantise_ranges_mm,
 )
 from schemas.bus import Bus, free_local_endpoint  # noqa: E402
+from schemas.se2 import wrap_angle  # noqa: E402
 
 GOAL_CPU_PERCENT, GOAL_BYTES_PER_S = 5.0, 20_000.0
 
@@ -73,7 +74,7 @@ def publish_robots(bus: Bus, robots: list[str], beams: int, stop: threading.Even
         poses = []
         for i, rid in enumerate(robots):
             x, y = 4.0 + 2 * float(np.cos(0.02 * k + i)), 3.0 + 2 * float(np.sin(0.02 * k + i))
-            th = float(np.angle(np.exp(0.02j * k)))
+            th = wrap_angle(0.02 * k)
             poses.append(RobotEstimate(robot_id=rid, team_id=f"team-{rid}", pose=(x, y, th)))
             ranges = room_ranges_m(x, y, th, angles, rng)
             bus.publish(keys.robot_scan(rid), Scan(

@@ -25,6 +25,7 @@ import numpy as np
 # bench/sim.py would shadow the simulator package: the repository comes first
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from robot_agent.aruco import TagDetector, in_line_of_sight, lidar_fix
+from schemas.se2 import wrap_angle
 from schemas.tags import CameraMount, TagLayout
 from sim.simulator import SimParams, Simulator
 from sim.world import World
@@ -36,8 +37,7 @@ def facing_pose(layout: TagLayout, mount: CameraMount, distance_m: float, bearin
     tx, ty = mount.x_m + distance_m * math.cos(bearing), distance_m * math.sin(bearing)
     heading = bearing + math.pi + turn
     h = layout.mast_half_width_m
-    return (tx + h * math.cos(heading), ty + h * math.sin(heading),
-            math.remainder(heading, 2 * math.pi))
+    return tx + h * math.cos(heading), ty + h * math.sin(heading), wrap_angle(heading)
 
 
 def stats(v: list[float]) -> dict[str, float] | None:
@@ -80,15 +80,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             read += 1
             true_r, true_b = math.hypot(pose[0], pose[1]), math.atan2(pose[1], pose[0])
             tag_r.append(s.range_m - true_r)
-            tag_b.append(math.degrees(math.remainder(s.bearing_rad - true_b, 2 * math.pi)))
+            tag_b.append(math.degrees(wrap_angle(s.bearing_rad - true_b)))
             ranges = obs.ranges_m["r1"]
             los.append(in_line_of_sight(s.range_m, s.bearing_rad, ranges, angles))
             fix = lidar_fix(s.range_m, s.bearing_rad, ranges, angles, params.drive.radius_m)
             if fix is not None:
                 fixed += 1
                 fix_r.append(fix.range_m - true_r)
-                fix_b.append(math.degrees(math.remainder(fix.bearing_rad - true_b,
-                                                         2 * math.pi)))
+                fix_b.append(math.degrees(wrap_angle(fix.bearing_rad - true_b)))
         rows.append({"distance_m": dist, "samples": args.samples, "tags_read": read,
                      "lidar_fixed": fixed, "tag_range_error_m": stats(tag_r),
                      "tag_bearing_error_deg": stats(tag_b),

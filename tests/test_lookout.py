@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from schemas.se2 import wrap_angle
 from server.lookout import Lookout, LookParams, moving_object
 from server.planning import OccupancyGrid
 
@@ -58,7 +59,7 @@ def test_lookout_turns_holds_then_cools_down() -> None:
         pose = np.add(pose, [0.0, 0.0, 0.1 * tw.omega_rps])
         t += 0.1
         tw = look.step(t, pose, pts, g, np.zeros((0, 2)))
-    assert abs(math.remainder(pose[2] - math.pi, 2 * math.pi)) < math.radians(8)
+    assert abs(wrap_angle(pose[2] - math.pi)) < math.radians(8)
     assert tw is not None and tw.omega_rps == 0.0 and tw.v_mps == 0.0    # holding
     assert look.step(t + 1.1, pose, pts, g, np.zeros((0, 2))) is None     # done
     # the same thing right after: no new look during the cooldown
@@ -97,8 +98,7 @@ def test_a_far_mover_is_approached_until_its_tag_can_be_read() -> None:
     assert look.approaches == 1 and look.looks == 1 and look.moved
     d = math.hypot(*(other - pose[:2]))
     assert 0.6 < d <= 1.3                                 # close enough to read its heading
-    bearing = math.remainder(math.atan2(other[1] - pose[1], other[0] - pose[0]) - pose[2],
-                             2 * math.pi)
+    bearing = wrap_angle(math.atan2(other[1] - pose[1], other[0] - pose[0]) - pose[2])
     assert abs(bearing) < math.radians(10)               # and facing it
 
 
@@ -220,7 +220,7 @@ def test_a_call_from_close_by_cuts_an_approach_short_and_holds_to_meet() -> None
         pose = np.add(pose, [0.0, 0.0, 0.1 * tw.omega_rps])
         t += 0.1
         tw = look.step(t, pose, far, g, np.zeros((0, 2)))
-    assert abs(math.remainder(pose[2] - math.pi, 2 * math.pi)) < math.radians(8)
+    assert abs(wrap_angle(pose[2] - math.pi)) < math.radians(8)
     # further calls while meeting change nothing; the hold lasts meet_hold_s, not hold_s
     look.hear(t + 1.0, np.array([-4.8, 0.0]), 1.0, sure=False)
     held = look.step(t + 2.0, pose, far, g, np.zeros((0, 2)))
@@ -258,8 +258,7 @@ def test_an_unsure_call_with_the_readers_distance_faces_what_stands_there() -> N
     look.hear(0.0, wrong, 2.0, sure=False, range_m=dist, range_tolerance_m=0.3)
     tw = look.step(0.05, pose, pts, g, np.zeros((0, 2)))
     toward = math.atan2(reader[1] - pose[1], reader[0] - pose[0])
-    assert look.heading is not None and abs(math.remainder(look.heading - toward,
-                                                           2 * math.pi)) < 0.05
+    assert look.heading is not None and abs(wrap_angle(look.heading - toward)) < 0.05
     assert look.meeting and not look.approaching and look.spin_until_s is None
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps < 0      # turning right
     # facing it, the robot reads the reader's tag: a sure call, and it goes closer

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import between, compose
+from schemas.se2 import between, compose, wrap_angle
 
 F64 = NDArray[np.float64]
 Segment = tuple[tuple[float, float], tuple[float, float]]
@@ -80,7 +80,7 @@ def waypoints_path(points: list[tuple[float, float]], step_m: float) -> F64:
         heading = math.atan2(y1 - y0, x1 - x0)
         if out:
             prev = out[-1][2]
-            turn = math.remainder(heading - prev, 2 * math.pi)
+            turn = wrap_angle(heading - prev)
             n_turn = max(1, int(abs(turn) / math.radians(8)))
             for k in range(1, n_turn + 1):
                 out.append((x0, y0, prev + turn * k / n_turn))
