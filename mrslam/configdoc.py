@@ -168,7 +168,7 @@ def _bounds(metadata: list[Any]) -> str:
 
 
 def _number(v: Any) -> str:
-    return json.dumps(v)
+    return f"{v:g}" if isinstance(v, float) else str(v)
 
 
 def _value_text(v: Any) -> str:
