@@ -31,7 +31,7 @@ from server.exploration import (
     VisitedTargets,
     assign_spread,
 )
-from server.navigator import EXPLORING, Navigator
+from server.navigator import Navigator, NavMode
 from server.planning import OccupancyGrid
 
 log = logging.getLogger(__name__)
@@ -45,28 +45,6 @@ class Member:
     pose: F64
     start_pose: F64
     nav: Navigator
-
-
-def redirect(nav: Navigator, target_xy: tuple[float, float], path_xy: F64) -> None:
-    """Send a robot to a new target along ``path_xy`` (team assignment)."""
-    nav.pursuit.reset()
-    nav.stuck.reset()
-    nav.target_xy = target_xy
-    nav.path_xy = path_xy
-    nav.mode = EXPLORING
-
-
-def own_explorer(nav: Navigator) -> Explorer:
-    """The robot's own explorer, under the team's when it is in a team of several."""
-    return nav.explorer.base if isinstance(nav.explorer, TeamExplorer) else nav.explorer
-
-
-def drop_target(nav: Navigator) -> None:
-    """Forget the current target and path (e.g. the map frame changed under them)."""
-    nav.target_xy = None
-    nav.path_xy = None
-    nav.pursuit.reset()
-    nav.stuck.reset()
 
 
 class TeamExplorer:
@@ -102,7 +80,7 @@ class TeamExplorer:
         if self.mode == "thesis":
             return self._alone(grid, robot_pose, start_pose, visited, committed)
         free = [i for i, m in enumerate(team)
-                if i == me or (m.nav.target_xy is None and m.nav.mode != "done")]
+                if i == me or (m.nav.target_xy is None and m.nav.mode != NavMode.DONE)]
         tc = self.base.team_costs(grid, [team[i].pose for i in free],
                                   [team[i].start_pose for i in free], visited)
         if tc.cost.shape[1] == 0:
@@ -128,7 +106,7 @@ class TeamExplorer:
                 log.info("no path for %s to its assigned target: %s", team[i].robot_id, e)
                 continue
             xy = (float(tc.targets_xy[k, 0]), float(tc.targets_xy[k, 1]))
-            redirect(team[i].nav, xy, path.xy_m)
+            team[i].nav.redirect(xy, path.xy_m)
         xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
         return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
                         (), None)

@@ -8,9 +8,11 @@ unexplored space, or after a recovery manoeuvre. The explorer may ask for a shor
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,7 +34,17 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-WAITING, EXPLORING, RECOVERING, DONE = "waiting", "exploring", "stuck", "done"
+class NavMode(StrEnum):
+    """What a robot's navigator is doing (the values are the wire's ``RobotEstimate.mode``)."""
+
+    WAITING = "waiting"        # no target yet (or deciding)
+    EXPLORING = "exploring"    # following a path to a target
+    RECOVERING = "stuck"       # backing out after being stuck
+    DONE = "done"              # its team finished, or no reachable frontier is left
+
+
+WAITING, EXPLORING, RECOVERING, DONE = (NavMode.WAITING, NavMode.EXPLORING, NavMode.RECOVERING,
+                                        NavMode.DONE)
 
 
 @dataclass
@@ -51,13 +63,14 @@ class Navigator:
                  stuck: StuckDetector, replan_period_s: float,
                  commit_radius_m: float = 1.5) -> None:
         self.explorer = explorer
+        self._own_explorer = explorer      # ``explorer`` may wrap it (a team's coordination)
         self.pursuit = PurePursuit(pursuit)
         self.vfh = Vfh(vfh) if vfh is not None else None
         self.stuck = stuck
         self.recovery = Recovery()
         self.replan_period_s = replan_period_s
         self.commit_radius_m = commit_radius_m
-        self.mode = WAITING
+        self.mode: NavMode = WAITING
         self.target_xy: tuple[float, float] | None = None
         self.path_xy: F64 | None = None
         self.finished_reason = ""
@@ -198,3 +211,35 @@ class Navigator:
     def finish(self, reason: str) -> None:
         self.mode, self.finished_reason = DONE, reason
         self.path_xy = self.target_xy = None
+
+    # -- what others may change --------------------------------------------------------------
+    @property
+    def own_explorer(self) -> Explorer:
+        """The robot's own explorer (under its team's, when it is in a team of several)."""
+        return self._own_explorer
+
+    def use_explorer(self, explorer: Explorer) -> None:
+        """Decide targets with ``explorer`` from now on: the robot's own, or a team's that
+        wraps it."""
+        self.explorer = explorer
+
+    def set_lam(self, lam: float) -> None:
+        """λ of the robot's own explorer."""
+        base = self._own_explorer
+        if base.params.lam != lam:
+            base.params = dataclasses.replace(base.params, lam=lam)
+
+    def drop_target(self) -> None:
+        """Forget the current target and path (e.g. the map frame changed under them)."""
+        self.target_xy = None
+        self.path_xy = None
+        self.pursuit.reset()
+        self.stuck.reset()
+
+    def redirect(self, target_xy: tuple[float, float], path_xy: F64) -> None:
+        """Go to a new target along ``path_xy`` (the team's assignment)."""
+        self.pursuit.reset()
+        self.stuck.reset()
+        self.target_xy = target_xy
+        self.path_xy = path_xy
+        self.mode = EXPLORING

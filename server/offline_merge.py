@@ -36,8 +36,10 @@ from schemas.errors import SchemaError
 from schemas.se2 import compose, inverse, wrap_angle
 from schemas.types import ID_PATTERN
 from server.config import ServerConfig
-from server.core import MergeRecord, ServerCore
-from server.teams import MergeProposal, cross_matches
+from server.core import ServerCore
+from server.fleet import MergeRecord
+from server.rendezvous.evidence import MergeProposal
+from server.rendezvous.maps import cross_matches
 
 log = logging.getLogger(__name__)
 
@@ -188,12 +190,12 @@ def merge_by_marker(core: ServerCore, a: str, b: str, T_ab: F64, stamp_ns: int) 
         return
     ta, tb = core.teams[ra.team_id], core.teams[rb.team_id]
     sig = np.array([MARKER_SIGMA_M, MARKER_SIGMA_M, MARKER_SIGMA_RAD])
-    T_team, link = core.own_frames_link(a, b, T_ab, sig, "marker", stamp_ns)
+    T_team, link = core.surgery.own_frames_link(a, b, T_ab, sig, "marker", stamp_ns)
     # a hand-measured marker is off by decimetres and degrees, which the strict map check
     # would take for disagreement far from the marker: align on the maps' overlap first
     T_checked = prealign(core, ta.robot_ids, tb.robot_ids, T_team)
     # the proposal's transform: B's team frame -> A's team frame
-    core.try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, np.diag(sig ** 2),
+    core.merger.try_merge(MergeProposal(ta.team_id, tb.team_id, (), T_checked, np.diag(sig ** 2),
                                  T_team), stamp_ns, (link,), kind="marker")
 
 

@@ -6,10 +6,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from server.teams import MergeVerifier, VerifierParams, make_record, rigid_fit
 
 from factors.rendezvous import Sighting
 from schemas.se2 import between, compose, inverse, wrap_angle
+from server.rendezvous.evidence import MergeVerifier, VerifierParams, make_record, rigid_fit
 
 T_XY = np.array([3.0, -2.0, 0.8])   # team Y's frame in team X's
 SIG = (0.03, 0.03, math.radians(0.5))
@@ -102,7 +102,7 @@ def _grid(free: np.ndarray, occ: np.ndarray) -> object:
 
 
 def test_map_check_ignores_grazed_walls_but_not_walls_in_a_room() -> None:
-    from server.teams import map_agreement
+    from server.rendezvous.maps import map_agreement
 
     h = w = 80
     room = np.zeros((h, w), dtype=bool)

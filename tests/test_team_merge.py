@@ -245,7 +245,7 @@ def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
     r1.look.next_s = -math.inf
     r1.look.hear(r1.last_stamp_ns * 1e-9, compose(r1.pose, np.array([-1.5, 0.0, 0.0]))[:2],
                  1.0, sure=False)                           # someone just behind it
-    tw = core._look(r1, r1.last_stamp_ns * 1e-9 + 0.05, np.zeros((0, 2)))
+    tw = core.steering.look(r1, r1.last_stamp_ns * 1e-9 + 0.05, np.zeros((0, 2)))
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps != 0.0   # turning to face it
 
 
@@ -262,10 +262,10 @@ def test_robots_range_out_until_every_robot_is_in_their_team() -> None:
 
     assert len(core.teams) == 2 and lam("r1") == lam("r2") == 0.9
     core.set_alive("r2", False)
-    core._set_lambda()
+    core.progress.set_lambda()
     assert lam("r1") == 0.3
     core.set_alive("r2", True)
-    core._set_lambda()
+    core.progress.set_lambda()
     assert lam("r1") == 0.9
 
 
@@ -321,18 +321,16 @@ def test_a_misread_tag_does_not_merge_a_robot_that_is_elsewhere() -> None:
 def test_a_team_split_after_it_finished_explores_again() -> None:
     """A merge undone after the team reached its coverage leaves two teams that have not: both
     go back to exploring (the server does not stop on the team's earlier finish)."""
-    from types import SimpleNamespace
-
     spawn = {**SPAWN, "r3": (-7.0, 7.0, 1.2)}
     core, _ = run(40, cfg=config(("r1", "r2", "r3"), refine_on_maps=False), spawn=spawn)
     assert len(core.teams) == 1
     team = next(iter(core.teams.values()))
     stamp = core.robots["r1"].last_stamp_ns
-    core._finish_team(team, stamp, "coverage reached")
+    core.progress.finish_team(team, stamp, "coverage reached")
     assert core.finished and all(r.nav.mode == "done" for r in core.robots.values())
     last = core.merges[-1]
     pair = (sorted(last.robots_b)[0], next(r for r in team.robot_ids if r not in last.robots_b))
-    core._undo(team, SimpleNamespace(stamp_ns=stamp), tuple(sorted(pair)))
+    core.merger.undo(team, stamp, tuple(sorted(pair)))
     assert last.undone_stamp_ns == stamp and len(core.teams) == 2
     assert not core.finished and not any(t.finished for t in core.teams.values())
     assert all(r.nav.mode != "done" and r.nav.finished_reason == "" for r in core.robots.values())
@@ -342,7 +340,7 @@ def test_a_proposal_whose_rotation_the_maps_contradict_is_refused() -> None:
     """A proposal right where the robots stand but turned 4° (sightings from afar, sharing one
     error across the line of sight): matched where they overlap, the maps turn it back by
     more than its σ allows, and the merge is refused; the true transform merges."""
-    from server.teams import MergeProposal
+    from server.rendezvous.evidence import MergeProposal
 
     # no merge from sightings; and no conflict check, which would see 4° here, so close to
     # both robots' starts, but not far from them, where such merges came from
@@ -355,14 +353,14 @@ def test_a_proposal_whose_rotation_the_maps_contradict_is_refused() -> None:
     # turned about r2's current place: right there, 4° off everywhere else
     T_bad = compose(compose(at_meet, turn), between(meet, np.zeros(3)))
     C = np.diag([0.02 ** 2, 0.02 ** 2, math.radians(0.8) ** 2])
-    core.try_merge(MergeProposal("team-r1", "team-r2", (), T_bad, C, T_bad), 1)
+    core.merger.try_merge(MergeProposal("team-r1", "team-r2", (), T_bad, C, T_bad), 1)
     assert len(core.teams) == 2 and core.tag_counters["merges_rejected"] == 1
     assert any(e.kind == "merge_rejected" and "turn" in e.message for e in core.event_log)
     # (with no sightings, a link between the start frames holds the graphs together)
-    _, link = core.own_frames_link("r1", "r2", T_true, np.array([0.02, 0.02, 0.01]), "marker",
-                                   2)
-    core.try_merge(MergeProposal("team-r1", "team-r2", (), T_true, C, T_true), 2, (link,),
-                   kind="marker")
+    _, link = core.surgery.own_frames_link("r1", "r2", T_true, np.array([0.02, 0.02, 0.01]),
+                                           "marker", 2)
+    core.merger.try_merge(MergeProposal("team-r1", "team-r2", (), T_true, C, T_true), 2,
+                          (link,), kind="marker")
     assert len(core.teams) == 1 and len(core.merges) == 1
     assert abs(core.merges[0].agreement["map_turn_deg"]) < 1.0
 
@@ -375,15 +373,13 @@ def test_a_team_whose_live_robots_are_done_finishes_without_the_one_that_vanishe
     core.set_alive("r2", False)
     core.robots["r1"].nav.finish("no reachable frontier left")
     assert core.robots["r2"].nav.mode != "done"
-    core._next_cover_ns = 0
-    core._periodic(stamp + 1)
+    core.progress.update(stamp + 1)
     assert team.finished and core.finished
     # ... but a team with no live robot left is not taken for done
     core2, _ = run(20, cfg=config(start_poses={r: list(p) for r, p in SPAWN.items()}))
     for rid in SPAWN:
         core2.set_alive(rid, False)
-    core2._next_cover_ns = 0
-    core2._periodic(core2.robots["r1"].last_stamp_ns + 1)
+    core2.progress.update(core2.robots["r1"].last_stamp_ns + 1)
     assert not core2.finished
 
 
@@ -395,8 +391,7 @@ def test_robots_that_vanished_alone_do_not_hold_back_the_end() -> None:
     core.set_alive("r2", False)
     assert not core.finished
     core.robots["r1"].nav.finish("no reachable frontier left")
-    core._next_cover_ns = 0
-    core._periodic(core.robots["r1"].last_stamp_ns + 1)
+    core.progress.update(core.robots["r1"].last_stamp_ns + 1)
     assert core.teams["team-r1"].finished and core.finished
     assert not core.teams["team-r2"].finished
     core.set_alive("r2", True)   # it came back: its team has work left
@@ -414,12 +409,12 @@ def test_slam_does_not_see_the_teammates_bodies() -> None:
     bearing, dist = math.atan2(rel[1], rel[0]), math.hypot(rel[0], rel[1])
     angles = np.array([bearing, bearing + 0.02, bearing + 1.0, bearing - 1.0])
     ranges = np.array([dist - 0.13, dist - 0.1, 3.0, np.inf])
-    out = core._without_teammates(r1, ranges, angles)
+    out = core.fleet.without_teammates(r1, ranges, angles)
     assert np.isnan(out[:2]).all()                      # on r2's body: no return
     assert out[2] == 3.0 and out[3] == np.inf           # the rest as measured
     assert not np.isnan(ranges).any()                   # the navigator's scan is untouched
     core.set_alive("r2", False)                         # a vanished teammate is not filtered
-    assert not np.isnan(core._without_teammates(r1, ranges, angles)).any()
+    assert not np.isnan(core.fleet.without_teammates(r1, ranges, angles)).any()
 
 
 def keyframe_errors(core: ServerCore, truth: dict[int, dict[str, tuple[float, float, float]]]

@@ -1,175 +1,20 @@
-"""Looking at what moves: a rendezvous needs the camera on the other robot.
-
-The camera looks forward with a narrow field of view, so two robots can pass a few metres from
-each other without either reading the other's tag. The LIDAR sees all around: returns that
-fall, as a compact group, into space the map knows to be free (with free cells all around)
-are something that moved there — most likely another robot. While the robot still has robots
-outside its team, it then turns toward that group, holds still a moment so the camera gets a
-few frames, and goes back to its path. A cooldown keeps it from doing this too often.
-
-Farther away than a tag can be read, up to ``approach_range_m``, such a group is something to
-go and see: once it has been seen in a few consecutive scans near one place, the robot drives
-toward it (tracking it scan by scan) until it is close enough to read a tag well, then turns
-toward it and holds as above. "Well" means close: a tag's heading is only informative within a
-metre or so, and without it a merge needs sightings from places a metre apart. Both robots
-usually see each other at once, so they close in together. The approach gives up when the
-thing is lost or takes too long.
-
-A tag read from too far to merge on is a call: the server passes it to both robots. The one
-that read it knows where the other is (range and bearing are good even where the tag's heading
-is not) and goes there; the one that was seen learns roughly where the reader stands (through
-the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place.
-When it sees none there, the place is no guide (past 3 m a tag's heading is off by tens of
-degrees), so it stops and turns once on the spot: the reader is coming, and once its tag is in
-view the robot knows where the reader is, too. Each further sighting keeps the approach alive, so a
-robot that stands still behind the other's LIDAR shadow is not lost. A call from within tag
-range cuts short whatever else the robot was looking at or driving to: it faces the other robot
-and both hold still a few seconds, so that each reads the other's tag.
-"""
+"""One robot's turns toward what moves, and its approaches (see ``server.lookout``)."""
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.se2 import transform_points, wrap_angle
 from server.control import Twist
+from server.lookout.movers import LookParams, bearing_to, moving_objects, objects_at_range
 from server.planning import OccupancyGrid
-from server.planning.grid import OCCUPIED_ABOVE
-from server.slam.geometry import transform_points
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class LookParams:
-    min_range_m: float = 0.35
-    max_range_m: float = 3.5         # where a tag can still be read well
-    min_points: int = 3
-    cluster_m: float = 0.5           # a robot is small
-    half_fov_rad: float = math.radians(20.0)   # already in view: nothing to do
-    aligned_rad: float = math.radians(6.0)
-    omega_rps: float = 1.0
-    hold_s: float = 1.0
-    meet_hold_s: float = 3.0         # face a robot known to be close this long: both cameras
-                                     # read tags, and two robots' views fix the rotation
-    meet_cooldown_s: float = 10.0    # after meeting, close calls wait this long (others wait
-                                     # cooldown_s; close calls ignore that one)
-    max_turn_s: float = 4.0
-    cooldown_s: float = 15.0
-    free_below: int = 25             # nav2 value under which a cell is free
-    approach_range_m: float = 10.0   # farther than a tag is read, up to here: go closer (0: no)
-    approach_min_points: int = 1     # a robot far away is only a beam or two wide ...
-    approach_confirm: int = 5        # ... so it must be seen in this many scans in a row
-    track_m: float = 0.8             # one scan to the next, a robot moves less than this
-    approach_v_mps: float = 0.3
-    approach_stop_m: float = 1.2     # close enough to read its tag's heading, not just its place
-    approach_max_s: float = 30.0
-    lost_s: float = 2.0
-
-
-def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
-                   p: LookParams, max_range_m: float) -> list[tuple[F64, int]]:
-    """Compact groups of returns inside known free space within ``max_range_m``, nearest
-    first: (centre in the map frame, number of returns). Returns near teammates (known
-    positions) do not count."""
-    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    pts = pts[(r >= p.min_range_m) & (r <= max_range_m)]
-    if len(pts) == 0:
-        return []
-    world = transform_points(pose, pts)
-    if len(mates_xy):
-        d = np.hypot(world[:, None, 0] - mates_xy[None, :, 0],
-                     world[:, None, 1] - mates_xy[None, :, 1]).min(axis=1)
-        world = world[d > p.cluster_m]
-    res = grid.resolution_m
-    ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
-    iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
-    h, w = grid.data.shape
-    ok = (ix >= 1) & (iy >= 1) & (ix < w - 1) & (iy < h - 1)
-    if not ok.any():
-        return []
-    free = np.zeros(len(world), dtype=bool)
-    d = grid.data
-    sel = np.flatnonzero(ok)
-    block = np.stack([d[iy[sel] + dy, ix[sel] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    free[sel] = np.all((block >= 0) & (block < p.free_below), axis=0)
-    cand = world[free]
-    cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
-    groups: list[tuple[F64, int]] = []
-    while len(cand):
-        near = np.hypot(*(cand - cand[0]).T) <= p.cluster_m
-        groups.append((cand[near].mean(axis=0), int(near.sum())))
-        cand = cand[~near]
-    return groups
-
-
-def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
-                  p: LookParams) -> float | None:
-    """Bearing (robot frame) of the nearest compact group of returns inside known free space
-    within tag-reading range, or None."""
-    for centre, n in moving_objects(points_robot, pose, grid, mates_xy, p, p.max_range_m):
-        if n >= p.min_points:
-            return _bearing(pose, centre)
-    return None
-
-
-def objects_at_range(points_robot: F64, pose: F64, grid: OccupancyGrid | None, range_m: float,
-                     tolerance_m: float, width_m: float = 0.45, past_m: float = 0.3
-                     ) -> list[F64]:
-    """Things standing free about ``range_m`` away (map frame): runs of neighbouring returns
-    within ``tolerance_m`` of that distance, no wider than ``width_m``, not on a wall the map
-    knows, that the LIDAR sees past on both sides (the beams beside them reach ``past_m``
-    farther, or return nothing). Unlike ``moving_objects``, the place need not be known free:
-    a robot read through a door often stands where this robot has not mapped yet."""
-    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
-    if len(pts) < 3 or not math.isfinite(range_m) or not math.isfinite(tolerance_m):
-        return []
-    ang = np.arctan2(pts[:, 1], pts[:, 0])
-    order = np.argsort(ang)
-    pts, ang = pts[order], ang[order]
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    gaps = np.diff(ang, append=ang[0] + 2 * math.pi)   # from each return to the next
-    step = float(np.median(gaps))
-    band = np.abs(r - range_m) <= tolerance_m
-    if grid is not None and band.any():
-        world = transform_points(pose, pts)
-        res = grid.resolution_m
-        ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
-        iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
-        h, w = grid.data.shape
-        inside = (ix >= 0) & (iy >= 0) & (ix < w) & (iy < h)
-        wall = np.zeros(len(pts), dtype=bool)
-        wall[inside] = grid.data[iy[inside], ix[inside]] > OCCUPIED_ABOVE
-        band &= ~wall
-    n = len(pts)
-    out: list[F64] = []
-    done: set[int] = set()
-    for i in np.flatnonzero(band):
-        if i in done:
-            continue
-        run = [int(i)]   # band returns from i on, each next to the one before
-        while len(run) < n and band[(run[-1] + 1) % n] and gaps[run[-1]] <= 1.5 * step:
-            run.append((run[-1] + 1) % n)
-        done.update(run)
-        if math.hypot(*(pts[run[0]] - pts[run[-1]])) > width_m:
-            continue
-        before, after = (run[0] - 1) % n, (run[-1] + 1) % n
-        mean_r = float(r[run].mean())
-        past_before = gaps[before] > 1.5 * step or r[before] >= mean_r + past_m
-        past_after = gaps[run[-1]] > 1.5 * step or r[after] >= mean_r + past_m
-        if past_before and past_after:
-            out.append(transform_points(pose, pts[run].mean(axis=0, keepdims=True))[0])
-    return out
-
-
-def _bearing(pose: F64, xy: F64) -> float:
-    return math.remainder(math.atan2(xy[1] - pose[1], xy[0] - pose[0]) - pose[2], 2 * math.pi)
 
 
 class Lookout:
@@ -328,7 +173,7 @@ class Lookout:
                 # in reading range, but only close up does a tag give the other's heading
                 self.track, self.track_seen_s = near, now_s
                 return self._start_approach(now_s, pose, groups)
-            bearing = _bearing(pose, near)
+            bearing = bearing_to(pose, near)
             if abs(bearing) <= p.half_fov_rad:
                 return None
             self._look_toward(now_s, pose, near)
@@ -338,7 +183,7 @@ class Lookout:
             # where both tags and the maps' overlap say more
             return self._answer_now(now_s, pose, points_robot, grid, mates_xy,
                                     max(p.max_range_m, p.approach_range_m))
-        err = math.remainder(self.heading - pose[2], 2 * math.pi)
+        err = wrap_angle(self.heading - pose[2])
         self.heading_error = err
         if self.hold_until_s is None:
             if abs(err) > p.aligned_rad and now_s - self.started_s < p.max_turn_s:
@@ -361,7 +206,7 @@ class Lookout:
         return self._approach(now_s, pose, groups, np.zeros((0, 2)))
 
     def _look_toward(self, now_s: float, pose: F64, xy: F64, meet: bool = False) -> None:
-        self.heading = math.remainder(pose[2] + _bearing(pose, xy), 2 * math.pi)
+        self.heading = wrap_angle(pose[2] + bearing_to(pose, xy))
         self.meeting = meet
         self.started_s, self.hold_until_s = now_s, None
         self.approaching = False
@@ -417,8 +262,21 @@ class Lookout:
         if dist <= p.approach_stop_m:
             self._look_toward(now_s, pose, self.track, meet=True)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
-        err = _bearing(pose, self.track)
+        err = bearing_to(pose, self.track)
         self.heading_error = err
         v = p.approach_v_mps if abs(err) < math.radians(35.0) else 0.0
         self.moved = self.moved or v > 0
         return Twist(v, float(np.clip(2.0 * err, -p.omega_rps, p.omega_rps)))
+
+
+class NullLookout(Lookout):
+    """The lookout of a server that does not look at movers: it hears no calls and never
+    turns or drives."""
+
+    def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool,
+             range_m: float | None = None, range_tolerance_m: float = 0.3) -> None:
+        return None
+
+    def step(self, now_s: float, pose: F64, points_robot: F64, grid: OccupancyGrid | None,
+             mates_xy: F64) -> Twist | None:
+        return None

@@ -1,0 +1,230 @@
+"""The fleet: every robot the server tracks, the teams they form, the links and merges that
+joined them, and each team's grid.
+
+A robot gets its own graph symbols when it is first heard of (numbers are never reused, so a
+robot that comes back under a new name cannot collide with an old graph) and starts in a team
+of its own. The rendezvous merger moves robots between teams; everything else reads them.
+No I/O here.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.se2 import compose, inverse, transform_points
+from server.config import ServerConfig
+from server.coordination import Member, TeamExplorer
+from server.events import EventLog
+from server.exploration import VisitedTargets
+from server.lookout import Lookout
+from server.navigator import Navigator
+from server.planning import OccupancyGrid as PlanningGrid
+from server.slam import RobotSlam
+from server.slam.backend import FactorRecord, robot_key_space
+from server.slam.grid import OccupancyGrid
+from server.slam.mapping import GridMapper
+from server.stages import Stages
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class RobotContext:
+    robot_id: str
+    slam: RobotSlam
+    nav: Navigator
+    team_id: str
+    look: Lookout
+    start_pose: F64 = field(default_factory=lambda: np.zeros(3))
+    pose: F64 = field(default_factory=lambda: np.zeros(3))
+    distance_m: float = 0.0
+    scans: int = 0
+    last_stamp_ns: int = 0
+    alive: bool = True
+    start_checked: bool = False   # a known start pose was used (or there was none to use)
+    #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the robot's own map
+    #: frame (its first pose is the origin; a merge does not move it)
+    online: list[tuple[int, float, float, float]] = field(default_factory=list)
+
+    def own_frame_in_team(self) -> F64:
+        """The robot's own map frame (its first pose) in its team's frame, exactly: the first
+        keyframe's team pose against where the robot's prior put it."""
+        sl = self.slam
+        return compose(sl.keyframe_pose(0), inverse(sl.trajectory.prior_pose()))
+
+
+@dataclass
+class Link:
+    """A factor between two robots' graphs inside a team's graph: a tag sighting
+    (``rendezvous``), a map match (``cross``), known start poses (``start``) or a marker."""
+
+    a: str
+    b: str
+    stamp_ns: int
+    record: FactorRecord
+    retired: bool = False    # out of the graph: map matches tie the pair (tag sightings only)
+
+
+@dataclass
+class MergeRecord:
+    stamp_ns: int
+    team_id: str                  # the team that absorbed the other
+    joined_team_id: str
+    robots_a: list[str]
+    robots_b: list[str]
+    sightings: list[tuple[str, str, int]]   # (observer, observed, stamp_ns)
+    T_fused: F64                  # b's frame -> a's frame, fused sightings (direct method)
+    cov_fused: F64
+    T_direct_first: F64           # the direct method on the first sighting alone
+    T_joint: F64                  # after the joint optimisation
+    agreement: dict[str, float]
+    undone_stamp_ns: int | None = None
+    kind: str = "tags"            # tags | start (known start poses) | marker (given by hand)
+
+
+@dataclass
+class Team:
+    team_id: str
+    robot_ids: list[str]
+    visited: VisitedTargets
+    coverage: float = 0.0
+    explored_m2: float = 0.0
+    finished: bool = False
+    finished_stamp_ns: int | None = None
+    history: list[tuple[int, float]] = field(default_factory=list)  # (stamp_ns, coverage)
+    anchor: str = ""              # the robot whose first pose is the team frame's origin
+    mapper: GridMapper | None = None
+    links: list[Link] = field(default_factory=list)
+    merged_into: str | None = None
+
+
+class Fleet:
+    """Robots, teams, merges and team grids; one thread uses it."""
+
+    def __init__(self, cfg: ServerConfig, stages: Stages, events: EventLog) -> None:
+        self.cfg, self.stages, self.events = cfg, stages, events
+        self.robots: dict[str, RobotContext] = {}
+        self.teams: dict[str, Team] = {}
+        self.retired_teams: dict[str, Team] = {}   # merged into another (until undone)
+        self.merges: list[MergeRecord] = []
+        #: each team's planning grid as of the last coverage update (``server.progress``)
+        self.latest_grids: dict[str, PlanningGrid] = {}
+        self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
+
+    # -- robots ----------------------------------------------------------------------------
+    def add_robot(self, robot_id: str) -> RobotContext:
+        """A robot heard of for the first time: its own graph symbols, navigator, lookout and
+        a team of its own."""
+        char, block = robot_key_space(self._robots_added)
+        self._robots_added += 1
+        nav = self.stages.navigator()
+        team_id = f"team-{robot_id}"
+        r = RobotContext(robot_id, self.stages.slam(char, block), nav, team_id,
+                         self.stages.lookout(robot_id))
+        self.robots[robot_id] = r
+        self.teams[team_id] = Team(team_id, [robot_id], self.stages.visited(),
+                                   anchor=robot_id, mapper=self.stages.mapper())
+        self.events.emit("robot_joined", [robot_id], team_id, f"robot {robot_id} joined", 0)
+        log.debug("robot %s tracked as graph symbol %r (block %d) in %s", robot_id, char,
+                  block, team_id)
+        return r
+
+    def set_alive(self, robot_id: str, alive: bool) -> None:
+        r = self.robots.get(robot_id)
+        if r is not None and r.alive != alive:
+            r.alive = alive
+            self.events.emit("robot_joined" if alive else "robot_lost", [robot_id], r.team_id,
+                             f"robot {robot_id} {'is back' if alive else 'vanished'}",
+                             r.last_stamp_ns)
+
+    def team_of(self, r: RobotContext) -> Team:
+        return self.teams[r.team_id]
+
+    def mates_xy(self, r: RobotContext, alive_only: bool = True) -> F64:
+        """Where ``r``'s teammates are (N, 2), in the team frame."""
+        xy = [self.robots[o].pose[:2] for o in self.teams[r.team_id].robot_ids
+              if o != r.robot_id and (self.robots[o].alive or not alive_only)]
+        return np.array(xy, dtype=np.float64).reshape(-1, 2)
+
+    def without_teammates(self, r: RobotContext, ranges: F64, angles: F64) -> F64:
+        """The scan for SLAM, without the beams that hit a teammate's body (as none): robots
+        driving in a row along a corridor see each other where the walls say nothing along
+        it, and a matcher that holds on to the robot ahead thinks it stands still."""
+        team = self.teams.get(r.team_id)
+        if team is None or len(team.robot_ids) < 2 or not r.scans:
+            return ranges
+        mates = np.array([self.robots[o].pose[:2] for o in team.robot_ids
+                          if o != r.robot_id and self.robots[o].alive and self.robots[o].scans],
+                         dtype=np.float64).reshape(-1, 2)
+        if not len(mates):
+            return ranges
+        ok = np.isfinite(ranges) & np.isfinite(angles)
+        idx = np.flatnonzero(ok)
+        pts = np.stack([ranges[idx] * np.cos(angles[idx]), ranges[idx] * np.sin(angles[idx])], 1)
+        world = transform_points(r.pose, pts)
+        d = np.hypot(world[:, None, 0] - mates[None, :, 0],
+                     world[:, None, 1] - mates[None, :, 1]).min(axis=1)
+        hit = idx[d <= self.cfg.control.robot_radius_m + 0.15]
+        if not len(hit):
+            return ranges
+        out = np.array(ranges, dtype=np.float64, copy=True)
+        out[hit] = np.nan
+        return out
+
+    def mates_in_robot_frame(self, r: RobotContext) -> F64:
+        """Live teammates' positions in ``r``'s body frame (for collision avoidance)."""
+        xy = self.mates_xy(r)
+        if not len(xy):
+            return np.zeros((0, 2))
+        return transform_points(inverse(r.pose), xy)
+
+    # -- teams -----------------------------------------------------------------------------
+    def team_grid(self, team_id: str) -> OccupancyGrid:
+        """The team's log-odds grid from all its robots' keyframes, in the team frame."""
+        team = self.teams[team_id]
+        assert team.mapper is not None
+        return team.mapper.update_many({
+            rid: (self.robots[rid].slam.keyframes, self.robots[rid].slam.keyframe_poses())
+            for rid in team.robot_ids})
+
+    def planning_grid(self, team_id: str) -> PlanningGrid:
+        """The team's occupancy grid in the nav2 convention (robots of one team share it)."""
+        grid = self.team_grid(team_id)
+        return PlanningGrid(grid.to_nav2(), grid.resolution_m,
+                            (float(grid.origin[0]), float(grid.origin[1])))
+
+    def coordinate(self, team: Team) -> None:
+        """Robots of a team of several decide together (see ``server.coordination``)."""
+        for rid in team.robot_ids:
+            nav = self.robots[rid].nav
+            if len(team.robot_ids) > 1:
+                team_explorer = TeamExplorer(
+                    nav.own_explorer, rid, functools.partial(self.members, team.team_id),
+                    self.cfg.teams.coordination)
+                nav.use_explorer(team_explorer)  # type: ignore[arg-type]
+            else:
+                nav.use_explorer(nav.own_explorer)
+
+    def members(self, team_id: str) -> list[Member]:
+        """The team's live robots, for its coordination."""
+        team = self.teams.get(team_id)
+        if team is None:
+            return []
+        return [Member(rid, self.robots[rid].pose, self.robots[rid].start_pose,
+                       self.robots[rid].nav)
+                for rid in team.robot_ids if self.robots[rid].alive]
+
+    @property
+    def finished(self) -> bool:
+        """Every team with a live robot has finished (and there is one). A team whose robots
+        all vanished cannot go on, so it does not hold the others' end back."""
+        live = [t for t in self.teams.values()
+                if any(self.robots[rid].alive for rid in t.robot_ids)]
+        return bool(live) and all(t.finished for t in live)

@@ -1,0 +1,137 @@
+"""How well two maps fit under a proposed transform: cell agreement and scan-to-map matches.
+
+``map_agreement`` counts walls of one grid that fall into the other's open space;
+``cross_matches`` matches one robot's keyframes against another's local map and says how far
+the overlap turns and shifts them. Both judge a merge (``server.rendezvous.merger``); the
+matches also become factors of a team's graph (``server.rendezvous.surgery``). No I/O here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.se2 import between, compose, wrap_angle
+from server.slam import RobotSlam
+from server.slam.grid import OccupancyGrid
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MapAgreement:
+    overlap_cells: int        # cells known in both grids
+    occupied_checked: int     # occupied cells (either grid) inside the overlap
+    conflicts: int            # occupied in one where the other is clearly free
+
+    @property
+    def conflict_ratio(self) -> float:
+        return self.conflicts / self.occupied_checked if self.occupied_checked else 0.0
+
+
+def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
+                  tolerance_cells: int = 2) -> MapAgreement:
+    """How grid b, moved into a's frame by ``T_ab``, agrees with grid a: an occupied cell of
+    either conflicts when the other grid says free there, with no occupied cell within
+    ``tolerance_cells`` (walls are a cell or two thick and alignments are not perfect) and
+    only free cells one more cell around. A wall that beams grazed is partly erased in a map
+    (they cross its cells on their way to hits farther along it), but such free cells still
+    border the unknown behind the wall; a wall put into the middle of a room by a wrong
+    transform has free space all around."""
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    occ_a, free_a = grid_a.occupied_mask(), grid_a.free_mask()
+    occ_b, free_b = grid_b.occupied_mask(), grid_b.free_mask()
+    if not occ_a.size or not occ_b.size:
+        return MapAgreement(0, 0, 0)
+    size = 2 * tolerance_cells + 1
+    near_a = maximum_filter(occ_a, size=size)
+    near_b = maximum_filter(occ_b, size=size)
+    open_a = minimum_filter(free_a, size=size + 2)
+    open_b = minimum_filter(free_b, size=size + 2)
+    rb, cb = np.nonzero(occ_b | free_b)
+    res_b = grid_b.resolution_m
+    pts_b = np.stack([grid_b.origin[0] + (cb + 0.5) * res_b,
+                      grid_b.origin[1] + (rb + 0.5) * res_b], axis=1)
+    c, s = math.cos(T_ab[2]), math.sin(T_ab[2])
+    pa = pts_b @ np.array([[c, s], [-s, c]]) + T_ab[:2]
+    ij = grid_a.cell_of(pa)
+    h, w = occ_a.shape
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    ia, ja = ij[inside, 1], ij[inside, 0]
+    rb, cb = rb[inside], cb[inside]
+    known_a = occ_a[ia, ja] | free_a[ia, ja]
+    ia, ja, rb, cb = ia[known_a], ja[known_a], rb[known_a], cb[known_a]
+    b_occ, b_free = occ_b[rb, cb], free_b[rb, cb]
+    a_occ, a_free = occ_a[ia, ja], free_a[ia, ja]
+    conflicts = int((b_occ & a_free & ~near_a[ia, ja] & open_a[ia, ja]).sum()
+                    + (a_occ & b_free & ~near_b[rb, cb] & open_b[rb, cb]).sum())
+    checked = int((b_occ | a_occ).sum())
+    return MapAgreement(len(ia), checked, conflicts)
+
+
+@dataclass(frozen=True)
+class CrossMatch:
+    """Keyframe kb of robot b matched against robot a's keyframes around it."""
+
+    ka: int
+    kb: int
+    T_ka_kb: F64
+    information: F64      # in kb's frame (the between factor's error space)
+    inlier_fraction: float
+    turn_rad: float = 0.0  # how far the match turned kb from where it was placed
+
+
+def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
+                  min_inlier_fraction: float = 0.5, max_correction_m: float = 0.5,
+                  max_correction_rad: float = math.radians(5.0),
+                  T_ab: F64 | None = None, tried: list[int] | None = None,
+                  only: list[int] | None = None) -> list[CrossMatch]:
+    """Scan-to-map matches of b's keyframes (every ``every``-th, or those in ``only``) against
+    a's keyframes within ``radius_m``, both placed by the current joint estimate (or b's by
+    ``T_ab``): the overlap of the two maps says how they fit together, far more precisely than
+    tag sightings.
+    Matches that moved the keyframe implausibly far, matched poorly or were degenerate are left
+    out; ``tried[0]`` is increased for every keyframe that had a map to match against."""
+    from server.slam.frontend import icp_params
+    from server.slam.icp import icp
+    from server.slam.keyframes import local_point_map
+
+    if not a.keyframes or not b.keyframes:
+        return []
+    pa, pb = a.keyframe_poses(), b.keyframe_poses()
+    if T_ab is not None:  # b's keyframes not yet in a's frame: place them by T_ab
+        pb = np.array([compose(T_ab, P) for P in pb])
+    params = icp_params(a.cfg.matcher)
+    out: list[CrossMatch] = []
+    last = len(b.keyframes) - 1
+    picked = (sorted({*range(0, last, max(1, every)), last}) if only is None  # newest: the meeting
+              else sorted(k for k in set(only) if 0 <= k <= last))
+    for kb in picked:
+        d = np.hypot(pa[:, 0] - pb[kb, 0], pa[:, 1] - pb[kb, 1])
+        near = np.flatnonzero(d <= radius_m)
+        scan = b.keyframes[kb].matchable
+        if len(near) == 0 or len(scan) < a.cfg.matcher.min_points:
+            continue
+        target = local_point_map([a.keyframes[i] for i in near], pa[near],
+                                 a.cfg.local_map.voxel_m)
+        if len(target) < a.cfg.matcher.min_points:
+            continue
+        if tried is not None:
+            tried[0] += 1
+        m = icp(scan.points, scan.normals, target, pb[kb], params)
+        shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
+        turn = abs(wrap_angle(m.T_map_scan[2] - pb[kb, 2]))
+        if (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
+                or shift > max_correction_m or turn > max_correction_rad):
+            continue
+        ka = int(near[np.argmin(d[near])])
+        c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        out.append(CrossMatch(ka, kb, between(pa[ka], m.T_map_scan),
+                              R.T @ m.information @ R, m.inlier_fraction,
+                              wrap_angle(m.T_map_scan[2] - pb[kb, 2])))
+    return out

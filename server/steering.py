@@ -1,0 +1,65 @@
+"""A robot's velocity command: its lookout while it turns toward (or drives to) something that
+moves, its navigator otherwise."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas import VelocityCommand
+from server.config import ServerConfig
+from server.control import Twist
+from server.fleet import Fleet, RobotContext
+from server.navigator import NavMode
+
+F64 = NDArray[np.float64]
+
+
+class Steering:
+    """Commands for the fleet's robots (one thread)."""
+
+    def __init__(self, cfg: ServerConfig, fleet: Fleet) -> None:
+        self.cfg, self.fleet = cfg, fleet
+        self.looks = cfg.teams.enabled and cfg.teams.look_at_movers
+
+    def command(self, r: RobotContext, stamp_ns: int, ranges: F64, angles: F64,
+                navigate: bool = True) -> VelocityCommand:
+        """The command for ``r``'s scan at ``stamp_ns`` (zero when not ``navigate``)."""
+        twist = Twist(0.0, 0.0)
+        if navigate:
+            ok = np.isfinite(ranges)
+            pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])],
+                           1)
+            look = self.look(r, stamp_ns * 1e-9, pts)
+            if look is not None:
+                twist = look
+            else:
+                team = self.fleet.team_of(r)
+                twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,
+                                   lambda: self.fleet.planning_grid(team.team_id),
+                                   team.visited, self.fleet.mates_in_robot_frame(r))
+                twist = Twist(float(np.clip(twist.v_mps, -5, 5)),
+                              float(np.clip(twist.omega_rps, -20, 20)))
+        return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=stamp_ns,
+                               v_mps=twist.v_mps, omega_rps=twist.omega_rps,
+                               ttl_s=self.cfg.control.command_ttl_s)
+
+    def look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
+        """Turn toward something that moves while robots outside the team remain. A robot
+        whose team is done keeps doing so: a robot still alone must be able to join it."""
+        if not self.looks or r.nav.mode == NavMode.RECOVERING:
+            r.look.reset()
+            return None
+        if len(self.fleet.teams) < 2 and not r.look.active:
+            return None
+        twist = r.look.step(now_s, r.pose, points_robot, self.fleet.latest_grids.get(r.team_id),
+                            self.fleet.mates_xy(r, alive_only=False))
+        if twist is None:
+            if r.look.moved:  # the approach took the robot off its path: decide afresh
+                r.look.moved = False
+                r.nav.drop_target()
+            return None
+        if twist.v_mps > 0 and r.nav.vfh is not None:
+            twist = r.nav.vfh.adjust(twist, r.look.heading_error, points_robot,
+                                     self.fleet.mates_in_robot_frame(r))
+        return twist
