@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from schemas.occupancy import FREE, OCCUPIED, UNKNOWN
 from server.exploration import (
     Decision,
     ExplorerParams,
@@ -60,7 +61,7 @@ class Mapper:
     def __init__(self, caster: Any, rng: np.random.Generator) -> None:
         self.caster = caster
         self.rng = rng
-        self.data = np.full((CELLS, CELLS), -1, np.int8)
+        self.data = np.full((CELLS, CELLS), UNKNOWN, np.int8)
         self.origin = (-CELLS * RES_M / 2, -CELLS * RES_M / 2)
         self.occupied = np.zeros((CELLS, CELLS), bool)
 
@@ -76,20 +77,20 @@ class Mapper:
         t = np.arange(0.0, RANGE_M, RES_M / 2)
         along = t[None, :] < (ranges[:, None] - RES_M / 2)
         pts = np.asarray(pose[:2]) + (t[None, :, None] * d[:, None, :])[along]
-        self._set(pts, 0)
-        self._set(np.asarray(pose[:2]) + ranges[hit, None] * d[hit], 100)
+        self._set(pts, FREE)
+        self._set(np.asarray(pose[:2]) + ranges[hit, None] * d[hit], OCCUPIED)
 
     def _set(self, xy: np.ndarray, value: int) -> None:
         col = np.floor((xy[:, 0] - self.origin[0]) / RES_M).astype(np.int64)
         row = np.floor((xy[:, 1] - self.origin[1]) / RES_M).astype(np.int64)
         ok = (row >= 0) & (row < CELLS) & (col >= 0) & (col < CELLS)
         row, col = row[ok], col[ok]
-        if value == 100:
+        if value == OCCUPIED:
             self.occupied[row, col] = True
-            self.data[row, col] = 100
+            self.data[row, col] = OCCUPIED
         else:
             keep = ~self.occupied[row, col]
-            self.data[row[keep], col[keep]] = 0
+            self.data[row[keep], col[keep]] = FREE
 
 
 def walk(path_xy: np.ndarray, step_m: float, every_m: float
@@ -140,7 +141,7 @@ def main() -> None:
         t0 = time.perf_counter()
         out = explorer.decide(grid, pose, start, visited)
         decide_ms.append((time.perf_counter() - t0) * 1e3)
-        known.append(float(np.mean(grid.data >= 0)))
+        known.append(float(np.mean(grid.data != UNKNOWN)))
         t0 = time.perf_counter()
         analysis = analyse(grid, params.analysis, include_xy=pose[:2])
         t1 = time.perf_counter()

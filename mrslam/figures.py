@@ -55,6 +55,7 @@ def write_figures(report: dict[str, Any], out: Path) -> list[str]:
 
 def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
     from mrslam.run_files import read_trajectory
+    from schemas.occupancy import FREE_BELOW, OCCUPIED_ABOVE, UNKNOWN
     from sim.grid import read_nav2
 
     written = []
@@ -64,8 +65,8 @@ def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
             continue
         g = read_nav2(yml)
         img = np.full(g.cells.shape, 0.8)
-        img[g.cells == 0] = 1.0
-        img[g.cells == 100] = 0.0
+        img[(g.cells != UNKNOWN) & (g.cells < FREE_BELOW)] = 1.0
+        img[g.cells > OCCUPIED_ABOVE] = 0.0
         h, w = g.cells.shape
         x0, y0 = g.origin[0], g.origin[1]
         extent = (x0, x0 + w * g.resolution_m, y0, y0 + h * g.resolution_m)

@@ -15,6 +15,7 @@ from typing import Annotated, Literal
 import msgspec
 import numpy as np
 
+from schemas.occupancy import OCCUPIED, UNKNOWN
 from schemas.types import (
     MAX_RANGE_MM,
     NO_RETURN_MM,
@@ -212,8 +213,8 @@ class MapUpdate(Message, kw_only=True):
         if len(raw) != n or d.unconsumed_tail:
             fail("cells", f"holds {len(raw)}+ cells, expected {n}")
         grid = np.frombuffer(raw, dtype=np.int8).reshape(self.height, self.width)
-        if grid.min() < -1 or grid.max() > 100:
-            fail("cells", "values outside -1..100")
+        if grid.min() < UNKNOWN or grid.max() > OCCUPIED:
+            fail("cells", f"values outside {UNKNOWN}..{OCCUPIED}")
         return grid
 
 

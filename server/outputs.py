@@ -17,10 +17,9 @@ from server.slam.export import FREE_PIXEL, OCCUPIED_PIXEL, UNKNOWN_PIXEL, write_
 def write_nav2_grid(grid: PlanningGrid, out_dir: Path, name: str = "map") -> Path:
     """nav2 map_server files (trinary PNG, +y up, and YAML) of an int8 nav2 grid."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    d = grid.data
-    img = np.full(d.shape, UNKNOWN_PIXEL, dtype=np.uint8)
-    img[(d >= 0) & (d < 40)] = FREE_PIXEL
-    img[d > 70] = OCCUPIED_PIXEL
+    img = np.full(grid.data.shape, UNKNOWN_PIXEL, dtype=np.uint8)
+    img[grid.free] = FREE_PIXEL
+    img[grid.occupied] = OCCUPIED_PIXEL
     write_png_gray(out_dir / f"{name}.png", img[::-1])
     meta = {"image": f"{name}.png", "mode": "trinary", "resolution": grid.resolution_m,
             "origin": [grid.origin_xy[0], grid.origin_xy[1], 0.0], "negate": 0,

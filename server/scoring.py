@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from schemas.occupancy import FREE, FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
 from schemas.se2 import F64, compose, inverse, transform_points, wrap_angle
 
 
@@ -107,21 +108,21 @@ def map_quality(est: ArrayLike, est_resolution_m: float, est_origin_xy: ArrayLik
     e, t = np.asarray(est, np.int8), np.asarray(truth, np.int8)
     eo = np.asarray(est_origin_xy, np.float64)
     to = np.asarray(truth_origin_xy, np.float64)
-    true_free = t == 0
-    walls = ndimage.binary_dilation(t == 100, iterations=max(
+    true_free = t == FREE
+    walls = ndimage.binary_dilation(t == OCCUPIED, iterations=max(
         1, round(wall_tolerance_m / truth_resolution_m)))
     # the estimate at each true cell
     rows, cols = np.nonzero(true_free)
     xy_w = np.column_stack([to[0] + (cols + 0.5) * truth_resolution_m,
                             to[1] + (rows + 0.5) * truth_resolution_m])
     xy_m = transform_points(inverse(T_world_map), xy_w)
-    v = _sample(e, est_resolution_m, eo, xy_m, -1)
-    seen_free = (v >= 0) & (v < 40)
+    v = _sample(e, est_resolution_m, eo, xy_m, UNKNOWN)
+    seen_free = (v != UNKNOWN) & (v < FREE_BELOW)
     cell_t = truth_resolution_m ** 2
     true_free_m2 = float(true_free.sum()) * cell_t
     explored = float(seen_free.sum()) * cell_t
     # each estimated known cell in the true grid
-    known = (e >= 0) & ((e < 40) | (e > 70))
+    known = (e != UNKNOWN) & ((e < FREE_BELOW) | (e > OCCUPIED_ABOVE))
     r2, c2 = np.nonzero(known)
     xy_e = np.column_stack([eo[0] + (c2 + 0.5) * est_resolution_m,
                             eo[1] + (r2 + 0.5) * est_resolution_m])

@@ -15,10 +15,10 @@ import cv2
 import numpy as np
 import yaml
 
+from schemas.occupancy import FREE, OCCUPIED, UNKNOWN
 from sim.errors import WorldError
 from sim.world import World
 
-UNKNOWN, FREE, OCCUPIED = -1, 0, 100
 _SHIFT = 8  # sub-pixel bits for cv2 drawing
 # Pixel values written for each class, and thresholds that read them back the same way:
 # occupancy p = (255 - v) / 255, so 0 -> 1.0 (occupied), 254 -> 0.004 (free), 205 -> 0.196.
@@ -121,8 +121,8 @@ def write_nav2(grid: OccupancyGrid, out_dir: str | Path, name: str = "map") -> P
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     img = np.full(grid.cells.shape, _PIX_UNKNOWN, np.uint8)
-    img[(grid.cells >= 0) & (grid.cells / 100.0 < FREE_THRESH)] = _PIX_FREE
-    img[grid.cells / 100.0 > OCCUPIED_THRESH] = _PIX_OCC
+    img[(grid.cells != UNKNOWN) & (grid.cells / OCCUPIED < FREE_THRESH)] = _PIX_FREE
+    img[grid.cells / OCCUPIED > OCCUPIED_THRESH] = _PIX_OCC
     img = np.flipud(img)
     for ext in ("pgm", "png"):
         if not cv2.imwrite(str(out / f"{name}.{ext}"), img):
@@ -172,7 +172,7 @@ def read_nav2(yaml_path: str | Path) -> OccupancyGrid:
         raw = raw[:, :, :3].mean(axis=2)
     v = np.flipud(raw.astype(np.float64))
     if mode == "raw":
-        cells = np.where((v >= 0) & (v <= 100), v, UNKNOWN).astype(np.int8)
+        cells = np.where((v >= FREE) & (v <= OCCUPIED), v, UNKNOWN).astype(np.int8)
         return OccupancyGrid(cells, res, (origin[0], origin[1], 0.0))
     p = v / 255.0 if negate else (255.0 - v) / 255.0
     cells = np.full(v.shape, UNKNOWN, np.int8)

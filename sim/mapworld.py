@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from schemas.occupancy import OCCUPIED
 from sim.errors import WorldError
 from sim.grid import OCCUPIED_THRESH, OccupancyGrid, read_nav2
 from sim.world import World
@@ -28,7 +29,7 @@ def load_map_world(yaml_path: str | Path, lidar_height_m: float = 0.2) -> World:
 
 def world_from_grid(grid: OccupancyGrid, name: str, source: str,
                     lidar_height_m: float = 0.2) -> World:
-    occ = grid.cells.astype(np.int16) > OCCUPIED_THRESH * 100
+    occ = grid.cells.astype(np.int16) > OCCUPIED_THRESH * OCCUPIED
     res = grid.resolution_m
     ox, oy = grid.origin[0], grid.origin[1]
     segments = np.vstack([_horizontal_edges(occ, res, ox, oy),

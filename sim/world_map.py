@@ -19,7 +19,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sim.grid import FREE, OCCUPIED, UNKNOWN, free_regions, rasterise, wall_face_area_m2, write_nav2
+from schemas.occupancy import FREE, OCCUPIED, UNKNOWN
+from sim.grid import free_regions, rasterise, wall_face_area_m2, write_nav2
 from sim.loader import load_world
 
 

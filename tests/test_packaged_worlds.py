@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 import yaml
 
+from schemas.occupancy import FREE
 from sim import floorplan
 from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
-from sim.grid import FREE, rasterise
+from sim.grid import rasterise
 from sim.loader import load_world
 from sim.world import World
 from tests.conftest import DATA

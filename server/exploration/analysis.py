@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from schemas.occupancy import UNKNOWN
 from server.exploration.frontiers import Frontiers, cluster_frontiers, frontier_mask
 from server.exploration.skeleton import SkeletonGraph, skeleton_graph, voronoi_skeleton
 from server.exploration.walls import WallMemory
@@ -69,7 +70,7 @@ def analyse(grid: OccupancyGrid, params: AnalysisParams,
     graph = skeleton_graph(skeleton, clearance=layer.clearance_m)
     layer = layer.with_preferred(skeleton, cp.skeleton_factor)
     # wall cells: occupied, or observed without a verdict (beams both hit and crossed them)
-    walls = crop.occupied | (crop.unobserved & (crop.data >= 0))
+    walls = crop.occupied | (crop.unobserved & (crop.data != UNKNOWN))
     if walls_seen is not None:
         walls = walls | walls_seen.mask(crop.geometry)
     mask = frontier_mask(space, unexplored & ~walls, walls)

@@ -19,9 +19,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-FREE_BELOW = 40
-OCCUPIED_ABOVE = 70
-UNKNOWN = -1
+from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
+
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
 
@@ -81,8 +80,9 @@ class OccupancyGrid:
             raise GridError(f"grid resolution_m must be finite and > 0, got {self.resolution_m}")
         if len(self.origin_xy) != 2 or not np.all(np.isfinite(self.origin_xy)):
             raise GridError(f"grid origin_xy must be two finite numbers, got {self.origin_xy}")
-        if int(d.min()) < UNKNOWN or int(d.max()) > 100:
-            raise GridError(f"grid values must lie in [-1, 100], got [{d.min()}, {d.max()}]")
+        if int(d.min()) < UNKNOWN or int(d.max()) > OCCUPIED:
+            raise GridError(f"grid values must lie in [{UNKNOWN}, {OCCUPIED}], "
+                            f"got [{d.min()}, {d.max()}]")
         object.__setattr__(self, "origin_xy", (float(self.origin_xy[0]),
                                                float(self.origin_xy[1])))
 
@@ -93,7 +93,7 @@ class OccupancyGrid:
 
     @cached_property
     def free(self) -> NDArray[np.bool_]:
-        return (self.data >= 0) & (self.data < FREE_BELOW)
+        return (self.data != UNKNOWN) & (self.data < FREE_BELOW)
 
     @cached_property
     def occupied(self) -> NDArray[np.bool_]:
@@ -121,8 +121,8 @@ class OccupancyGrid:
 
         Every computation on the map is done on this box: outside it everything is unknown.
         """
-        rows = np.flatnonzero(np.any(self.data >= 0, axis=1))
-        cols = np.flatnonzero(np.any(self.data >= 0, axis=0))
+        rows = np.flatnonzero(np.any(self.data != UNKNOWN, axis=1))
+        cols = np.flatnonzero(np.any(self.data != UNKNOWN, axis=0))
         if rows.size == 0:
             r0, r1, c0, c1 = self.data.shape[0], -1, self.data.shape[1], -1
         else:

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from schemas.config import ConfigModel
+from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE
 
 
 class ScanConfig(ConfigModel):
@@ -145,9 +146,11 @@ class GridConfig(ConfigModel):
         "the map stays revisable")
     p_max: float = Field(0.97, gt=0.5, lt=1, description="... and to this from above")
     free_below: float = Field(
-        0.4, gt=0, lt=1, description="cells less likely occupied than this are free")
+        FREE_BELOW / OCCUPIED, gt=0, lt=1,
+        description="cells less likely occupied than this are free")
     occupied_above: float = Field(
-        0.7, gt=0, lt=1, description="cells more likely occupied than this are occupied")
+        OCCUPIED_ABOVE / OCCUPIED, gt=0, lt=1,
+        description="cells more likely occupied than this are occupied")
     max_ray_m: float = Field(20.0, gt=0, description="free space is cleared up to this range")
     padding_m: float = Field(2.0, ge=0, description="unknown margin kept around the mapped area")
 

@@ -14,8 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
+
 F64 = NDArray[np.float64]
-UNKNOWN = -1  # nav2 value of a cell never observed
 
 
 def logit(p: float) -> float:
@@ -29,8 +30,8 @@ class GridParams:
     p_miss: float = 0.35
     p_min: float = 0.12
     p_max: float = 0.97
-    free_below: float = 0.4
-    occupied_above: float = 0.7
+    free_below: float = FREE_BELOW / OCCUPIED
+    occupied_above: float = OCCUPIED_ABOVE / OCCUPIED
     max_ray_m: float = 20.0
     padding_m: float = 2.0
 
@@ -160,7 +161,7 @@ class OccupancyGrid:
 
     def to_nav2(self) -> NDArray[np.int8]:
         """int8 (H, W): −1 unknown, else occupancy in percent (0..100)."""
-        pct = np.rint(self.probability() * 100.0).astype(np.int8)
+        pct = np.rint(self.probability() * OCCUPIED).astype(np.int8)
         return np.where(self.observed, pct, np.int8(UNKNOWN)).astype(np.int8)
 
     def free_mask(self) -> NDArray[np.bool_]:
