@@ -28,10 +28,10 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from robot_agent.drivers.fakes.base import FakeMicrocontroller  # noqa: E402
+from robot_agent.drivers.fakes.rplidar import FakeRplidar, wall_room_mm  # noqa: E402
 from schemas import Scan, VelocityCommand, keys  # noqa: E402
 from schemas.bus import Bus, free_local_endpoint  # noqa: E402
-from tests.fake_base import FakeMicrocontroller  # noqa: E402
-from tests.fake_rplidar import FakeRplidar, wall_room_mm  # noqa: E402
 
 
 def cpu_seconds(pid: int) -> float:

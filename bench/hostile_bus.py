@@ -7,7 +7,7 @@
 - ``stranger``: a default server is not reached from this machine's network address; a config
   listening on every interface is refused; against a server that listens there anyway
   (``--insecure``), a stranger's 50 Hz velocity commands to a real agent are all ignored.
-- ``bad_inputs``: every bad input × command of ``tests/bad_inputs.py``: exit code and stderr
+- ``bad_inputs``: every bad input × command of ``bench/support/bad_inputs.py``: exit code and stderr
   lines of each (goal: 2 and one line, every time).
 """
 
@@ -24,11 +24,11 @@ from typing import Any
 
 import yaml
 
+from bench.support.bad_inputs import cases, run, write_files
+from bench.support.fleet import rss_mb
+from bench.support.netsec import connect, free_port, primary_ip, start_server, stop, wait_up
 from schemas import VelocityCommand, keys
 from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE, Bus
-from tests.bad_inputs import cases, run, write_files
-from tests.fleet import rss_mb
-from tests.netsec import connect, free_port, primary_ip, start_server, stop, wait_up
 
 ROOT = Path(__file__).resolve().parent.parent
 GOAL_GROWTH_MB = 50.0

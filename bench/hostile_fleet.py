@@ -16,8 +16,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.support.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
 from schemas import keys
-from tests.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
 
 HOUR_NS = 3600 * 1_000_000_000
 R2_EPOCH_S = 1_800_000_000.0   # r2's clock in demo_clocks: a wall clock, far from sim time

@@ -20,7 +20,7 @@ from robot_agent.runtime import Agent
 from schemas import VelocityCommand, keys
 from schemas.bus import Bus
 from schemas.codec import encode
-from tests.fake_rplidar import within
+from tests.waiting import within
 
 S = 1_000_000_000
 

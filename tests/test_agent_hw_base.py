@@ -13,8 +13,8 @@ import pytest
 
 from robot_agent.drivers import base_protocol as proto
 from robot_agent.drivers.base import SerialBase
-from tests.fake_base import FakeMicrocontroller
-from tests.fake_rplidar import within
+from robot_agent.drivers.fakes.base import FakeMicrocontroller
+from tests.waiting import within
 
 TRACK, RADIUS, TICKS = 0.3, 0.05, 1000.0
 M_PER_TICK = 2 * math.pi * RADIUS / TICKS

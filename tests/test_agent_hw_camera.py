@@ -24,7 +24,7 @@ from robot_agent.drivers.camera import (
 from schemas.tags import CameraMount, TagLayout
 from sim.simulator import SimParams, Simulator
 from sim.world import World
-from tests.fake_rplidar import within
+from tests.waiting import within
 
 LAYOUT, MOUNT = TagLayout(), CameraMount()
 

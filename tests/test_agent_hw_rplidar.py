@@ -8,18 +8,30 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pytest
+import serial
 
 from robot_agent.backend import Sweep
 from robot_agent.drivers import rplidar_protocol as proto
+from robot_agent.drivers.fakes.rplidar import FakeRplidar, wall_room_mm
 from robot_agent.drivers.rplidar import LidarDisconnected, Rplidar, RplidarSource
 from schemas.messages import ranges_from_mm
 from tests.conftest import ROOT
-from tests.fake_rplidar import DtrRecordingSerial, FakeRplidar, wall_room_mm, within
+from tests.waiting import within
 
 HALF_MM = 1500.0
+
+
+class DtrRecordingSerial(serial.Serial):
+    """pyserial on a pty, recording DTR changes (a pty has no modem lines to set)."""
+
+    dtr_history: ClassVar[list[bool]] = []   # over all instances (the driver reopens ports)
+
+    def _update_dtr_state(self) -> None:
+        self.dtr_history.append(bool(self._dtr_state))
 
 
 def room_with_gap(angle_deg: float) -> float:

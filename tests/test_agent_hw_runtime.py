@@ -15,11 +15,12 @@ import pytest
 
 from robot_agent import runtime
 from robot_agent.config import AgentConfig
+from robot_agent.drivers.fakes.base import FakeMicrocontroller
+from robot_agent.drivers.fakes.rplidar import FakeRplidar, wall_room_mm
 from schemas import Scan, VelocityCommand, keys
 from schemas.bus import Bus
 from tests.conftest import ROOT
-from tests.fake_base import FakeMicrocontroller
-from tests.fake_rplidar import FakeRplidar, wall_room_mm, within
+from tests.waiting import within
 
 HEAVY = ["gtsam", "open3d", "skimage", "scipy", "server", "factors", "sim", "matplotlib"]
 

@@ -14,7 +14,7 @@ from schemas.codec import encode
 from schemas.config import BusConfig
 from schemas.messages import MapUpdate
 from schemas.sim import SimImage
-from tests.fake_rplidar import within
+from tests.waiting import within
 
 
 def test_the_cap_is_well_above_our_largest_messages() -> None:

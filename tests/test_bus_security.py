@@ -10,11 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from bench.support.netsec import ROOT, connect, free_port, primary_ip, start_server, stop, wait_up
 from schemas.bus import is_loopback_endpoint, listen_security, zenoh_config
 from schemas.config import BusConfig
 from schemas.config_loading import ConfigError, load_config
 from server.config import ServerConfig
-from tests.netsec import ROOT, connect, free_port, primary_ip, start_server, stop, wait_up
 
 HOST = primary_ip()
 needs_address = pytest.mark.skipif(HOST is None, reason="this machine has no address but "

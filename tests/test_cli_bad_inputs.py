@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.bad_inputs import BadInput, cases, run, write_files
+from bench.support.bad_inputs import BadInput, cases, run, write_files
 
 CASES = cases(Path("/FOLDER"))
 

@@ -17,9 +17,9 @@ from robot_agent.config import AgentConfig
 from robot_agent.runtime import Agent
 from schemas import VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
-from tests.fake_rplidar import within
 from tests.test_agent_command_gate import NoLidar, StillBase
 from tests.test_deploy_zenoh import DEPLOY, client, write_config
+from tests.waiting import within
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
 

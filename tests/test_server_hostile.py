@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from bench.support.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
 from schemas import keys
-from tests.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
 
 HOUR_NS = 3600 * 1_000_000_000
 

@@ -12,7 +12,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 WORLD = ROOT / "sim" / "worlds" / "small_house.world"
 #: a path under an existing file: nothing can be written there
 UNDER_A_FILE = "/etc/passwd/x"

@@ -1,4 +1,5 @@
-"""A pseudo-terminal that behaves like an RPLIDAR A2 (for tests and bench/agent.py).
+"""A pseudo-terminal that behaves like an RPLIDAR A2 (for tests, bench/agent.py and trying the
+agent without the device).
 
 The device end of a pty answers requests with byte strings built from the protocol
 specification (``robot_agent.drivers.rplidar_protocol`` encoders, which the tests check against
@@ -17,9 +18,6 @@ import time
 import tty
 from collections.abc import Callable
 from pathlib import Path
-from typing import ClassVar
-
-import serial
 
 from robot_agent.drivers import rplidar_protocol as proto
 
@@ -159,24 +157,6 @@ class FakeRplidar:
                 self._inject.clear()
         if out:
             os.write(fd, bytes(out))
-
-
-class DtrRecordingSerial(serial.Serial):
-    """pyserial on a pty, recording DTR changes (a pty has no modem lines to set)."""
-
-    dtr_history: ClassVar[list[bool]] = []   # over all instances (the driver reopens ports)
-
-    def _update_dtr_state(self) -> None:
-        self.dtr_history.append(bool(self._dtr_state))
-
-
-def within(cond: Callable[[], bool], timeout_s: float) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def wall_room_mm(half_width_mm: float) -> Callable[[float], float]:

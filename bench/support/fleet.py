@@ -23,7 +23,7 @@ import yaml
 from schemas import Scan, VelocityCommand, keys, quantise_ranges_mm
 from schemas.bus import Bus, BusError, free_local_endpoint
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def rss_mb(pid: int) -> float:

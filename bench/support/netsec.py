@@ -18,7 +18,7 @@ import yaml
 from schemas import keys
 from schemas.bus import Bus, BusError
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def primary_ip() -> str | None:
