@@ -122,6 +122,12 @@ def _one_line(text: str) -> str:
 
 
 def _type_text(annotation: Any, metadata: list[Any] | None = None) -> str:
+    args = typing.get_args(annotation)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]   # bounds bind to the value, not null
+        value = (_type_text(rest[0], metadata) if len(rest) == 1
+                 else " or ".join(_type_name(a) for a in rest))
+        return f"{value} or null"
     text = _type_name(annotation)
     bounds = _bounds(metadata or [])
     return f"{text} {bounds}" if bounds else text

@@ -55,6 +55,7 @@ class _Inner(BaseModel):
 
 class _Outer(BaseModel):
     name: str | None = Field(None, description="a name")
+    limit_m: float | None = Field(None, gt=0, description="a limit")
     inner: _Inner = _Inner(size_m=2.5)
 
 
@@ -62,6 +63,7 @@ def test_sections_take_defaults_from_the_parent_and_render_bounds() -> None:
     secs = list(configdoc.sections(_Outer))
     assert [s.path for s in secs] == ["", "inner"]
     assert secs[0].rows[0] == configdoc.Row("name", "str or null", "`null`", "a name")
+    assert secs[0].rows[1].type == "float > 0 or null"   # the bound is the value's
     size = secs[1].rows[0]
     # the parent's default (2.5), not the class's (1.0); (0, 5] from gt and le
     assert (size.key, size.type, size.default) == ("inner.size_m", "float in (0, 5]", "`2.5`")
