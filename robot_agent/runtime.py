@@ -111,6 +111,15 @@ class Agent:
         if self.last_sweep is not None and sweep.stamp_ns < self.last_sweep.stamp_ns:
             with self.cond:   # the robot's clock went back: commands answer the new stamps
                 self.last_command_stamp_ns = -1
+        self.last_sweep_wall = time.monotonic()
+        self.prev_sweep, self.last_sweep = self.last_sweep, sweep
+        # the sightings waiting for this sweep go first: when a step's scan reaches a lockstep
+        # server, the robot's sightings of that step are already there
+        pending, self.pending_sightings = self.pending_sightings, []
+        for stamp, sightings in pending:
+            near = min((s for s in (self.prev_sweep, sweep) if s is not None),
+                       key=lambda s: abs(s.stamp_ns - stamp))
+            self._publish_sightings(stamp, sightings, near)
         odom = self.backend.base.odometry_at(sweep.stamp_ns)
         if odom is None:
             self.counters["sweeps_without_odometry"] += 1
@@ -121,13 +130,6 @@ class Agent:
                 angle_increment_rad=sweep.angle_increment_rad, range_min_mm=sweep.range_min_mm,
                 range_max_mm=sweep.range_max_mm, ranges_mm=sweep.ranges_mm))
             self.counters["scans_sent"] += 1
-        self.last_sweep_wall = time.monotonic()
-        self.prev_sweep, self.last_sweep = self.last_sweep, sweep
-        pending, self.pending_sightings = self.pending_sightings, []
-        for stamp, sightings in pending:
-            near = min((s for s in (self.prev_sweep, sweep) if s is not None),
-                       key=lambda s: abs(s.stamp_ns - stamp))
-            self._publish_sightings(stamp, sightings, near)
         sync = self.backend.sync
         if sweep.step is not None and sync is not None and sync.lockstep():
             self._wait_for_command(sweep.stamp_ns)

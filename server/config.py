@@ -127,6 +127,11 @@ class ClockConfig(ConfigModel):
     rebase_after: int = Field(3, ge=1, description="this many messages in a row that agree "
                               "on a new offset to the server's clock re-base the robot's "
                               "stamps (its clock stepped)")
+    step_barrier_s: float = Field(2.0, gt=0.0, description="in a lockstep simulation, wait "
+                                  "this long (wall time) for every live robot's scan of a "
+                                  "step, then take the step's messages in robot order, so a "
+                                  "run does not depend on which message came first; a robot "
+                                  "still missing is left for the next step")
 
 
 class AdmissionConfig(ConfigModel):

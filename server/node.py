@@ -5,6 +5,10 @@ Zenoh delivers scans on its own threads; they are admitted (robot, key, clock an
 to the core by a single worker thread, so the core needs no locks. Each command goes back
 stamped with the robot's own stamp of its scan. The worker also publishes maps, robot states
 and events on their periods, and forgets robots that went silent.
+
+In a lockstep simulation the worker takes a step at a time (``server.lockstep``): it waits
+until every live robot's scan of the step is in, then hands the core the step's messages in
+robot order — scans, then tag sightings — so the run is the same every time.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from schemas.ratelog import RateLimitedLog
 from server.clock import ClockPolicy, ServerClock
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.lockstep import StepBarrier
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
 
 log = logging.getLogger(__name__)
@@ -47,6 +52,8 @@ class ServerNode:
         self._cv = threading.Condition()
         self._stop = threading.Event()
         self._latest_maps: list[Any] = []
+        self._lockstep = False   # the simulator's clock says it steps in lockstep
+        self._barrier = StepBarrier(cfg.clock.step_barrier_s)
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
 
@@ -54,13 +61,16 @@ class ServerNode:
     def start(self) -> None:
         self.bus.declare_alive(keys.SERVER_ALIVE)
         if self.clock.source == "sim":
-            self.bus.subscribe(keys.SIM_CLOCK, SimClock,
-                               lambda _k, m: self.clock.on_sim_clock(m.stamp_ns))
+            self.bus.subscribe(keys.SIM_CLOCK, SimClock, self._on_sim_clock)
         self.bus.subscribe(keys.ALL_SCANS, Scan, self._on_message)
         self.bus.subscribe(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
         self.bus.serve(keys.SERVER_MAP, lambda: list(self._latest_maps))
         self._worker.start()
+
+    def _on_sim_clock(self, _key: str, msg: SimClock) -> None:
+        self.clock.on_sim_clock(msg.stamp_ns)
+        self._lockstep = msg.lockstep
 
     def _on_message(self, key: str, msg: Scan | TagDetections) -> None:
         stream = "scan" if isinstance(msg, Scan) else "tags"
@@ -104,21 +114,28 @@ class ServerNode:
         self._cv.notify()
 
     # -- the worker ------------------------------------------------------------------------
-    def _next(self, timeout_s: float) -> tuple[str, Any] | None:
+    def _next(self, timeout_s: float) -> list[tuple[str, Any]]:
+        """The next message (queue name, payload); in lockstep, the next step's messages."""
         with self._cv:
             if not self._order and not self._cv.wait_for(lambda: bool(self._order), timeout_s):
-                return None
+                return []
+            if self._lockstep:
+                return self._barrier.take(self._queues, self._order, self._cv,
+                                          self._live_robots())
             rid = self._order.popleft()
-            return rid, self._queues[rid].popleft()
+            return [(rid, self._queues[rid].popleft())]
+
+    def _live_robots(self) -> set[str]:
+        """Robots alive by their liveliness token, or by the core (worker thread)."""
+        return {rid for rid, r in self.core.robots.items() if r.alive} | {
+            rid for rid, rec in self.registry.robots.items() if rec.alive}
 
     def _work(self) -> None:
         next_states = next_forget = 0.0
         map_stamp = 0
         clocked = self.clock.source != "stamps"
         while not self._stop.is_set():
-            item = self._next(0.1)
-            if item is not None:
-                rid, payload = item
+            for rid, payload in self._next(0.1):
                 try:
                     if rid.startswith("#alive:"):
                         self.core.set_alive(rid.split(":", 1)[1], bool(payload))
@@ -165,4 +182,5 @@ class ServerNode:
     def summary(self) -> dict[str, Any]:
         return {"registry": self.registry.counters(), "admission": self.registry.totals(),
                 "dropped_scans": self.dropped,
-                "errors": self.errors, "bus": self.bus.stats.as_dict()}
+                "errors": self.errors, "bus": self.bus.stats.as_dict(),
+                "lockstep_barrier_timeouts": self._barrier.timeouts}
