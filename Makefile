@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 VENV := .venv/bin
 
-.PHONY: demo test lint venv schemas clean
+.PHONY: demo test test-fast lint venv schemas clean
 
 venv:
 	@bash deploy/bootstrap.sh all,dev
@@ -12,6 +12,10 @@ demo: venv
 
 test: venv lint
 	$(VENV)/python -m pytest -q
+
+# everything but the tests that start other processes (pytest -m e2e runs those)
+test-fast: venv lint
+	$(VENV)/python -m pytest -q -m "not e2e"
 
 lint: venv
 	$(VENV)/ruff check .

@@ -187,6 +187,7 @@ def test_health_error_is_reset(tmp_path: Path) -> None:
         fake.close()
 
 
+@pytest.mark.e2e
 def test_lidar_dump_prints_radians_metres_and_inf(lidar: FakeRplidar) -> None:
     out = subprocess.run([sys.executable, "-m", "mrslam.cli", "lidar-dump", "--port",
                           str(lidar.link), "--scans", "2"], cwd=ROOT, capture_output=True,
@@ -207,6 +208,7 @@ def test_lidar_dump_prints_radians_metres_and_inf(lidar: FakeRplidar) -> None:
         assert np.allclose(ranges[finite], expected_mm(exact[finite]) / 1000, atol=0.0015)
 
 
+@pytest.mark.e2e
 def test_lidar_dump_without_a_device_fails_in_one_line(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "mrslam.cli", "lidar-dump", "--port",
                           str(tmp_path / "ttyNONE"), "--scans", "1", "--timeout", "1"], cwd=ROOT,

@@ -95,6 +95,7 @@ def test_latest_map_queryable(router: Bus, endpoint: str) -> None:
     assert replies == [latest]
 
 
+@pytest.mark.e2e
 def test_liveliness_appears_and_vanishes_when_a_client_is_killed(
         router: Bus, endpoint: str) -> None:
     events: list[tuple[str, bool]] = []

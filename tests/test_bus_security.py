@@ -87,6 +87,7 @@ def test_an_exposed_listener_needs_tls_and_access_rules_or_the_insecure_option(
 
 
 @needs_address
+@pytest.mark.e2e
 def test_a_client_on_another_address_cannot_reach_a_default_server(tmp_path: Path) -> None:
     port = free_port()
     # the default bus but for the port (7447 may be in use on a shared machine)
@@ -101,6 +102,7 @@ def test_a_client_on_another_address_cannot_reach_a_default_server(tmp_path: Pat
 
 
 @needs_address
+@pytest.mark.e2e
 def test_a_server_refuses_an_exposed_listener_unless_told_it_is_insecure(
         tmp_path: Path) -> None:
     port = free_port()
@@ -122,6 +124,7 @@ def test_a_server_refuses_an_exposed_listener_unless_told_it_is_insecure(
     assert "WARNING" in log and "without TLS" in log   # ... said at start
 
 
+@pytest.mark.e2e
 def test_the_deploy_server_config_counts_as_secured(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, str(ROOT / "deploy" / "zenoh" / "config.py"), "server",
                           "--certs", str(tmp_path), "--listen", "tls/0.0.0.0:7447", "r1"],

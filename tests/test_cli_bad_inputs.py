@@ -19,6 +19,7 @@ def folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("index", range(len(CASES)), ids=[c.id for c in CASES])
 def test_a_bad_input_is_one_line_and_exit_2(folder: Path, index: int) -> None:
     case: BadInput = cases(folder)[index]

@@ -7,9 +7,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import yaml
 
 from mrslam.demo import run
+
+#: starts other processes (the CLI, the server, the simulator, agents, scripts): the e2e tier
+pytestmark = pytest.mark.e2e
 
 
 def write_map(folder: Path, name: str, img: np.ndarray, res: float) -> Path:

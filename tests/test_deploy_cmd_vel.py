@@ -21,7 +21,9 @@ from tests.test_agent_command_gate import NoLidar, StillBase
 from tests.test_deploy_zenoh import DEPLOY, client, write_config
 from tests.waiting import within
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+#: runs the deploy scripts and starts processes on them: the e2e tier
+pytestmark = [pytest.mark.e2e,
+              pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")]
 
 
 def test_only_the_server_commands_a_robot(tmp_path: Path) -> None:

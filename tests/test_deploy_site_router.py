@@ -17,7 +17,9 @@ from tests.examples import scan
 from tests.test_deploy_zenoh import stream_arrives, wait_for, write_config
 
 DEPLOY = ROOT / "deploy"
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+#: runs the deploy scripts and starts processes on them: the e2e tier
+pytestmark = [pytest.mark.e2e,
+              pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")]
 
 
 def test_robots_behind_a_site_router_reach_the_server_only_under_their_keys(

@@ -19,7 +19,9 @@ from tests.conftest import ROOT
 from tests.examples import all_examples, scan
 
 DEPLOY = ROOT / "deploy" / "zenoh"
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+#: runs the deploy scripts and starts processes on them: the e2e tier
+pytestmark = [pytest.mark.e2e,
+              pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")]
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import msgspec
+import pytest
 from mcap.reader import make_reader
 
 from recording.reader import read_recording
@@ -30,6 +31,7 @@ def mrslam(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
                           text=True, timeout=timeout, cwd=ROOT)
 
 
+@pytest.mark.e2e
 def test_recorder_process_writes_what_was_published_and_finishes_on_sigterm(
         tmp_path: Path, endpoint: str, router: Bus) -> None:
     out = tmp_path / "run.mcap"
@@ -120,6 +122,7 @@ def test_replay_keeps_order_and_timing_and_filters_keys(tmp_path: Path, endpoint
     assert summary["by_type"] == {"Scan": 4, "Event": 2}
 
 
+@pytest.mark.e2e
 def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
     (tmp_path / "bad.mcap").write_text("hello")
     r = mrslam("replay", str(tmp_path / "bad.mcap"), "--connect", "tcp/127.0.0.1:9")

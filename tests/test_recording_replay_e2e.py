@@ -12,6 +12,7 @@ import json
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
 from mrslam.demo import run as demo
@@ -24,6 +25,9 @@ from server.config import ServerConfig
 from server.node import ServerNode
 from server.outputs import write_outputs
 from tests.test_demo_e2e import three_rooms
+
+#: starts other processes (the CLI, the server, the simulator, agents, scripts): the e2e tier
+pytestmark = pytest.mark.e2e
 
 
 def test_replayed_session_gives_the_live_runs_poses_and_map(tmp_path: Path) -> None:

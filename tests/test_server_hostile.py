@@ -13,6 +13,9 @@ import zenoh
 from bench.support.fleet import RoomRobot, ServerProcess, room_scan, rss_mb
 from schemas import keys
 
+#: starts other processes (the CLI, the server, the simulator, agents, scripts): the e2e tier
+pytestmark = pytest.mark.e2e
+
 HOUR_NS = 3600 * 1_000_000_000
 
 

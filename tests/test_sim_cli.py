@@ -20,6 +20,7 @@ from tests.conftest import DATA, ROOT
 THESIS = DATA / "worlds" / "thesis"
 
 
+@pytest.mark.e2e
 def test_sim_process_runs_a_scenario_standalone_and_writes_truth(tmp_path: Path,
                                                                  endpoint: str) -> None:
     out = tmp_path / "run"

@@ -119,6 +119,7 @@ def agent(endpoint: str, tmp_path: Path) -> Iterator[subprocess.Popen[bytes]]:
             proc.wait(timeout=30)
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("lockstep", [False, True], ids=["real-time", "lockstep"])
 def test_a_frozen_agent_leaves_its_robot_standing(router: Bus, endpoint: str, tmp_path: Path,
                                                   agent: subprocess.Popen[bytes],

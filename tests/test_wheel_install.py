@@ -20,6 +20,9 @@ import pytest
 
 from tests.conftest import ROOT
 
+#: starts other processes (the CLI, the server, the simulator, agents, scripts): the e2e tier
+pytestmark = pytest.mark.e2e
+
 WORLD_FILES = {"sim/worlds/small_house.world", "sim/worlds/large_house.world",
                "sim/worlds/scenarios.yaml"}
 
