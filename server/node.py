@@ -143,7 +143,11 @@ class ServerNode:
                         self.core.on_tags(payload[0])
                     else:
                         scan, own_stamp_ns = payload
-                        cmd = self.core.on_scan(scan, self.clock.now_ns() if clocked else None)
+                        # (in lockstep the step's own time: the simulator's clock message
+                        # may come before or after the step's scans)
+                        now = scan.stamp_ns if self._lockstep else (
+                            self.clock.now_ns() if clocked else None)
+                        cmd = self.core.on_scan(scan, now)
                         self.bus.publish(keys.robot_cmd_vel(rid),
                                          msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
                                          block=True)
