@@ -11,8 +11,9 @@ placed). So the server's worker takes a step at a time:
    and those that missed a step (a stranger with a token, a robot whose scans are refused:
    waited for once, then again only when a scan of theirs comes);
 2. take the step's messages: robots coming and going (in arrival order), the oldest scan of
-   each robot at the step's stamp (in robot order), then every queued tag sighting (in robot
-   order; an agent sends a step's sightings before its scan, so they are all in).
+   each robot at the step's stamp (in robot order), then the sightings of earlier steps (in
+   robot order). A step's sightings wait for the next step: an agent may read a camera frame
+   after it sent the step's scan, but it sends that frame's sightings before its next scan.
 
 Queues are the node's: name -> deque of items; ``order`` holds one name per queued item.
 """
@@ -56,8 +57,11 @@ class StepBarrier:
             step = min(heads.values())
             batch += [(rid, None) for rid in sorted(heads) if heads[rid] == step]
             self.missed -= {rid for rid, _ in batch}
-        batch += [(n, None) for n in sorted({n for n in order if n.startswith(TAGS)})
-                  for _ in range(len(queues[n]))]
+            batch += [(n, None) for n in sorted({n for n in order if n.startswith(TAGS)})
+                      for _ in range(_count_before(queues[n], step))]
+        else:  # nothing but sightings came: take them all
+            batch += [(n, None) for n in sorted({n for n in order if n.startswith(TAGS)})
+                      for _ in range(len(queues[n]))]
         out = []
         for name, _ in batch:
             order.remove(name)   # the first occurrence is the item at the queue's head
@@ -69,6 +73,14 @@ def _scan_heads(queues: dict[str, deque[Any]]) -> dict[str, int]:
     """Robot -> stamp of its oldest queued scan."""
     return {name: q[0][0].stamp_ns for name, q in queues.items()
             if q and not name.startswith("#")}
+
+
+def _count_before(q: deque[Any], stamp_ns: int) -> int:
+    """How many items at the head of a sightings queue are older than ``stamp_ns``."""
+    n = 0
+    while n < len(q) and q[n][0].stamp_ns < stamp_ns:
+        n += 1
+    return n
 
 
 def _leaving(queues: dict[str, deque[Any]]) -> set[str]:
