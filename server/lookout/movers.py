@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.occupancy import OCCUPIED_ABOVE, UNKNOWN
 from schemas.se2 import transform_points, wrap_angle
 from server.planning import OccupancyGrid
-from server.planning.grid import OCCUPIED_ABOVE
 
 F64 = NDArray[np.float64]
 
@@ -32,7 +32,7 @@ class LookParams:
                                      # cooldown_s; close calls ignore that one)
     max_turn_s: float = 4.0
     cooldown_s: float = 15.0
-    free_below: int = 25             # nav2 value under which a cell is free
+    free_below: int = 25             # stricter than FREE_BELOW: clearly free space only
     approach_range_m: float = 10.0   # farther than a tag is read, up to here: go closer (0: no)
     approach_min_points: int = 1     # a robot far away is only a beam or two wide ...
     approach_confirm: int = 5        # ... so it must be seen in this many scans in a row
@@ -69,7 +69,7 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
     d = grid.data
     sel = np.flatnonzero(ok)
     block = np.stack([d[iy[sel] + dy, ix[sel] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    free[sel] = np.all((block >= 0) & (block < p.free_below), axis=0)
+    free[sel] = np.all((block != UNKNOWN) & (block < p.free_below), axis=0)
     cand = world[free]
     cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
     groups: list[tuple[F64, int]] = []
