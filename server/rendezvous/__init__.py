@@ -6,4 +6,6 @@ Modules (import them directly; this package imports nothing):
     evidence = MergeVerifier(...)  # RANSAC over a pair of teams' sightings -> MergeProposal
     merger   = Merger(...)         # verify on the maps -> commit (one graph) | refuse | defer
     surgery  = GraphSurgery(...)   # joint graphs, map-match factors, retiring sightings
+    maps     = map_agreement(...), cross_matches(...)   # how two maps fit under a transform
+    counters = RendezvousCounters()                      # what became of every sighting
 """
