@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
@@ -172,3 +173,20 @@ class ServerConfig(ConfigModel):
     queue_per_robot: int = Field(50, ge=1, description="scans waiting beyond this are dropped")
     out: str | None = Field(None, description="folder for maps, trajectories and the summary")
     exit_when_done: bool = Field(False, description="stop once every team has finished")
+    state_dir: str | None = Field(None, description="folder of the journal of everything "
+                                  "the server accepted; a server started on a folder that "
+                                  "holds one resumes where it was (null: <out>/state, or no "
+                                  "journal without out)")
+    journal: bool = Field(True, description="keep the journal (server.journal)")
+    outputs_period_s: float = Field(10.0, gt=0.0, description="maps, trajectories and the "
+                                    "summary are rewritten this often while running (wall "
+                                    "time; each file replaced whole), so a crash leaves the "
+                                    "last good set")
+
+    def resolved_state_dir(self) -> str | None:
+        """Where the journal lives, or None for no journal."""
+        if not self.journal:
+            return None
+        if self.state_dir:
+            return self.state_dir
+        return str(Path(self.out) / "state") if self.out else None

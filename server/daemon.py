@@ -13,6 +13,9 @@ from typing import Any
 
 from schemas.bus import Bus
 from server.config import ServerConfig
+from server.core import ServerCore
+from server.journal import JournalWriter, replay
+from server.node import ServerNode
 
 log = logging.getLogger(__name__)
 
@@ -22,7 +25,6 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     """Run the server until ``stop`` is set, a signal arrives, or (``exit_when_done``) the
     exploration has finished. Returns the summary."""
     from schemas.config_loading import load_config, write_resolved
-    from server.node import ServerNode
     from server.outputs import write_outputs
 
     cfg = load_config(ServerConfig, config_path, overrides)
@@ -33,19 +35,47 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
+    t0 = time.monotonic()
+    core, journal, resumed = _resume(cfg)
+
+    def outputs(node: ServerNode) -> None:
+        if out is not None:
+            write_outputs(node.core, out, {"wall_s": time.monotonic() - t0, **node.summary(),
+                                           "resumed": resumed, "running": True})
+
     b = cfg.bus
     with Bus.from_config(b) as bus:
-        node = ServerNode(bus, cfg)
+        node = ServerNode(bus, cfg, core, journal, outputs)
         node.start()
         log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))
-        t0 = time.monotonic()
         while not stop.wait(0.2):
             if cfg.exit_when_done and node.core.finished:
                 time.sleep(0.5)  # let the last commands and events go out
                 if node.core.finished:  # not when a merge was undone meanwhile
                     break
         node.stop()
-        summary = {"wall_s": time.monotonic() - t0, **node.summary()}
+        summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
         if out is not None:
             write_outputs(node.core, out, summary)
     return summary
+
+
+def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
+    """A core with everything the state folder's journal holds replayed into it, and the
+    journal to go on with (a new segment)."""
+    core = ServerCore(cfg)
+    state = cfg.resolved_state_dir()
+    if state is None:
+        return core, None, {}
+    report = replay(core, state)
+    resumed: dict[str, Any] = {}
+    if report.entries:
+        resumed = {"segments": report.segments, "entries": report.entries,
+                   "unreadable": report.unreadable, "problems": report.problems,
+                   "replay_s": round(report.seconds, 3),
+                   "robots": sorted(core.robots), "teams": sorted(core.teams)}
+        log.warning("resumed from %s: %d messages of %d journal segment(s) replayed in "
+                    "%.1f s (%s); teams %s", state, report.entries, report.segments,
+                    report.seconds, "; ".join(report.problems) or "intact",
+                    ", ".join(sorted(core.teams)))
+    return core, JournalWriter(state, first_sequence=report.entries), resumed

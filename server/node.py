@@ -17,6 +17,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -27,6 +28,7 @@ from schemas.ratelog import RateLimitedLog
 from server.clock import ClockPolicy, ServerClock
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.journal import JournalWriter
 from server.lockstep import StepBarrier
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
 
@@ -34,10 +36,16 @@ log = logging.getLogger(__name__)
 
 
 class ServerNode:
-    def __init__(self, bus: Bus, cfg: ServerConfig, core: ServerCore | None = None) -> None:
+    def __init__(self, bus: Bus, cfg: ServerConfig, core: ServerCore | None = None,
+                 journal: JournalWriter | None = None,
+                 outputs: Callable[[ServerNode], None] | None = None) -> None:
+        """``journal``: where every processed message is appended first; ``outputs``: called
+        by the worker every ``outputs_period_s`` (and nowhere else touches the core)."""
         self.bus = bus
         self.cfg = cfg
         self.core = core or ServerCore(cfg)
+        self.journal = journal
+        self.outputs = outputs
         self.clock = ServerClock(cfg.clock.source)
         a, c = cfg.admission, cfg.clock
         self.registry = RobotRegistry(AdmissionPolicy(
@@ -132,14 +140,20 @@ class ServerNode:
 
     def _work(self) -> None:
         next_states = next_forget = 0.0
+        next_outputs = time.monotonic() + self.cfg.outputs_period_s
         map_stamp = 0
         clocked = self.clock.source != "stamps"
         while not self._stop.is_set():
             for rid, payload in self._next(0.1):
                 try:
                     if rid.startswith("#alive:"):
-                        self.core.set_alive(rid.split(":", 1)[1], bool(payload))
+                        robot, alive = rid.split(":", 1)[1], bool(payload)
+                        if self.journal is not None:
+                            self.journal.alive(robot, alive, self.clock.now_ns())
+                        self.core.set_alive(robot, alive)
                     elif rid.startswith("#tags:"):
+                        if self.journal is not None:
+                            self.journal.tags(payload[0])
                         self.core.on_tags(payload[0])
                     else:
                         scan, own_stamp_ns = payload
@@ -147,6 +161,8 @@ class ServerNode:
                         # may come before or after the step's scans)
                         now = scan.stamp_ns if self._lockstep else (
                             self.clock.now_ns() if clocked else None)
+                        if self.journal is not None:
+                            self.journal.scan(scan, now)
                         cmd = self.core.on_scan(scan, now)
                         self.bus.publish(keys.robot_cmd_vel(rid),
                                          msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
@@ -157,6 +173,11 @@ class ServerNode:
                     self._errlog.log(logging.ERROR, type(e).__name__, "processing %s failed",
                                      rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
             now = time.monotonic()
+            if self.journal is not None and now >= self.journal.next_flush:
+                self._guarded("flushing the journal", self.journal.flush)
+            if self.outputs is not None and now >= next_outputs:
+                next_outputs = now + self.cfg.outputs_period_s
+                self._guarded("writing the outputs", self.outputs, self)
             if now >= next_forget:
                 next_forget = now + 1.0
                 with self._cv:
@@ -178,10 +199,20 @@ class ServerNode:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
 
+    def _guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
+        try:
+            fn(*args)
+        except Exception as e:   # a full disk must not stop the robots
+            self.errors += 1
+            self._errlog.log(logging.ERROR, f"{what}:{type(e).__name__}", "%s failed: %s",
+                             what, e)
+
     def stop(self) -> None:
         self._stop.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10)
+        if self.journal is not None:
+            self._guarded("closing the journal", self.journal.close)
 
     def summary(self) -> dict[str, Any]:
         return {"registry": self.registry.counters(), "admission": self.registry.totals(),

@@ -1,8 +1,16 @@
-"""What a server run leaves behind: team maps (nav2 + PLY), trajectories and a summary."""
+"""What a server run leaves behind: team maps (nav2 + PLY), trajectories and a summary.
+
+Written while the server runs (every ``outputs_period_s``) and at shutdown; each file is
+replaced whole (written beside, flushed to disk, renamed over), so a crash at any moment
+leaves the previous good file, never half of one.
+"""
 
 from __future__ import annotations
 
 import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -14,25 +22,43 @@ from server.planning import OccupancyGrid as PlanningGrid
 from server.slam.export import FREE_PIXEL, OCCUPIED_PIXEL, UNKNOWN_PIXEL, write_ply, write_png_gray
 
 
+@contextmanager
+def replaced(path: Path) -> Iterator[Path]:
+    """A temporary path beside ``path`` to write; then flushed to disk and renamed over it."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def write_nav2_grid(grid: PlanningGrid, out_dir: Path, name: str = "map") -> Path:
     """nav2 map_server files (trinary PNG, +y up, and YAML) of an int8 nav2 grid."""
     out_dir.mkdir(parents=True, exist_ok=True)
     img = np.full(grid.data.shape, UNKNOWN_PIXEL, dtype=np.uint8)
     img[grid.free] = FREE_PIXEL
     img[grid.occupied] = OCCUPIED_PIXEL
-    write_png_gray(out_dir / f"{name}.png", img[::-1])
+    with replaced(out_dir / f"{name}.png") as tmp:
+        write_png_gray(tmp, img[::-1])
     meta = {"image": f"{name}.png", "mode": "trinary", "resolution": grid.resolution_m,
             "origin": [grid.origin_xy[0], grid.origin_xy[1], 0.0], "negate": 0,
             "occupied_thresh": 0.65, "free_thresh": 0.196}
     path = out_dir / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(meta, sort_keys=False))
+    with replaced(path) as tmp:
+        tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
     return path
 
 
 def write_trajectory(path: Path, stamps_ns: Any, poses: Any) -> None:
     rows = np.column_stack([np.asarray(stamps_ns, np.int64).astype(object),
                             np.asarray(poses, np.float64).reshape(-1, 3)])
-    with path.open("w") as f:
+    with replaced(path) as tmp, tmp.open("w") as f:
         f.write("stamp_ns,x_m,y_m,theta_rad\n")
         for s, x, y, t in rows:
             f.write(f"{int(s)},{x:.5f},{y:.5f},{t:.6f}\n")
@@ -46,7 +72,8 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
         tdir = out_dir / "maps" / team.team_id
         write_nav2_grid(core.planning_grid(team.team_id), tdir)
         pts = np.concatenate([core.robots[r].slam.point_cloud() for r in team.robot_ids])
-        write_ply(tdir / "points.ply", pts)
+        with replaced(tdir / "points.ply") as tmp:
+            write_ply(tmp, pts)
     robots: dict[str, Any] = {}
     for rid, r in core.robots.items():
         online = np.array(r.online, dtype=np.float64).reshape(-1, 4)
@@ -89,5 +116,6 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
         **(extra or {}),
     }
     path = out_dir / "summary.json"
-    path.write_text(json.dumps(summary, indent=2))
+    with replaced(path) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2))
     return path

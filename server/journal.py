@@ -1,0 +1,196 @@
+"""The server's journal: everything it accepted, in the order it processed it.
+
+The worker appends each scan, tag-sighting message and liveliness change before the core
+sees it (write-ahead), with the time the core ran its periodic work on. The core is
+deterministic given that sequence, so replaying the journal into a fresh core gives back the
+same robots, graphs, teams and merges: a server killed at any moment resumes where it was.
+
+Files: ``<state_dir>/journal-NNNN.mcap``, one segment per server start (an MCAP file cannot be
+appended to once finished, and a killed server never finishes its file). Each record is a
+msgpack envelope on the channel ``journal``: ``{"k": "scan" | "tags" | "alive", "now": int |
+None, "msg": bytes, "rid": str, "alive": bool}``; the MCAP sequence number is the processing
+order across all segments. Chunks are closed at least once a second, so a crash loses at most
+that much; a segment cut anywhere (a torn tail) is read up to its last intact chunk.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO
+
+import msgspec
+
+from schemas import Scan, TagDetections
+from schemas.codec import decode, encode
+from schemas.errors import SchemaError
+
+if TYPE_CHECKING:
+    from server.core import ServerCore
+
+log = logging.getLogger(__name__)
+
+TOPIC = "journal"
+SEGMENT_GLOB = "journal-*.mcap"
+
+
+class JournalError(ValueError):
+    """A state folder that cannot hold a journal (not a folder, not writable)."""
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One thing the server processed."""
+
+    kind: str                       # scan | tags | alive
+    now_ns: int | None              # the time the core's periodic work ran on (scans)
+    message: Scan | TagDetections | None = None
+    robot_id: str = ""              # alive
+    alive: bool = False
+
+
+@dataclass
+class ReplayReport:
+    segments: int = 0
+    entries: int = 0
+    unreadable: int = 0                  # records that did not decode
+    problems: list[str] = field(default_factory=list)   # torn tails, damaged chunks
+    seconds: float = 0.0
+
+
+class JournalWriter:
+    """Appends to a new segment of ``state_dir``'s journal (one thread)."""
+
+    def __init__(self, state_dir: str | Path, flush_period_s: float = 1.0,
+                 first_sequence: int = 0) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.dir = Path(state_dir)
+        try:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise JournalError(f"state folder {self.dir}: {e.strerror or e}") from e
+        n = 1 + max((_segment_number(p) for p in self.dir.glob(SEGMENT_GLOB)), default=0)
+        self.path = self.dir / f"journal-{n:04d}.mcap"
+        self._file: BinaryIO = self.path.open("wb")
+        self._writer = Writer(self._file, chunk_size=256 << 10,
+                              compression=CompressionType.ZSTD)
+        self._writer.start(profile="mrslam-journal", library="mrslam server")
+        self._channel = self._writer.register_channel(TOPIC, "msgpack", 0)
+        self.sequence = first_sequence
+        self.flush_period_s = flush_period_s
+        self.next_flush = time.monotonic() + flush_period_s
+        self.bytes = 0
+        self._closed = False
+
+    def scan(self, msg: Scan, now_ns: int | None) -> None:
+        self._add({"k": "scan", "now": now_ns, "msg": encode(msg)}, msg.stamp_ns)
+
+    def tags(self, msg: TagDetections) -> None:
+        self._add({"k": "tags", "now": None, "msg": encode(msg)}, msg.stamp_ns)
+
+    def alive(self, robot_id: str, alive: bool, stamp_ns: int) -> None:
+        self._add({"k": "alive", "now": None, "rid": robot_id, "alive": alive}, stamp_ns)
+
+    def _add(self, envelope: dict[str, Any], stamp_ns: int) -> None:
+        if self._closed:
+            return
+        data = msgspec.msgpack.encode(envelope)
+        self._writer.add_message(self._channel, log_time=max(stamp_ns, 0), data=data,
+                                 publish_time=max(stamp_ns, 0),
+                                 sequence=self.sequence % 2**32)
+        self.sequence += 1
+        self.bytes += len(data)
+        if time.monotonic() >= self.next_flush:
+            self.flush()
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand it to the disk: what a crash keeps."""
+        if self._closed:
+            return
+        self._writer.flush()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self.next_flush = time.monotonic() + self.flush_period_s
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        self._closed = True
+
+
+def _segment_number(path: Path) -> int:
+    try:
+        return int(path.stem.split("-", 1)[1])
+    except (IndexError, ValueError):
+        return 0
+
+
+def read_journal(state_dir: str | Path, report: ReplayReport | None = None
+                 ) -> Iterator[Entry]:
+    """Every readable entry of every segment, in processing order."""
+    from recording.reader import RecordingError, read_recording
+
+    report = report if report is not None else ReplayReport()
+    segments = sorted(Path(state_dir).glob(SEGMENT_GLOB), key=_segment_number)
+    for path in segments:
+        report.segments += 1
+        try:
+            rec = read_recording(path)
+        except (RecordingError, OSError) as e:
+            report.problems.append(f"{path.name}: {e}")
+            continue
+        report.problems += [f"{path.name}: {p}" for p in rec.report.problems]
+        for m in rec.messages:
+            if m.topic != TOPIC:
+                continue
+            try:
+                entry = _entry(msgspec.msgpack.decode(m.data))
+            except (msgspec.DecodeError, SchemaError, KeyError, TypeError, ValueError) as e:
+                report.unreadable += 1
+                log.warning("journal %s: a record does not decode (%s); skipped", path.name, e)
+                continue
+            report.entries += 1
+            yield entry
+
+
+def _entry(env: dict[str, Any]) -> Entry:
+    kind = env["k"]
+    if kind == "scan":
+        return Entry("scan", env["now"], decode(env["msg"], Scan))
+    if kind == "tags":
+        return Entry("tags", None, decode(env["msg"], TagDetections))
+    if kind == "alive":
+        return Entry("alive", None, robot_id=str(env["rid"]), alive=bool(env["alive"]))
+    raise ValueError(f"unknown journal record kind {kind!r}")
+
+
+def replay(core: ServerCore, state_dir: str | Path) -> ReplayReport:
+    """Feed ``core`` everything the journal holds, as the live server did (no commands go
+    out); the events it raises again were published before and are dropped."""
+    report = ReplayReport()
+    t0 = time.monotonic()
+    for e in read_journal(state_dir, report):
+        try:
+            if e.kind == "scan":
+                assert isinstance(e.message, Scan)
+                core.on_scan(e.message, e.now_ns)
+            elif e.kind == "tags":
+                assert isinstance(e.message, TagDetections)
+                core.on_tags(e.message)
+            else:
+                core.set_alive(e.robot_id, e.alive)
+        except Exception as exc:   # as live: one message's failure does not stop the rest
+            report.unreadable += 1
+            log.warning("journal replay: a %s failed again: %s", e.kind, exc)
+    core.pop_events()
+    report.seconds = time.monotonic() - t0
+    return report
