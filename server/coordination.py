@@ -65,7 +65,10 @@ class TeamExplorer:
         return self.base.params
 
     def __getattr__(self, name: str) -> object:
-        # everything but the decision is the robot's own explorer's (map analysis, ...)
+        # everything but the decision is the robot's own explorer's (map analysis, ...);
+        # not while unpickling, before ``base`` is there
+        if name.startswith("__") or "base" not in self.__dict__:
+            raise AttributeError(name)
         return getattr(self.base, name)
 
     def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,

@@ -16,6 +16,7 @@ from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter, replay
 from server.node import ServerNode
+from server.snapshot import Snapshots
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +55,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
                 if node.core.finished:  # not when a merge was undone meanwhile
                     break
         node.stop()
+        node.snapshot()
         summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
         if out is not None:
             write_outputs(node.core, out, summary)
@@ -61,21 +63,30 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
 
 
 def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
-    """A core with everything the state folder's journal holds replayed into it, and the
-    journal to go on with (a new segment)."""
-    core = ServerCore(cfg)
+    """The core as the state folder left it — the newest snapshot that reads back, with the
+    journal after it replayed — and the journal to go on with (a new segment)."""
     state = cfg.resolved_state_dir()
     if state is None:
-        return core, None, {}
-    report = replay(core, state)
+        return ServerCore(cfg), None, {}
+    t0 = time.monotonic()
+    loaded = Snapshots(state).load()
+    core, since = loaded if loaded is not None else (ServerCore(cfg), 0)
+    if loaded is not None and core.cfg != cfg:
+        log.warning("the configuration differs from the one the resumed run started with; "
+                    "the run goes on with its own")
+    report = replay(core, state, from_sequence=since)
     resumed: dict[str, Any] = {}
-    if report.entries:
-        resumed = {"segments": report.segments, "entries": report.entries,
+    if report.entries or loaded is not None:
+        resumed = {"snapshot_sequence": since if loaded is not None else None,
+                   "segments": report.segments, "entries": report.entries,
+                   "replayed": report.entries - report.skipped,
                    "unreadable": report.unreadable, "problems": report.problems,
                    "replay_s": round(report.seconds, 3),
+                   "resume_s": round(time.monotonic() - t0, 3),
                    "robots": sorted(core.robots), "teams": sorted(core.teams)}
-        log.warning("resumed from %s: %d messages of %d journal segment(s) replayed in "
-                    "%.1f s (%s); teams %s", state, report.entries, report.segments,
-                    report.seconds, "; ".join(report.problems) or "intact",
+        log.warning("resumed from %s: snapshot at %s, %d journal message(s) replayed in "
+                    "%.1f s (%s); teams %s", state, resumed["snapshot_sequence"],
+                    resumed["replayed"], report.seconds, "; ".join(report.problems) or "intact",
                     ", ".join(sorted(core.teams)))
-    return core, JournalWriter(state, first_sequence=report.entries), resumed
+    first = max(report.last_sequence + 1, since)
+    return core, JournalWriter(state, first_sequence=first), resumed

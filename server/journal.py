@@ -49,6 +49,7 @@ class Entry:
     kind: str                       # scan | tags | alive
     now_ns: int | None              # the time the core's periodic work ran on (scans)
     message: Scan | TagDetections | None = None
+    sequence: int = 0               # processing order across all segments
     robot_id: str = ""              # alive
     alive: bool = False
 
@@ -56,7 +57,10 @@ class Entry:
 @dataclass
 class ReplayReport:
     segments: int = 0
-    entries: int = 0
+    entries: int = 0                     # read (replayed or already in the snapshot)
+    from_sequence: int = 0
+    skipped: int = 0                     # already in the snapshot
+    last_sequence: int = -1
     unreadable: int = 0                  # records that did not decode
     problems: list[str] = field(default_factory=list)   # torn tails, damaged chunks
     seconds: float = 0.0
@@ -153,7 +157,7 @@ def read_journal(state_dir: str | Path, report: ReplayReport | None = None
             if m.topic != TOPIC:
                 continue
             try:
-                entry = _entry(msgspec.msgpack.decode(m.data))
+                entry = _entry(msgspec.msgpack.decode(m.data), m.sequence)
             except (msgspec.DecodeError, SchemaError, KeyError, TypeError, ValueError) as e:
                 report.unreadable += 1
                 log.warning("journal %s: a record does not decode (%s); skipped", path.name, e)
@@ -162,23 +166,29 @@ def read_journal(state_dir: str | Path, report: ReplayReport | None = None
             yield entry
 
 
-def _entry(env: dict[str, Any]) -> Entry:
+def _entry(env: dict[str, Any], sequence: int) -> Entry:
     kind = env["k"]
     if kind == "scan":
-        return Entry("scan", env["now"], decode(env["msg"], Scan))
+        return Entry("scan", env["now"], decode(env["msg"], Scan), sequence=sequence)
     if kind == "tags":
-        return Entry("tags", None, decode(env["msg"], TagDetections))
+        return Entry("tags", None, decode(env["msg"], TagDetections), sequence=sequence)
     if kind == "alive":
-        return Entry("alive", None, robot_id=str(env["rid"]), alive=bool(env["alive"]))
+        return Entry("alive", None, robot_id=str(env["rid"]), alive=bool(env["alive"]),
+                     sequence=sequence)
     raise ValueError(f"unknown journal record kind {kind!r}")
 
 
-def replay(core: ServerCore, state_dir: str | Path) -> ReplayReport:
-    """Feed ``core`` everything the journal holds, as the live server did (no commands go
-    out); the events it raises again were published before and are dropped."""
-    report = ReplayReport()
+def replay(core: ServerCore, state_dir: str | Path, from_sequence: int = 0) -> ReplayReport:
+    """Feed ``core`` what the journal holds from entry ``from_sequence`` on (the entries
+    before are in the snapshot it came from), as the live server did (no commands go out);
+    the events it raises again were published before and are dropped."""
+    report = ReplayReport(from_sequence=from_sequence)
     t0 = time.monotonic()
     for e in read_journal(state_dir, report):
+        report.last_sequence = e.sequence
+        if e.sequence < from_sequence:
+            report.skipped += 1
+            continue
         try:
             if e.kind == "scan":
                 assert isinstance(e.message, Scan)

@@ -31,6 +31,7 @@ from server.core import ServerCore
 from server.journal import JournalWriter
 from server.lockstep import StepBarrier
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
+from server.snapshot import Snapshots
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,8 @@ class ServerNode:
         self.core = core or ServerCore(cfg)
         self.journal = journal
         self.outputs = outputs
+        self.snapshots = Snapshots(journal.dir) if journal is not None else None
+        self.snapshot_s: list[float] = []    # how long each took (it holds the worker up)
         self.clock = ServerClock(cfg.clock.source)
         a, c = cfg.admission, cfg.clock
         self.registry = RobotRegistry(AdmissionPolicy(
@@ -141,6 +144,7 @@ class ServerNode:
     def _work(self) -> None:
         next_states = next_forget = 0.0
         next_outputs = time.monotonic() + self.cfg.outputs_period_s
+        next_snapshot = time.monotonic() + self.cfg.snapshot_period_s
         map_stamp = 0
         clocked = self.clock.source != "stamps"
         while not self._stop.is_set():
@@ -175,6 +179,11 @@ class ServerNode:
             now = time.monotonic()
             if self.journal is not None and now >= self.journal.next_flush:
                 self._guarded("flushing the journal", self.journal.flush)
+            if self.snapshots is not None and now >= next_snapshot:
+                self._guarded("writing a snapshot", self.snapshot)
+                # at most ~5 % of the worker's time, however large the state grows
+                next_snapshot = time.monotonic() + max(self.cfg.snapshot_period_s,
+                                                       20 * self.snapshots.last_seconds)
             if self.outputs is not None and now >= next_outputs:
                 next_outputs = now + self.cfg.outputs_period_s
                 self._guarded("writing the outputs", self.outputs, self)
@@ -199,6 +208,14 @@ class ServerNode:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
 
+    def snapshot(self) -> None:
+        """Snapshot the core as of the journal's next entry (worker thread, or after stop)."""
+        if self.journal is None or self.snapshots is None:
+            return
+        self.journal.flush()   # the journal holds everything up to the snapshot
+        self.snapshots.write(self.core, self.journal.sequence)
+        self.snapshot_s.append(self.snapshots.last_seconds)
+
     def _guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
         try:
             fn(*args)
@@ -218,4 +235,10 @@ class ServerNode:
         return {"registry": self.registry.counters(), "admission": self.registry.totals(),
                 "dropped_scans": self.dropped,
                 "errors": self.errors, "bus": self.bus.stats.as_dict(),
-                "lockstep_barrier_timeouts": self._barrier.timeouts}
+                "lockstep_barrier_timeouts": self._barrier.timeouts,
+                "journal": None if self.journal is None else {
+                    "entries": self.journal.sequence, "bytes": self.journal.bytes,
+                    "snapshots": len(self.snapshot_s),
+                    "snapshot_s_max": round(max(self.snapshot_s, default=0.0), 3),
+                    "snapshot_s_total": round(sum(self.snapshot_s), 3),
+                    "snapshot_bytes": self.snapshots.last_bytes if self.snapshots else 0}}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -92,9 +93,36 @@ class PoseGraph:
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = 1
         self._params = params
+        self._threshold = relinearize_threshold
         self.isam = gtsam.ISAM2(params)
         self._estimate: gtsam.Values | None = None
         self.n_updates = 0
+
+    # -- snapshots (pickle): ISAM2 itself cannot be pickled, its factors and values can -----
+    def __getstate__(self) -> dict[str, Any]:
+        fg = self.isam.getFactorsUnsafe()
+        return {"threshold": self._threshold, "n_updates": self.n_updates,
+                "factors": [fg.at(i) if fg.exists(i) else None for i in range(fg.size())],
+                "values": self.isam.getLinearizationPoint()}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """A new ISAM2 problem with every factor in its old slot (indices held elsewhere stay
+        valid), linearised where the old one was; empty slots are filled and emptied again."""
+        self.__init__(state["threshold"])  # type: ignore[misc]
+        values: gtsam.Values = state["values"]
+        graph, holes = gtsam.NonlinearFactorGraph(), []
+        keys = values.keys()
+        for i, f in enumerate(state["factors"]):
+            if f is None:
+                holes.append(i)
+                f = gtsam.PriorFactorPose2(keys[0], values.atPose2(keys[0]),
+                                           gtsam.noiseModel.Isotropic.Sigma(3, 1e3))
+            graph.add(f)
+        if graph.size():
+            self.isam.update(graph, values)
+        if holes:
+            self.isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), holes)
+        self.n_updates = state["n_updates"]
 
     def add(self, factors: list[gtsam.NonlinearFactor], new_values: dict[int, F64],
             remove: list[int] | None = None) -> list[int]:
