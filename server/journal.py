@@ -89,6 +89,7 @@ class JournalWriter:
         self.flush_period_s = flush_period_s
         self.next_flush = time.monotonic() + flush_period_s
         self.bytes = 0
+        self.seconds = 0.0          # spent journalling (the worker's time)
         self._closed = False
 
     def scan(self, msg: Scan, now_ns: int | None) -> None:
@@ -103,6 +104,7 @@ class JournalWriter:
     def _add(self, envelope: dict[str, Any], stamp_ns: int) -> None:
         if self._closed:
             return
+        t0 = time.perf_counter()
         data = msgspec.msgpack.encode(envelope)
         self._writer.add_message(self._channel, log_time=max(stamp_ns, 0), data=data,
                                  publish_time=max(stamp_ns, 0),
@@ -111,6 +113,7 @@ class JournalWriter:
         self.bytes += len(data)
         if time.monotonic() >= self.next_flush:
             self.flush()
+        self.seconds += time.perf_counter() - t0
 
     def flush(self) -> None:
         """Close the chunk in progress and hand it to the disk: what a crash keeps."""

@@ -238,6 +238,7 @@ class ServerNode:
                 "lockstep_barrier_timeouts": self._barrier.timeouts,
                 "journal": None if self.journal is None else {
                     "entries": self.journal.sequence, "bytes": self.journal.bytes,
+                    "journal_s": round(self.journal.seconds, 3),
                     "snapshots": len(self.snapshot_s),
                     "snapshot_s_max": round(max(self.snapshot_s, default=0.0), 3),
                     "snapshot_s_total": round(sum(self.snapshot_s), 3),
