@@ -20,9 +20,16 @@ class Proc:
     name: str
     popen: subprocess.Popen[bytes]
     log_path: Path
+    args: tuple[str, ...] = ()
+    #: the group was asked to stop it: an exit now is no failure
+    stopping: bool = False
 
     def alive(self) -> bool:
         return self.popen.poll() is None
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
 
     def tail(self, lines: int = 15) -> str:
         try:
@@ -38,24 +45,41 @@ class ProcessGroup:
     log_dir: Path
     procs: list[Proc] = field(default_factory=list)
 
+    #: what a child runs: ``python -m mrslam ARGS`` (the same interpreter, so the same install)
+    command: tuple[str, ...] = (sys.executable, "-m", "mrslam")
+
     def start(self, name: str, *args: str) -> Proc:
-        """Run ``python -m mrslam ARGS`` (the same interpreter, so the same install)."""
+        """Run ``command ARGS``, its output going to ``<log_dir>/<name>.log``."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         path = self.log_dir / f"{name}.log"
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        with path.open("wb") as out:
-            popen = subprocess.Popen([sys.executable, "-m", "mrslam", *args], stdout=out,
-                                     stderr=subprocess.STDOUT, env=env,
-                                     start_new_session=True)
-        p = Proc(name, popen, path)
+        p = Proc(name, self._spawn(path, args, "wb"), path, args)
         self.procs.append(p)
-        log.info("started %s (pid %d)", name, popen.pid)
+        log.info("started %s (pid %d)", name, p.pid)
         return p
+
+    def restart(self, p: Proc) -> None:
+        """Start ``p``'s command again in its place (``p`` must have exited); its log goes on
+        in the same file."""
+        if p.alive():
+            raise RuntimeError(f"{p.name} (pid {p.pid}) is still running")
+        with p.log_path.open("ab") as out:
+            out.write(f"\n--- {time.strftime('%H:%M:%S')} restarted after exit code "
+                      f"{p.popen.returncode} ---\n".encode())
+        old = p.pid
+        p.popen = self._spawn(p.log_path, p.args, "ab")
+        log.info("restarted %s (pid %d, was %d)", p.name, p.pid, old)
+
+    def _spawn(self, log_path: Path, args: tuple[str, ...], mode: str) -> subprocess.Popen[bytes]:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with log_path.open(mode) as out:
+            return subprocess.Popen([*self.command, *args], stdout=out,
+                                    stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
     def stop(self, names: list[str] | None = None, timeout_s: float = 15.0) -> None:
         """SIGTERM, then SIGKILL whatever has not exited after ``timeout_s``."""
         chosen = [p for p in self.procs if names is None or p.name in names]
         for p in chosen:
+            p.stopping = True
             if p.alive():
                 with contextlib.suppress(ProcessLookupError):
                     p.popen.send_signal(signal.SIGTERM)
