@@ -229,6 +229,8 @@ def demo(
         "start")] = False,
     record: Annotated[bool, typer.Option("--record/--no-record",
                                          help="record the run into run.mcap")] = True,
+    server_restarts: Annotated[int, typer.Option(
+        help="restart a server that dies at most this many times (0: never)")] = 5,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
@@ -246,7 +248,7 @@ def demo(
                                 "spurious_detections": spurious_detections,
                                 "coordination": coordination, "merge": merge,
                                 "known_starts": known_starts,
-                                "record": record}
+                                "record": record, "server_restarts": server_restarts}
         if world is not None:
             opts.update(world=str(world), scenario=scenario)
         elif scenario is not None:

@@ -12,14 +12,18 @@ import json
 import logging
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
 from pydantic import Field
 
 from mrslam.launch import ProcessGroup
+from mrslam.supervise import Exit, RestartPolicy, Supervisor
 from schemas.config import ConfigModel, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
+
+if TYPE_CHECKING:
+    from mrslam.monitor import Monitor
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +83,13 @@ class DemoConfig(ConfigModel):
         3600.0, gt=0, description="the simulator stops after this much simulated time")
     wall_timeout_s: float = Field(
         1800.0, gt=0, description="the demo gives up after this much wall-clock time")
+    server_restarts: int = Field(
+        5, ge=0, description="a server that dies (killed, crashed) is started again with the "
+        "same config, at most this many times in a run (0: never); it resumes from its "
+        "journal in the run folder while the simulator and agents go on")
+    restart_back_off_s: float = Field(
+        1.0, gt=0, description="the wait before the first restart; each next one waits twice "
+        "as long (at most 30 s)")
     out: str = Field("", description="the run folder; empty: runs/<scenario>-<date>-<time>")
 
 
@@ -100,7 +111,7 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
                   f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
                   f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; run folder {out}")
     t0 = time.monotonic()
-    watch = _execute(cfg, plan, out, console, progress)
+    watch = _execute(cfg, plan, out, console, progress, t0)
     from mrslam.report import build_report
 
     report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
@@ -173,7 +184,7 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
 
 
 def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
-             progress: bool) -> dict[str, Any]:
+             progress: bool, t0: float) -> dict[str, Any]:
     from mrslam.monitor import Monitor
     from schemas.bus import free_local_endpoint
 
@@ -203,15 +214,43 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                 sim_args += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}"]
             sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
             sim = procs.start("sim", *sim_args)
-            why = mon.follow(server, sim, cfg.wall_timeout_s, plan["threshold"], console,
+            supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,
+                                                                 cfg.restart_back_off_s))
+            why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"], console,
                              progress)
             procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
+            _let_server_come_up(supervisor, mon, timeout_s=60.0)
             procs.stop(["server"], timeout_s=60.0)
             procs.stop(["recorder"])
             watch = mon.results()
+            watch["server_restarts"] = [_restart_row(e, mon.recovery(e), t0)
+                                        for e in supervisor.exits]
         watch["end"] = why
         watch["exit_codes"] = {p.name: p.popen.returncode for p in procs.procs}
         failed = [p for p in procs.procs if p.popen.returncode not in (0, -15, None)]
         for p in failed:
             console.print(f"[red]{p.name} exited with {p.popen.returncode}[/]:\n{p.tail()}")
     return watch
+
+
+def _let_server_come_up(supervisor: Supervisor, mon: Monitor, timeout_s: float) -> None:
+    """A server restarting as the run ends gets the time to come up (replaying its journal),
+    so that, stopped, it writes its outputs; one that died for good or has exited is left."""
+    until = time.monotonic() + timeout_s
+    while time.monotonic() < until:
+        state = supervisor.poll(mon.sim_time_s)
+        if state in ("done", "failed") or (state == "running" and mon.server_alive):
+            return
+        time.sleep(0.1)
+    log.warning("the server did not come up within %.0f s of the run's end", timeout_s)
+
+
+def _restart_row(e: Exit, seen: dict[str, Any], t0: float) -> dict[str, Any]:
+    """One entry of ``server_restarts``: wall times in seconds since the run started."""
+    return {"wall_time_s": round(e.exited_at - t0, 3),
+            "sim_time_s": None if e.sim_time_s is None else round(e.sim_time_s, 2),
+            "pid": e.pid, "exit_code": e.exit_code, "signal": e.signal,
+            "restarted": e.restarted, "back_off_s": e.back_off_s,
+            "restart_wall_time_s": (None if e.restarted_at is None
+                                    else round(e.restarted_at - t0, 3)),
+            "new_pid": e.new_pid, **seen}

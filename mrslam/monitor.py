@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import Counter
 from typing import Any
 
 from mrslam.launch import Proc
+from mrslam.supervise import Exit, Supervisor
 from schemas import Event, RobotStates, SimClock, keys
 from schemas.bus import Bus
+
+#: commands that come after this long without any [s] start a new stretch of them
+COMMAND_PAUSE_S = 0.5
 
 
 class Monitor:
@@ -22,6 +27,13 @@ class Monitor:
         self.bytes_sent: Counter[str] = Counter()
         self.messages_sent: Counter[str] = Counter()
         self._server_up = threading.Event()
+        # for the server's restarts, all on time.monotonic(): when its liveliness token came
+        # (back), each team-coverage figure it sent, and the first command after each pause
+        self.server_up_at: list[float] = []
+        self.server_alive = False
+        self.coverage_at: list[tuple[float, float]] = []
+        self.commands_resumed_at: list[float] = []
+        self._last_command_at = -1.0
         self._lock = threading.Lock()
         self.bus.watch_alive(keys.SERVER_ALIVE, self._on_server)
         self.bus.subscribe(keys.SIM_CLOCK, SimClock, self._on_clock)
@@ -30,14 +42,19 @@ class Monitor:
         self.bus.subscribe_raw(f"{keys.ROOT}/robot/*/*", self._on_robot_bytes)
 
     def _on_server(self, key: str, alive: bool) -> None:
+        self.server_alive = alive
         if alive:
             self._server_up.set()
+            with self._lock:
+                self.server_up_at.append(time.monotonic())
 
     def _on_clock(self, key: str, msg: SimClock) -> None:
         self.sim_time_s = msg.stamp_ns * 1e-9
 
     def _on_states(self, key: str, msg: RobotStates) -> None:
         self.states = msg
+        with self._lock:
+            self.coverage_at.append((time.monotonic(), self.coverage()))
 
     def _on_event(self, key: str, msg: Event) -> None:
         with self._lock:
@@ -45,7 +62,13 @@ class Monitor:
 
     def _on_robot_bytes(self, key: str, payload: bytes) -> None:
         rid = keys.robot_id_of(key)
-        if rid is not None and not key.endswith("/cmd_vel"):  # what the robot sends
+        if key.endswith("/cmd_vel"):
+            now = time.monotonic()
+            with self._lock:
+                if now - self._last_command_at > COMMAND_PAUSE_S:
+                    self.commands_resumed_at.append(now)
+                self._last_command_at = now
+        elif rid is not None:  # what the robot sends
             with self._lock:
                 self.bytes_sent[rid] += len(payload)
                 self.messages_sent[rid] += 1
@@ -63,9 +86,10 @@ class Monitor:
         s = self.states
         return max((t.coverage for t in s.teams), default=0.0) if s else 0.0
 
-    def follow(self, server: Proc, sim: Proc, wall_timeout_s: float, threshold: float,
+    def follow(self, server: Supervisor, sim: Proc, wall_timeout_s: float, threshold: float,
                console: Any, progress: bool) -> str:
-        """Block until the run ends; returns why: finished, sim-ended, server-died, timeout."""
+        """Block until the run ends; returns why: finished, sim-ended, server-died, timeout.
+        A server that dies is restarted by ``server`` while the run goes on."""
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         columns = [TextColumn("[bold]coverage"), BarColumn(), TextColumn("{task.fields[cov]}"),
@@ -76,10 +100,15 @@ class Monitor:
             task = bar.add_task("run", total=threshold, cov="0.0%", sim="0 s", robots="")
             while True:
                 cov = self.coverage()
+                state = server.poll(self.sim_time_s)
+                robots = (self._robot_line() if state == "running"
+                          else f"server restarting ({server.restarts} so far)")
                 bar.update(task, completed=min(cov, threshold), cov=f"{cov:.1%}",
-                           sim=f"{self.sim_time_s:.0f} s", robots=self._robot_line())
-                if not server.alive():
-                    return "finished" if server.popen.returncode == 0 else "server-died"
+                           sim=f"{self.sim_time_s:.0f} s", robots=robots)
+                if state == "done":
+                    return "finished"
+                if state == "failed":
+                    return "server-died"
                 if not sim.alive():
                     return "sim-ended"
                 if time.monotonic() - t0 > wall_timeout_s:
@@ -91,6 +120,21 @@ class Monitor:
         if s is None:
             return "waiting for robots"
         return " ".join(f"{r.robot_id}:{r.mode}" for r in s.robots)
+
+    def recovery(self, ex: Exit) -> dict[str, Any]:
+        """What the bus showed around a restart of the server: the team coverage it last sent
+        before ``ex`` and first sent after the restart, and how long after the restart its
+        liveliness token came back and its first command reached a robot [s]."""
+        start = ex.restarted_at if ex.restarted_at is not None else math.inf   # never
+        with self._lock:
+            before = [c for t, c in self.coverage_at if t <= ex.exited_at]
+            after = [c for t, c in self.coverage_at if t > start]
+            up = [t for t in self.server_up_at if t > start]
+            cmd = [t for t in self.commands_resumed_at if t > start]
+        return {"coverage_before": before[-1] if before else None,
+                "coverage_after": after[0] if after else None,
+                "up_after_s": round(up[0] - start, 3) if up else None,
+                "first_command_after_s": round(cmd[0] - start, 3) if cmd else None}
 
     def results(self) -> dict[str, Any]:
         with self._lock:
