@@ -7,8 +7,10 @@ from typing import Any
 
 import numpy as np
 
+from mrslam.run_files import Gaps, read_trajectory
 
-def write_figures(report: dict[str, Any], out: Path) -> list[str]:
+
+def write_figures(report: dict[str, Any], out: Path, gaps: Gaps) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -35,6 +37,8 @@ def write_figures(report: dict[str, Any], out: Path) -> list[str]:
 
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
     for rid, r in report["robots"].items():
+        if "_errors" not in r:   # no online poses from the server
+            continue
         t, pos, yaw = r["_errors"]
         ax1.plot(t, pos, label=rid)
         ax2.plot(t, np.degrees(yaw), label=rid)
@@ -44,18 +48,19 @@ def write_figures(report: dict[str, Any], out: Path) -> list[str]:
     ax1.set_title(f"{report['scenario']}: online pose error vs ground truth")
     for a in (ax1, ax2):
         a.grid(alpha=0.3)
-        a.legend(fontsize=8)
+        if a.lines:
+            a.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "pose_error.png", dpi=120)
     plt.close(fig)
     written.append("pose_error.png")
-    written += _maps(report, out, plt)
+    written += _maps(report, out, plt, gaps)
     return written
 
 
-def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
-    from mrslam.run_files import read_trajectory
+def _maps(report: dict[str, Any], out: Path, plt: Any, gaps: Gaps) -> list[str]:
     from schemas.occupancy import FREE_BELOW, OCCUPIED_ABOVE, UNKNOWN
+    from sim.errors import WorldError
     from sim.grid import read_nav2
 
     written = []
@@ -63,7 +68,11 @@ def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
         yml = out / "server" / "maps" / team_id / "map.yaml"
         if not yml.exists():
             continue
-        g = read_nav2(yml)
+        try:
+            g = read_nav2(yml)
+        except WorldError as e:
+            gaps.note(yml, f"map not drawn: {e}")
+            continue
         img = np.full(g.cells.shape, 0.8)
         img[(g.cells != UNKNOWN) & (g.cells < FREE_BELOW)] = 1.0
         img[g.cells > OCCUPIED_ABOVE] = 0.0
@@ -75,7 +84,7 @@ def _maps(report: dict[str, Any], out: Path, plt: Any) -> list[str]:
         for rid in team["robot_ids"]:
             path = out / "server" / "trajectories" / f"{rid}_final.csv"
             if path.exists():
-                _, poses = read_trajectory(path)
+                _, poses = read_trajectory(path, gaps)
                 ax.plot(poses[:, 0], poses[:, 1], lw=1, label=rid)
         ax.set_title(f"{team_id}: map and trajectories (map frame)")
         ax.set_xlabel("x [m]")

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from pathlib import Path
@@ -10,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from mrslam.run_files import read_trajectory, read_truth
+from mrslam.run_files import Gaps, read_json, read_trajectory, read_truth
 from schemas.se2 import compose, inverse, pose_distance
 from server.scoring import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
 
@@ -151,79 +150,92 @@ def threshold_times(teams: dict[str, Any]) -> tuple[bool, float | None, float | 
 
 def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any],
                  wall_time_s: float) -> dict[str, Any]:
+    """Score the run folder ``out``. Whatever is missing or damaged (the server's outputs
+    when it died for good) is left out and named under ``missing``; the rest still counts."""
+    from sim.errors import WorldError
     from sim.grid import read_nav2
 
+    gaps = Gaps(out)
     server_dir = out / "server"
-    summary = json.loads((server_dir / "summary.json").read_text())
-    truth = read_truth(out / "sim" / "truth.jsonl")
+    summary = read_json(server_dir / "summary.json", gaps)
+    if summary.get("running"):
+        gaps.note(server_dir / "summary.json", "written while the server ran (its last "
+                  "periodic refresh): the server did not stop cleanly")
+    truth = read_truth(out / "sim" / "truth.jsonl", gaps)
+
+    def trajectory(rid: str, kind: str) -> tuple[np.ndarray, np.ndarray]:
+        return read_trajectory(server_dir / "trajectories" / f"{rid}_{kind}.csv", gaps)
+
     threshold = plan["threshold"]
     robots: dict[str, Any] = {}
     teams: dict[str, Any] = {}
-    traj_world: dict[str, np.ndarray] = {}
     own_frames: dict[str, np.ndarray] = {}
     first_online: dict[str, np.ndarray] = {}
     final_team: dict[str, str] = {}
-    for team_id, team in summary["teams"].items():
-        anchor = team["robot_ids"][0]
-        a_stamps, a_online = read_trajectory(server_dir / "trajectories" / f"{anchor}_online.csv")
-        idx, a_true = match_truth(a_stamps[:1], truth[anchor]["stamps_ns"],
-                                  truth[anchor]["poses"])
-        T_world_map = anchor_transform(a_true[0], a_online[0]) if len(idx) else np.zeros(3)
+    for team_id, team in summary.get("teams", {}).items():
+        robot_ids = list(team.get("robot_ids", []))
+        T_world_map = np.zeros(3)
+        if robot_ids and robot_ids[0] in truth:
+            anchor = robot_ids[0]
+            a_stamps, a_online = trajectory(anchor, "online")
+            idx, a_true = match_truth(a_stamps[:1], truth[anchor]["stamps_ns"],
+                                      truth[anchor]["poses"])
+            if len(idx):
+                T_world_map = anchor_transform(a_true[0], a_online[0])
         history = team.get("coverage_history", [])
         t_reach = next((s * 1e-9 for s, c in history if c >= threshold), None)
         quality = None
         map_yaml = server_dir / "maps" / team_id / "map.yaml"
         if map_yaml.exists():
-            est = read_nav2(map_yaml)
-            tg = plan["truth_grid"]
-            q = map_quality(est.cells, est.resolution_m, est.origin[:2], T_world_map, tg.cells,
-                            tg.resolution_m, tg.origin[:2])
-            quality = {"true_coverage": _finite(q.true_coverage),
-                       "explored_free_m2": _finite(q.explored_free_m2),
-                       "true_free_m2": _finite(q.true_free_m2),
-                       "phantom_area_m2": _finite(q.phantom_area_m2)}
-        teams[team_id] = {"robot_ids": team["robot_ids"], "coverage": _finite(team["coverage"]),
+            try:
+                est = read_nav2(map_yaml)
+            except WorldError as e:
+                gaps.note(map_yaml, f"map not scored: {e}")
+            else:
+                tg = plan["truth_grid"]
+                q = map_quality(est.cells, est.resolution_m, est.origin[:2], T_world_map,
+                                tg.cells, tg.resolution_m, tg.origin[:2])
+                quality = {"true_coverage": _finite(q.true_coverage),
+                           "explored_free_m2": _finite(q.explored_free_m2),
+                           "true_free_m2": _finite(q.true_free_m2),
+                           "phantom_area_m2": _finite(q.phantom_area_m2)}
+        else:
+            gaps.note(map_yaml, "missing")
+        teams[team_id] = {"robot_ids": robot_ids, "coverage": _finite(team.get("coverage")),
                           "reached": t_reach is not None,
                           "sim_time_to_threshold_s": _finite(t_reach) if t_reach else None,
                           "coverage_history": [[s * 1e-9, c] for s, c in history],
                           **(quality or {})}
-        for rid in team["robot_ids"]:
-            stamps, online = read_trajectory(server_dir / "trajectories" / f"{rid}_online.csv")
-            f_stamps, final = read_trajectory(server_dir / "trajectories" / f"{rid}_final.csv")
+        for rid in robot_ids:
             t = truth.get(rid)
             if t is None:
                 continue
+            stamps, online = trajectory(rid, "online")
+            f_stamps, final = trajectory(rid, "final")
             # online poses are in the robot's own map frame (its first pose is the origin)
             T_world_own = own_frames[rid] = _own_frame(stamps, online, t)
             if len(online):
                 first_online[rid] = np.asarray(online[0], dtype=np.float64)
                 final_team[rid] = team_id
             err = pose_errors(stamps, online, T_world_own, t["stamps_ns"], t["poses"])
-            traj_world[rid] = err.stamps_ns
-            srv = summary["robots"].get(rid, {})
+            srv = summary.get("robots", {}).get(rid, {})
             robots[rid] = {
                 "team_id": team_id,
-                "distance_m": round(t["distance_m"], 3),
+                **_truth_row(t, watch, rid),
                 "max_position_error_m": _finite(err.max_position_m),
                 "max_yaw_error_rad": _finite(err.max_yaw_rad),
                 "ate_rmse_m": _finite(ate_rmse(f_stamps, final, t["stamps_ns"], t["poses"])),
-                "collisions": t["collisions"],
-                "bytes_sent": watch.get("bytes_sent", {}).get(rid, 0),
-                "messages_sent": watch.get("messages_sent", {}).get(rid, 0),
-                "scans": srv.get("scans"), "keyframes": srv.get("keyframes"),
-                "loop_closures": srv.get("loop_closures"),
-                "decisions": srv.get("decisions"),
-                "decision_ms_median": srv.get("decision_ms_median"),
-                "mode": srv.get("mode"),
+                **{k: srv.get(k) for k in SERVER_ROBOT_FIELDS},
+                "_errors": (err.stamps_ns * 1e-9, err.position_m, err.yaw_rad),
             }
-            _plot_data = (err.stamps_ns * 1e-9, err.position_m, err.yaw_rad)
-            robots[rid]["_errors"] = _plot_data
-    final_traj = {rid: read_trajectory(server_dir / "trajectories" / f"{rid}_final.csv")
-                  for rid in summary.get("robots", {})
+    for rid, t in truth.items():   # robots the server's outputs do not tell of
+        robots.setdefault(rid, {"team_id": None, **_truth_row(t, watch, rid),
+                                "max_position_error_m": None, "max_yaw_error_rad": None,
+                                "ate_rmse_m": None, **dict.fromkeys(SERVER_ROBOT_FIELDS)})
+    final_traj = {rid: trajectory(rid, "final") for rid in summary.get("robots", {})
                   if (server_dir / "trajectories" / f"{rid}_final.csv").exists()}
     merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth,
                           first_online, final_team)
-    from sim.errors import WorldError
     from sim.loader import load_world
 
     try:
@@ -237,7 +249,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         hist = old.get("coverage_history", [])
         # a team may reach the threshold before a robot still alone joins it
         t_old = next((s * 1e-9 for s, c in hist if c >= threshold), None)
-        teams.setdefault(tid, {"robot_ids": old["robot_ids"], "merged_into": old["merged_into"],
+        teams.setdefault(tid, {"robot_ids": old.get("robot_ids", []),
+                               "merged_into": old.get("merged_into"),
                                "coverage": _finite(hist[-1][1]) if hist else None,
                                "reached": t_old is not None,
                                "sim_time_to_threshold_s": _finite(t_old) if t_old else None,
@@ -262,19 +275,34 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "merges": merges,
         "false_merges": sum(1 for m in merges if m.get("false")),
         "tag_counters": summary.get("tag_counters", {}),
-        "events": summary.get("events", []),
+        # without the server's summary, the events the bus carried
+        "events": summary.get("events", watch.get("events", [])),
         "exit_codes": watch.get("exit_codes", {}),
+        "server_restarts": watch.get("server_restarts", []),
+        "missing": gaps.notes,
         "dissertation": plan.get("reported", {}),
     }
     try:
         from mrslam.figures import write_figures
 
-        report["figures"] = write_figures(report, out)
+        report["figures"] = write_figures(report, out, gaps)
     except Exception:  # figures are a convenience; the numbers above are the result
         log.exception("could not draw the figures")
     for r in robots.values():
         r.pop("_errors", None)
     return report
+
+
+#: what the report takes from the server's summary per robot as it is
+SERVER_ROBOT_FIELDS = ("scans", "keyframes", "loop_closures", "decisions",
+                       "decision_ms_median", "mode")
+
+
+def _truth_row(t: dict[str, Any], watch: dict[str, Any], rid: str) -> dict[str, Any]:
+    """A robot's figures that need no server: the simulator's and the bus's."""
+    return {"distance_m": round(t["distance_m"], 3), "collisions": t["collisions"],
+            "bytes_sent": watch.get("bytes_sent", {}).get(rid, 0),
+            "messages_sent": watch.get("messages_sent", {}).get(rid, 0)}
 
 
 def print_summary(report: dict[str, Any], console: Any) -> None:
@@ -288,7 +316,7 @@ def print_summary(report: dict[str, Any], console: Any) -> None:
                           for tid, t in report["teams"].items()
                           if not t.get("merged_into") and not t["reached"])
         outcome = (f"did NOT reach {report['threshold']:.0%} in {report['sim_time_s']:.0f} s "
-                   f"sim: {short}")
+                   f"sim: {short or 'no team known (no server outputs)'}")
     table = Table(title=f"{report['scenario']}: {outcome} ({report['wall_time_s']:.0f} s wall)")
     for col in ("robot", "distance m", "max pos err m", "max yaw err rad", "ATE m",
                 "collisions", "bytes sent"):
@@ -300,3 +328,13 @@ def print_summary(report: dict[str, Any], console: Any) -> None:
     console.print(table)
     console.print(f"true coverage {report['true_coverage']}, phantom area "
                   f"{report['phantom_area_m2']:.2f} m², end: {report['end']}")
+    for r in report.get("server_restarts", []):
+        how = r["signal"] or f"exit code {r['exit_code']}"
+        then = (f"restarted after {r['back_off_s']:g} s, first command "
+                f"{r.get('first_command_after_s')} s later" if r["restarted"]
+                else "not restarted (no restarts left)")
+        console.print(f"[yellow]server died ({how}) at {r['wall_time_s']:.0f} s wall, "
+                      f"{r['sim_time_s'] or 0.0:.0f} s sim: {then}[/]")
+    if report.get("missing"):
+        console.print("[yellow]missing or damaged, left out of the report:[/] "
+                      + "; ".join(report["missing"]))
