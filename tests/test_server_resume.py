@@ -32,6 +32,7 @@ def keyframes(folder: Path) -> dict[str, int]:
 
 def test_a_server_killed_with_sigkill_resumes_from_its_journal(tmp_path: Path) -> None:
     srv = ServerProcess(tmp_path, CONFIG)
+    servers = [srv]
     srv.client().close()
     robots = [RoomRobot(srv.endpoint, rid).start() for rid in ("r1", "r2")]
     try:
@@ -45,6 +46,7 @@ def test_a_server_killed_with_sigkill_resumes_from_its_journal(tmp_path: Path) -
         assert (tmp_path / "server" / "state" / "journal-0001.mcap").stat().st_size > 0
         # the same port again, so the robots that kept running find it
         srv2 = ServerProcess(tmp_path, {**CONFIG, "bus": {"listen": [srv.endpoint]}})
+        servers.append(srv2)
         srv2.endpoint = srv.endpoint
         t_restart = time.monotonic()
         srv2.client().close()
@@ -60,3 +62,5 @@ def test_a_server_killed_with_sigkill_resumes_from_its_journal(tmp_path: Path) -
     finally:
         for r in robots:
             r.close()
+        for s in servers:
+            s.stop()
