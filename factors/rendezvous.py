@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -127,6 +128,19 @@ def _noise(sigmas: F64, kernel: str | None, k: float) -> gtsam.noiseModel.Base:
     return model if kernel is None else robust(model, kernel, k)
 
 
+class RecipeFactor(gtsam.CustomFactor):
+    """A CustomFactor that pickles as the call that made it (its error function is a closure,
+    which cannot be pickled): the server's snapshots hold these."""
+
+    def __init__(self, noise: gtsam.noiseModel.Base, keys: list[int],
+                 error: Any, recipe: tuple[Any, tuple[Any, ...]]) -> None:
+        super().__init__(noise, keys, error)
+        self._recipe = recipe
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return self._recipe
+
+
 def rendezvous_factor(key_observer: int, key_observed: int, sighting: Sighting,
                       T_kf_observer: ArrayLike = (0.0, 0.0, 0.0),
                       T_kf_observed: ArrayLike = (0.0, 0.0, 0.0), kernel: str | None = "huber",
@@ -147,8 +161,9 @@ def rendezvous_factor(key_observer: int, key_observed: int, sighting: Sighting,
             H[1] = H_b
         return e
 
-    return gtsam.CustomFactor(_noise(sighting.sigmas, kernel, k), [key_observer, key_observed],
-                              error)
+    return RecipeFactor(_noise(sighting.sigmas, kernel, k), [key_observer, key_observed], error,
+                        (rendezvous_factor, (key_observer, key_observed, sighting, A, B,
+                                             kernel, k)))
 
 
 def mutual_rendezvous_factor(key_a: int, key_b: int, a_sees_b: Sighting, b_sees_a: Sighting,
@@ -177,7 +192,9 @@ def mutual_rendezvous_factor(key_a: int, key_b: int, a_sees_b: Sighting, b_sees_
         return np.concatenate([e1, e2])
 
     sig = np.concatenate([a_sees_b.sigmas, b_sees_a.sigmas])
-    return gtsam.CustomFactor(_noise(sig, kernel, k), [key_a, key_b], error)
+    return RecipeFactor(_noise(sig, kernel, k), [key_a, key_b], error,
+                        (mutual_rendezvous_factor, (key_a, key_b, a_sees_b, b_sees_a, T_kf_a,
+                                                    T_kf_b, kernel, k)))
 
 
 def fuse_transforms(transforms: Sequence[ArrayLike], covariances: Sequence[ArrayLike]

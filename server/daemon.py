@@ -55,7 +55,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
                 if node.core.finished:  # not when a merge was undone meanwhile
                     break
         node.stop()
-        node.snapshot()
+        node.guarded("writing the last snapshot", node.snapshot)
         summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
         if out is not None:
             write_outputs(node.core, out, summary)

@@ -178,15 +178,15 @@ class ServerNode:
                                      rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
             now = time.monotonic()
             if self.journal is not None and now >= self.journal.next_flush:
-                self._guarded("flushing the journal", self.journal.flush)
+                self.guarded("flushing the journal", self.journal.flush)
             if self.snapshots is not None and now >= next_snapshot:
-                self._guarded("writing a snapshot", self.snapshot)
+                self.guarded("writing a snapshot", self.snapshot)
                 # at most ~5 % of the worker's time, however large the state grows
                 next_snapshot = time.monotonic() + max(self.cfg.snapshot_period_s,
                                                        20 * self.snapshots.last_seconds)
             if self.outputs is not None and now >= next_outputs:
                 next_outputs = now + self.cfg.outputs_period_s
-                self._guarded("writing the outputs", self.outputs, self)
+                self.guarded("writing the outputs", self.outputs, self)
             if now >= next_forget:
                 next_forget = now + 1.0
                 with self._cv:
@@ -216,7 +216,7 @@ class ServerNode:
         self.snapshots.write(self.core, self.journal.sequence)
         self.snapshot_s.append(self.snapshots.last_seconds)
 
-    def _guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
+    def guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
         try:
             fn(*args)
         except Exception as e:   # a full disk must not stop the robots
@@ -229,7 +229,7 @@ class ServerNode:
         if self._worker.is_alive():
             self._worker.join(timeout=10)
         if self.journal is not None:
-            self._guarded("closing the journal", self.journal.close)
+            self.guarded("closing the journal", self.journal.close)
 
     def summary(self) -> dict[str, Any]:
         return {"registry": self.registry.counters(), "admission": self.registry.totals(),

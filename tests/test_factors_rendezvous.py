@@ -192,3 +192,22 @@ def test_joint_optimisation_recovers_the_transform_and_resists_an_outlier() -> N
     assert math.hypot(got.x() - want[0], got.y() - want[1]) < 0.05
     assert abs(wrap_angle(got.theta() - want[2])) < math.radians(1)
     np.testing.assert_allclose(inverse(inverse(T_AB)), T_AB, atol=1e-12)
+
+
+def test_rendezvous_factors_pickle_as_the_call_that_made_them() -> None:
+    """The server's snapshots pickle its graphs: a sighting factor comes back with the same
+    keys, noise and error."""
+    import pickle
+
+    import gtsam
+
+    from factors.rendezvous import Sighting, mutual_rendezvous_factor, rendezvous_factor
+
+    s = Sighting(2.0, 0.1, 3.0, 0.05, 0.01, 0.1)
+    v = gtsam.Values()
+    v.insert(1, gtsam.Pose2(0.1, -0.2, 0.3))
+    v.insert(2, gtsam.Pose2(2.0, 0.4, -2.9))
+    for f in (rendezvous_factor(1, 2, s, (0.1, 0.0, 0.05), (0.0, 0.2, 0.0)),
+              mutual_rendezvous_factor(1, 2, s, s)):
+        g = pickle.loads(pickle.dumps(f))
+        assert list(g.keys()) == [1, 2] and g.error(v) == f.error(v) > 0

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from pathlib import Path
 
 import gtsam
 import numpy as np
@@ -459,3 +460,24 @@ def test_sightings_leave_the_graph_once_the_maps_tie_the_robots() -> None:
     assert any(ln.record.kind == "rendezvous" for t in old.teams.values() for ln in t.links)
     bent = keyframe_errors(old, truth_old)
     assert kept <= 0.025 and bent >= 2 * kept, (kept, bent)
+
+
+def test_a_team_merged_on_sightings_snapshots_and_comes_back(tmp_path: Path) -> None:
+    """The server's snapshot of a team joined by tag sightings (rendezvous factors, kept in
+    its graph here) reads back: same teams and merges, poses to well under a millimetre."""
+    from factors.rendezvous import RecipeFactor
+    from server.snapshot import Snapshots
+
+    core, _ = run(250, cfg=config(retire_sightings_after=0))
+    assert len(core.teams) == 1
+    g = core.robots["r1"].slam.graph.isam.getFactorsUnsafe()
+    assert any(g.exists(i) and isinstance(g.at(i), RecipeFactor) for i in range(g.size()))
+    snaps = Snapshots(tmp_path)
+    snaps.write(core, 7)
+    loaded = snaps.load()
+    assert loaded is not None and loaded[1] == 7
+    back = loaded[0]
+    assert sorted(back.teams) == sorted(core.teams) and len(back.merges) == len(core.merges)
+    for rid, r in core.robots.items():
+        assert np.allclose(back.robots[rid].slam.keyframe_poses(), r.slam.keyframe_poses(),
+                           atol=1e-4)
