@@ -332,7 +332,8 @@ def print_summary(report: dict[str, Any], console: Any) -> None:
         how = r["signal"] or f"exit code {r['exit_code']}"
         then = (f"restarted after {r['back_off_s']:g} s, first command "
                 f"{r.get('first_command_after_s')} s later" if r["restarted"]
-                else "not restarted (no restarts left)")
+                else "not restarted (no restarts left)" if r.get("back_off_s") is None
+                else "not restarted (the run ended first)")
         console.print(f"[yellow]server died ({how}) at {r['wall_time_s']:.0f} s wall, "
                       f"{r['sim_time_s'] or 0.0:.0f} s sim: {then}[/]")
     if report.get("missing"):

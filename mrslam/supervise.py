@@ -48,8 +48,8 @@ class Exit:
     signal: str | None            # the signal that ended it, e.g. SIGKILL
     exited_at: float              # when the exit was noticed
     sim_time_s: float | None      # the run's simulated time then, when known
-    restarted: bool               # False: the restart budget was spent
-    back_off_s: float | None = None
+    back_off_s: float | None = None   # the wait before its restart; None: budget spent
+    restarted: bool = False           # the restart happened (not when the run ended first)
     restarted_at: float | None = None
     new_pid: int | None = None
 
@@ -75,7 +75,8 @@ class Supervisor:
 
     @property
     def restarts(self) -> int:
-        return sum(1 for e in self.exits if e.restarted)
+        """Restarts done or due."""
+        return sum(1 for e in self.exits if e.back_off_s is not None)
 
     def poll(self, sim_time_s: float | None = None) -> State:
         """Check the child; restart it when its back-off is over. ``sim_time_s`` is recorded
@@ -89,7 +90,7 @@ class Supervisor:
             self.group.restart(self.proc)
             self._due = None
             last = self.exits[-1]
-            last.restarted_at, last.new_pid = now, self.proc.pid
+            last.restarted, last.restarted_at, last.new_pid = True, now, self.proc.pid
             return "running"
         code = self.proc.popen.poll()
         if code is None:
@@ -98,17 +99,16 @@ class Supervisor:
             return "done"
         if self.exits and self.exits[-1].pid == self.proc.pid:
             return "failed"   # noticed before; the budget was spent
-        restart = self.restarts < self.policy.max_restarts
-        wait = self.policy.back_off(self.restarts) if restart else None
+        wait = (self.policy.back_off(self.restarts)
+                if self.restarts < self.policy.max_restarts else None)
         self.exits.append(Exit(pid=self.proc.pid, exit_code=code, signal=signal_name(code),
-                               exited_at=now, sim_time_s=sim_time_s, restarted=restart,
-                               back_off_s=wait))
+                               exited_at=now, sim_time_s=sim_time_s, back_off_s=wait))
         how = signal_name(code) or f"exit code {code}"
         if wait is None:
             log.error("%s (pid %d) died (%s) after %d restart(s); not restarting it",
                       self.proc.name, self.proc.pid, how, self.restarts)
             return "failed"
-        log.warning("%s (pid %d) died (%s); restart %d of %d in %.0f s", self.proc.name,
+        log.warning("%s (pid %d) died (%s); restart %d of %d in %g s", self.proc.name,
                     self.proc.pid, how, self.restarts, self.policy.max_restarts, wait)
         self._due = now + wait
         return "restarting"

@@ -81,6 +81,17 @@ def test_a_child_its_group_stops_is_not_restarted(tmp_path: Path) -> None:
     assert sup.poll() == "done" and sup.exits == []
 
 
+def test_a_restart_still_due_when_the_group_stops_is_dropped(tmp_path: Path) -> None:
+    group = ProcessGroup(tmp_path / "logs", command=(sys.executable, "-c", "raise SystemExit(3)"))
+    child = group.start("server")
+    sup = Supervisor(group, child, RestartPolicy(back_off_s=20.0))
+    assert poll_until(sup, {"restarting"}) == "restarting"
+    group.stop(["server"])
+    assert sup.poll() == "done"
+    (ex,) = sup.exits
+    assert ex.back_off_s == 20.0 and not ex.restarted and ex.new_pid is None
+
+
 def test_back_off_doubles_up_to_its_cap() -> None:
     policy = RestartPolicy(max_restarts=10, back_off_s=1.0)
     waits = [policy.back_off(k) for k in range(8)]
