@@ -130,8 +130,9 @@ class SimNode:
         self.alive: set[str] = set()
         self.started: float | None = None   # monotonic time of the first step
         self._log = RateLimitedLog(log)
+        self._were_alive: set[str] = set()
         self.counters = {"ack_timeouts": 0, "resends": 0, "images": 0, "foreign_messages": 0,
-                         "late_steps": 0}
+                         "late_steps": 0, "held_s": 0.0}
         bus.subscribe(keys.SIM_ALL_MOTOR, SimMotorCommand, self._on_motor)
         bus.subscribe(keys.SIM_ALL_ACK, SimStepAck, self._on_ack)
         bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
@@ -185,6 +186,8 @@ class SimNode:
         t0 = self.started = time.monotonic()
         k0 = sim.step
         while not stop.is_set() and not self._finished():
+            if cfg.lockstep:
+                self._hold_while_alone(stop)
             obs = sim.sense()
             msgs, truth = step_messages(sim, obs, self.world_name, cfg.lockstep,
                                         cfg.real_time_factor)
@@ -231,6 +234,26 @@ class SimNode:
                                    f"{self.cfg.start_timeout_s:g} s")
                 self.cond.wait(min(left, 0.1))
         log.info("lockstep: all %d agents are alive", len(self.sim.robots))
+
+    def _hold_while_alone(self, stop: threading.Event) -> None:
+        """Lockstep with no agent alive — the router (the server) went away, or every agent
+        stopped — the world waits rather than run on with the robots standing. When agents
+        come back it waits a moment more for the others that were there before."""
+        with self.cond:
+            if self.alive or stop.is_set():
+                self._were_alive = set(self.alive)
+                return
+            log.warning("lockstep: no agent is alive; the simulation holds")
+            t0 = time.monotonic()
+            while not stop.is_set() and not self.alive:
+                self.cond.wait(0.1)
+            grace = time.monotonic() + self.cfg.ack_timeout_s
+            while not stop.is_set() and self.alive < self._were_alive \
+                    and time.monotonic() < grace:
+                self.cond.wait(0.05)
+            self.counters["held_s"] += time.monotonic() - t0
+            log.warning("lockstep: agents back (%s) after %.1f s; the simulation goes on",
+                        ", ".join(sorted(self.alive)), time.monotonic() - t0)
 
     def _wait_for_acks(self, step: int, msgs: list[tuple[str, Message]],
                        stop: threading.Event) -> None:
