@@ -41,6 +41,8 @@ SEGMENT_GLOB = "journal-*.mcap"
 class JournalError(ValueError):
     """A state folder that cannot hold a journal (not a folder, not writable)."""
 
+    user_error = True   # the CLI says it in one line (exit code 2)
+
 
 @dataclass(frozen=True)
 class Entry:

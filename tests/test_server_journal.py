@@ -184,3 +184,12 @@ def test_a_snapshot_and_the_journal_after_it_resume_the_core(tmp_path: Path) -> 
     newest.write_bytes(newest.read_bytes()[:-100])
     again = snaps.load()
     assert again is not None and again[1] == 150
+
+
+def test_a_state_folder_that_cannot_be_one_is_a_typed_error(tmp_path: Path) -> None:
+    from server.journal import JournalError
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(JournalError, match=r"state folder .*file"):
+        JournalWriter(blocker / "state")
