@@ -14,17 +14,9 @@ from schemas import RobotStatus, Scan, SimGroundTruth, VelocityCommand, keys
 from schemas.bus import Bus
 from sim import process
 from tests.conftest import DATA
+from tests.waiting import within
 
 SMALL = DATA / "worlds" / "thesis" / "house_small.world"
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 @contextlib.contextmanager
@@ -89,7 +81,7 @@ def test_scans_flow_commands_move_the_robot_and_it_stops_when_they_stop(
     router.declare_alive(keys.SERVER_ALIVE)   # the agent obeys the server's session only
     with running(endpoint, {"r1": (-8.0, 9.0, 0.0)}, {"real_time_factor": 2.0},
                  {"status_period_s": 0.2}) as results:
-        assert wait_for(lambda: len(scans) >= 5 and truth.latest is not None)
+        assert within(lambda: len(scans) >= 5 and truth.latest is not None, 10.0)
         s = scans[-1]
         assert s.robot_id == "r1" and s.n_beams == 400 and s.odom_pose == (-8.0, 9.0, 0.0)
         assert keys.robot_alive("r1") in alive
@@ -123,11 +115,11 @@ def test_the_robot_stops_when_the_server_disappears(router: Bus, endpoint: str) 
         server = Bus.open("client", connect=[endpoint])
         try:
             server.declare_alive(keys.SERVER_ALIVE)
-            assert wait_for(lambda: truth.latest is not None)
+            assert within(lambda: truth.latest is not None, 10.0)
             start = truth.pose("r1")
             server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
                 robot_id="r1", v_mps=0.2, omega_rps=0.0, ttl_s=10.0), block=True)
-            assert wait_for(lambda: truth.pose("r1")[0] > start[0] + 0.1)
+            assert within(lambda: truth.pose("r1")[0] > start[0] + 0.1, 10.0)
         finally:
             server.close()                       # liveliness gone, command still valid
         time.sleep(0.5)
@@ -169,7 +161,7 @@ def test_far_tags_are_sent_with_the_lidar_range_and_bearing(router: Bus, endpoin
 
     with running(endpoint, robots, {"real_time_factor": 2.0}) as results:
         # (a sweep lost under load leaves its frame to the tag alone: that one is sent as is)
-        assert wait_for(lambda: len(fixed()) >= 3)
+        assert within(lambda: len(fixed()) >= 3, 10.0)
     dets = fixed()
     assert all(abs(d.range_m - 5.0) <= 0.03 and abs(d.bearing_rad) <= 0.006 for d in dets)
     assert all(d.sigma_range_m <= 0.05 for d in dets)

@@ -6,22 +6,13 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
 
 from schemas import MESSAGE_TYPES, MapUpdate, Message, Scan, keys
 from schemas.bus import Bus, BusError
 from tests.examples import all_examples, scan
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout_s:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
+from tests.waiting import within
 
 
 def key_for(name: str) -> str:
@@ -42,7 +33,7 @@ def test_every_message_type_crosses_the_bus(router: Bus, endpoint: str) -> None:
             assert a.wait_for_subscribers(key_for(name))
         for name, msg in examples.items():
             a.publish(key_for(name), msg, block=True)
-        assert wait_for(lambda: len(got) == len(examples))
+        assert within(lambda: len(got) == len(examples), 5.0)
     assert got == examples
 
 
@@ -54,7 +45,7 @@ def test_garbage_is_counted_and_not_delivered(router: Bus, endpoint: str) -> Non
         a.session.put(keys.robot_scan("r1"), b"\x93garbage")
         a.session.put(keys.robot_scan("r2"), b"")
         a.publish(keys.robot_scan("r3"), scan("r3"), block=True)
-        assert wait_for(lambda: len(delivered) == 1 and router.stats.rejected["Scan"] == 2)
+        assert within(lambda: len(delivered) == 1 and router.stats.rejected["Scan"] == 2, 5.0)
     assert delivered[0].robot_id == "r3"
     assert "mrslam/robot/r" in router.stats.last_error
 
@@ -72,7 +63,7 @@ def test_a_failing_handler_does_not_stop_delivery(router: Bus, endpoint: str) ->
         assert a.wait_for_subscribers(keys.robot_scan("r1"))
         for i in range(3):
             a.publish(keys.robot_scan("r1"), scan(seq=i), block=True)
-        assert wait_for(lambda: len(seen) == 3)
+        assert within(lambda: len(seen) == 3, 5.0)
     assert router.stats.callback_errors["Scan"] == 1
 
 
@@ -84,7 +75,7 @@ def test_a_client_can_wait_until_someone_subscribes(router: Bus, endpoint: str) 
         assert a.wait_for_subscribers(keys.robot_scan("r1"))
         assert not a.wait_for_subscribers(keys.robot_scan("r1") + "/other", timeout_s=0.2)
         a.publish(keys.robot_scan("r1"), scan("r1"), block=True)
-        assert wait_for(lambda: len(got) == 1)
+        assert within(lambda: len(got) == 1, 5.0)
 
 
 def test_latest_map_queryable(router: Bus, endpoint: str) -> None:
@@ -112,11 +103,11 @@ def test_liveliness_appears_and_vanishes_when_a_client_is_killed(
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
-        assert wait_for(lambda: ("mrslam/robot/r9/alive", True) in events)
+        assert within(lambda: ("mrslam/robot/r9/alive", True) in events, 5.0)
         proc.kill()
         proc.wait(timeout=5)
         t_kill = time.monotonic()
-        assert wait_for(lambda: ("mrslam/robot/r9/alive", False) in events, timeout_s=5.0)
+        assert within(lambda: ("mrslam/robot/r9/alive", False) in events, 5.0)
         assert time.monotonic() - t_kill < 5.0
     finally:
         proc.kill()
