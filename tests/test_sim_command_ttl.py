@@ -28,7 +28,7 @@ from sim.robot import DriveLimits
 from sim.simulator import SimParams, Simulator
 from sim.world import World
 from tests.conftest import ROOT
-from tests.test_agent_loopback import wait_for
+from tests.waiting import within
 
 V_MPS = 0.3
 TTL_S = 0.5
@@ -142,15 +142,15 @@ def test_a_frozen_agent_leaves_its_robot_standing(router: Bus, endpoint: str, tm
     thread = threading.Thread(target=run)
     thread.start()
     try:
-        assert wait_for(lambda: server.distance_m() > 0.5, 90.0), (
+        assert within(lambda: server.distance_m() > 0.5, 90.0), (
             result, (tmp_path / "agent.log").read_text()[-2000:])
         os.kill(agent.pid, signal.SIGSTOP)
         frozen_at_s, d0 = server.sim_time_s(), server.distance_m()
         # 2.5 s of simulated time: 0.75 m on the last command without a time-to-live
-        assert wait_for(lambda: server.sim_time_s() >= frozen_at_s + 2.5, 60.0)
+        assert within(lambda: server.sim_time_s() >= frozen_at_s + 2.5, 60.0)
         d1 = server.distance_m()
         os.kill(agent.pid, signal.SIGCONT)
-        assert wait_for(lambda: server.distance_m() > d1 + 0.2, 60.0)  # it drives on
+        assert within(lambda: server.distance_m() > d1 + 0.2, 60.0)  # it drives on
     finally:
         stop.set()
         thread.join(timeout=30)

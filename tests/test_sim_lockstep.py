@@ -13,7 +13,8 @@ from schemas import Scan, SimGroundTruth, TagDetections, VelocityCommand, encode
 from schemas.bus import Bus
 from sim.simulator import SimParams, Simulator
 from sim.world import World
-from tests.test_agent_loopback import running, wait_for
+from tests.test_agent_loopback import running
+from tests.waiting import within
 
 ROBOTS = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.2, 8.3, 3.0)}  # in one room, facing each other
 STEPS = 50
@@ -49,7 +50,7 @@ def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int, delay_s: floa
     try:
         with running(endpoint, ROBOTS, {"lockstep": True, "seed": seed, "max_steps": STEPS,
                                         "out": str(out)}) as results:
-            assert wait_for(lambda: "sim" in results, 60.0)  # it stops itself at max_steps
+            assert within(lambda: "sim" in results, 60.0)  # it stops itself at max_steps
     finally:
         token.undeclare()
         for s in subs:
