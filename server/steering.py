@@ -20,7 +20,6 @@ class Steering:
 
     def __init__(self, cfg: ServerConfig, fleet: Fleet) -> None:
         self.cfg, self.fleet = cfg, fleet
-        self.looks = cfg.teams.enabled and cfg.teams.look_at_movers
 
     def command(self, r: RobotContext, stamp_ns: int, ranges: F64, angles: F64,
                 navigate: bool = True) -> VelocityCommand:
@@ -47,7 +46,7 @@ class Steering:
     def look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
         """Turn toward something that moves while robots outside the team remain. A robot
         whose team is done keeps doing so: a robot still alone must be able to join it."""
-        if not self.looks or r.nav.mode == NavMode.RECOVERING:
+        if not self.fleet.stages.looks or r.nav.mode == NavMode.RECOVERING:
             r.look.reset()
             return None
         if len(self.fleet.teams) < 2 and not r.look.active:

@@ -16,6 +16,7 @@ import tty
 from pathlib import Path
 
 from robot_agent.drivers import base_protocol as proto
+from robot_agent.drivers.fakes.pty_link import point_link
 
 
 class FakeMicrocontroller:
@@ -47,10 +48,7 @@ class FakeMicrocontroller:
             if restart:
                 self.ticks = [0.0, 0.0]
                 self._t0 = time.monotonic()
-        tmp = self.link.with_suffix(".new")
-        tmp.unlink(missing_ok=True)
-        tmp.symlink_to(os.ttyname(slave))
-        tmp.replace(self.link)
+        point_link(self.link, slave)
 
     def unplug(self) -> None:
         with self._lock:

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from robot_agent.drivers import rplidar_protocol as proto
+from robot_agent.drivers.fakes.pty_link import point_link
 
 BANNER = b"RP LIDAR System.\r\nFirmware Ver 1.29 - rtm, HW Ver 7\r\nModel: 44\r\n"
 INFO = proto.DeviceInfo(model=44, firmware=(1, 29), hardware=7,
@@ -58,10 +59,7 @@ class FakeRplidar:
         with self._lock:
             self._master, self._slave = master, slave
             self.streaming = False
-        tmp = self.link.with_suffix(".new")
-        tmp.unlink(missing_ok=True)
-        tmp.symlink_to(os.ttyname(slave))
-        tmp.replace(self.link)
+        point_link(self.link, slave)
 
     def unplug(self) -> None:
         with self._lock:
