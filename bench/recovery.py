@@ -14,7 +14,9 @@ the simulator does not wait for agents it cannot reach). ``goal_met`` checks the
 - every run reaches 98 % with no false merge;
 - the team coverage after each restart is at least 99 % of what it was before (nothing lost);
 - the final poses are within 2 cm of the uninterrupted run's;
-- recovery within 5 s.
+- recovery within 5 s;
+- the journal and snapshots write ≤ 50 KB per robot per second of scans and take ≤ 5 % of
+  the server's CPU (the uninterrupted run's server summary).
 
     python bench/recovery.py [--kills K] [--window 20 80] [--rng-seed 0] [--out DIR]
 """
@@ -42,7 +44,8 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
-GOALS = {"threshold": 0.98, "coverage_kept": 0.99, "final_pose_m": 0.02, "recovery_s": 5.0}
+GOALS = {"threshold": 0.98, "coverage_kept": 0.99, "final_pose_m": 0.02, "recovery_s": 5.0,
+         "kb_per_robot_s": 50.0, "cpu_fraction": 0.05}
 #: wall-clock bound on one demo run [s]
 RUN_TIMEOUT_S = 1800.0
 
@@ -192,6 +195,7 @@ def score(run: Path, seen: dict[str, Any], base_poses: dict[str, list[float]] | 
         row["final_pose_max_diff_m"] = (round(max(
             float(np.hypot(poses[r][0] - base_poses[r][0], poses[r][1] - base_poses[r][1]))
             for r in common), 4) if common and len(common) == len(base_poses) else None)
+    row["state_cost"] = state_cost(run, report)
     restarts = report.get("server_restarts", [])
     row["restarts"] = [{k: r.get(k) for k in (
         "sim_time_s", "signal", "restarted", "back_off_s", "coverage_before", "coverage_after",
@@ -204,6 +208,26 @@ def score(run: Path, seen: dict[str, Any], base_poses: dict[str, list[float]] | 
         row["recovery_s"] = r.get("first_command_after_s")
         row["stood_still_sim_s"] = stood_still_s(run, kill_s)
     return row
+
+
+def state_cost(run: Path, report: dict[str, Any]) -> dict[str, Any] | None:
+    """What the journal and snapshots cost the last server of ``run``: bytes written per robot
+    per second of robot data (at 10 Hz a simulated second is a second of scans), and their
+    share of the server's CPU time."""
+    try:
+        summary = json.loads((run / "server" / "summary.json").read_text())
+        j = summary["journal"]
+        cpu_s = float(summary["cpu_s"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    robots = max(1, len(report.get("robots", {})))
+    sim_s = max(1e-9, float(report.get("sim_time_s") or 0.0))
+    written = j["bytes"] + j["snapshot_bytes_total"]
+    return {"kb_per_robot_s": round(written / 1000.0 / robots / sim_s, 1),
+            "journal_kb_per_robot_s": round(j["bytes"] / 1000.0 / robots / sim_s, 1),
+            "cpu_fraction": round((j["journal_s"] + j["snapshot_s_total"]) / max(cpu_s, 1e-9),
+                                  4),
+            "snapshots": j["snapshots"], "snapshot_s_max": j["snapshot_s_max"]}
 
 
 def goal_met(base: dict[str, Any], killed: list[dict[str, Any]]) -> dict[str, bool]:
@@ -226,6 +250,9 @@ def goal_met(base: dict[str, Any], killed: list[dict[str, Any]]) -> dict[str, bo
         "recovery_within_5s": restarts_ok and all(
             k.get("recovery_s") is not None and k["recovery_s"] <= GOALS["recovery_s"]
             for k in killed),
+        "state_within_50kb_per_robot_s_and_5pct_cpu": base.get("state_cost") is not None and (
+            base["state_cost"]["kb_per_robot_s"] <= GOALS["kb_per_robot_s"]
+            and base["state_cost"]["cpu_fraction"] <= GOALS["cpu_fraction"]),
     }
 
 

@@ -37,7 +37,6 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: stop.set())
     t0 = time.monotonic()
-    core, journal, resumed = _resume(cfg)
 
     def outputs(node: ServerNode) -> None:
         if out is not None:
@@ -45,7 +44,8 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
                                            "resumed": resumed, "running": True})
 
     b = cfg.bus
-    with Bus.from_config(b) as bus:
+    with Bus.from_config(b) as bus:   # open first: robots reconnect while the state loads
+        core, journal, resumed = _resume(cfg)
         node = ServerNode(bus, cfg, core, journal, outputs)
         node.start()
         log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))

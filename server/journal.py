@@ -185,11 +185,25 @@ def _entry(env: dict[str, Any], sequence: int) -> Entry:
 
 def replay(core: ServerCore, state_dir: str | Path, from_sequence: int = 0) -> ReplayReport:
     """Feed ``core`` what the journal holds from entry ``from_sequence`` on (the entries
-    before are in the snapshot it came from), as the live server did (no commands go out);
-    the events it raises again were published before and are dropped."""
+    before are in the snapshot it came from), in the order the live server did. No commands
+    are planned (they went out before, and the robots have moved on since): the navigators
+    go on from where the snapshot left them and plan afresh at the next live scan. The events
+    it raises again were published before and are dropped."""
     report = ReplayReport(from_sequence=from_sequence)
     t0 = time.monotonic()
-    for e in read_journal(state_dir, report):
+    navigate, core.navigate = core.navigate, False   # commands are not sent again: no need
+    try:                                            # to plan them (the robots moved on)
+        _feed(core, read_journal(state_dir, report), from_sequence, report)
+    finally:
+        core.navigate = navigate
+    core.pop_events()
+    report.seconds = time.monotonic() - t0
+    return report
+
+
+def _feed(core: ServerCore, entries: Iterator[Entry], from_sequence: int,
+          report: ReplayReport) -> None:
+    for e in entries:
         report.last_sequence = e.sequence
         if e.sequence < from_sequence:
             report.skipped += 1
@@ -206,6 +220,3 @@ def replay(core: ServerCore, state_dir: str | Path, from_sequence: int = 0) -> R
         except Exception as exc:   # as live: one message's failure does not stop the rest
             report.unreadable += 1
             log.warning("journal replay: a %s failed again: %s", e.kind, exc)
-    core.pop_events()
-    report.seconds = time.monotonic() - t0
-    return report

@@ -49,6 +49,7 @@ class ServerNode:
         self.outputs = outputs
         self.snapshots = Snapshots(journal.dir) if journal is not None else None
         self.snapshot_s: list[float] = []    # how long each took (it holds the worker up)
+        self.snapshot_bytes = 0              # written in all: snapshots and new blobs
         self.clock = ServerClock(cfg.clock.source)
         a, c = cfg.admission, cfg.clock
         self.registry = RobotRegistry(AdmissionPolicy(
@@ -215,6 +216,7 @@ class ServerNode:
         self.journal.flush()   # the journal holds everything up to the snapshot
         self.snapshots.write(self.core, self.journal.sequence)
         self.snapshot_s.append(self.snapshots.last_seconds)
+        self.snapshot_bytes += self.snapshots.last_bytes
 
     def guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
         try:
@@ -236,10 +238,12 @@ class ServerNode:
                 "dropped_scans": self.dropped,
                 "errors": self.errors, "bus": self.bus.stats.as_dict(),
                 "lockstep_barrier_timeouts": self._barrier.timeouts,
+                "cpu_s": round(time.process_time(), 3),
                 "journal": None if self.journal is None else {
                     "entries": self.journal.sequence, "bytes": self.journal.bytes,
                     "journal_s": round(self.journal.seconds, 3),
                     "snapshots": len(self.snapshot_s),
                     "snapshot_s_max": round(max(self.snapshot_s, default=0.0), 3),
                     "snapshot_s_total": round(sum(self.snapshot_s), 3),
-                    "snapshot_bytes": self.snapshots.last_bytes if self.snapshots else 0}}
+                    "snapshot_bytes": self.snapshots.last_bytes if self.snapshots else 0,
+                    "snapshot_bytes_total": self.snapshot_bytes}}

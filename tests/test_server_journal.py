@@ -193,3 +193,50 @@ def test_a_state_folder_that_cannot_be_one_is_a_typed_error(tmp_path: Path) -> N
     blocker.write_text("not a folder")
     with pytest.raises(JournalError, match=r"state folder .*file"):
         JournalWriter(blocker / "state")
+
+
+def test_arrays_that_never_change_are_stored_once(tmp_path: Path) -> None:
+    """Keyframe scans and submaps are read-only and go to ``blobs.bin`` once: a snapshot holds
+    what changes, and a second snapshot of the same state adds no array."""
+    import pickle
+
+    msgs = messages(120)
+    live = ServerCore(config(), navigate=False)
+    feed(live, msgs, None)
+    kf = live.robots["r1"].slam.keyframes[-1]
+    with pytest.raises(ValueError, match="read-only"):
+        kf.scan.points[0, 0] = 1.0
+    snaps = Snapshots(tmp_path)
+    snaps.write(live, 10)
+    blobs = (tmp_path / "blobs.bin").stat().st_size
+    body = snaps.paths()[0].stat().st_size
+    assert blobs > 0 and body + blobs < 0.5 * len(pickle.dumps(live))
+    snaps.write(live, 20)
+    assert (tmp_path / "blobs.bin").stat().st_size == blobs
+    assert snaps.last_bytes < body + 1000      # only the snapshot itself was written
+    loaded = Snapshots(tmp_path).load()        # a new server: reads the store's index
+    assert loaded is not None and loaded[1] == 20
+    back = loaded[0].robots["r1"].slam.keyframes[-1]
+    assert np.array_equal(back.scan.points, kf.scan.points)
+    assert np.array_equal(back.matchable.normals, kf.matchable.normals)
+    assert not back.scan.points.flags.writeable
+
+
+def test_a_torn_blob_store_falls_back_to_the_snapshot_it_still_serves(tmp_path: Path) -> None:
+    """A crash mid-append cuts the store's tail; a snapshot whose arrays were lost with it is
+    passed over for the one before."""
+    msgs = messages(120)
+    live = ServerCore(config(), navigate=False)
+    snaps = Snapshots(tmp_path)
+    feed(live, msgs[:120], None)
+    snaps.write(live, 120)
+    kept = (tmp_path / "blobs.bin").stat().st_size
+    for m in msgs[120:]:
+        live.on_scan(m, m.stamp_ns) if isinstance(m, Scan) else live.on_tags(m)
+    snaps.write(live, len(msgs))
+    store = tmp_path / "blobs.bin"
+    assert store.stat().st_size > kept + 100
+    store.write_bytes(store.read_bytes()[:kept + 50])     # torn inside the next record
+    loaded = Snapshots(tmp_path).load()
+    assert loaded is not None and loaded[1] == 120
+    assert store.stat().st_size == kept                   # the torn tail was cut

@@ -53,6 +53,12 @@ class PointMap:
     def __len__(self) -> int:
         return len(self.points)
 
+    def __getstate__(self) -> dict[str, F64]:
+        return {"points": self.points, "normals": self.normals}   # the rest is rebuilt
+
+    def __setstate__(self, state: dict[str, F64]) -> None:
+        self.__init__(state["points"], state["normals"])  # type: ignore[misc]
+
 
 @dataclass(frozen=True)
 class MatchResult:

@@ -28,7 +28,21 @@ class Keyframe:
 
     @classmethod
     def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64) -> Keyframe:
-        return cls(index, stamp_ns, scan, T_odom_robot, scan.with_normals())
+        """A keyframe of ``scan``, whose arrays become read-only: a keyframe never changes
+        (and a snapshot stores read-only arrays once, not again each time)."""
+        frozen = ScanPoints(*(_frozen(a) for a in (scan.points, scan.normals, scan.ranges_m,
+                                                   scan.hits, scan.misses)))
+        return cls(index, stamp_ns, frozen, _frozen(T_odom_robot), frozen.with_normals())
+
+    def __reduce__(self) -> tuple[object, tuple[int, int, ScanPoints, F64]]:
+        # ``matchable`` is derived from ``scan``: pickled once, rebuilt on loading
+        return (Keyframe.create, (self.index, self.stamp_ns, self.scan, self.T_odom_robot))
+
+
+def _frozen(a: F64) -> F64:
+    b = np.array(a, dtype=np.float64)
+    b.flags.writeable = False
+    return b
 
 
 def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64) -> tuple[F64, F64]:

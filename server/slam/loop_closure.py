@@ -126,6 +126,11 @@ class LoopCloser:
         self._fields: OrderedDict[int, LikelihoodField] = OrderedDict()
         self._pending: list[LoopClosure] = []
 
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state["_fields"] = OrderedDict()     # a cache of what the submaps give again
+        return state
+
     # -- bookkeeping ---------------------------------------------------------------------
     def add_edge(self, i: int, j: int, length_m: float) -> None:
         """Chain edges (k−1, k) in order, or loop edges between any two keyframes."""
@@ -147,6 +152,8 @@ class LoopCloser:
         if len(pts) < 20:
             pts = np.zeros((1, 2)) if len(pts) == 0 else pts
             nrm = np.zeros((len(pts), 2)) if len(nrm) == 0 else nrm
+        pts, nrm = np.array(pts), np.array(nrm)
+        pts.flags.writeable = nrm.flags.writeable = False
         self.submaps.append(Submap(anchor, members, pts, nrm, PointMap(pts, nrm)))
 
     def _field(self, sm_index: int) -> LikelihoodField:
