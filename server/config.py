@@ -178,7 +178,7 @@ class ServerConfig(ConfigModel):
                                   "holds one resumes where it was (null: <out>/state, or no "
                                   "journal without out)")
     journal: bool = Field(True, description="keep the journal (server.journal)")
-    snapshot_period_s: float = Field(10.0, gt=0.0, description="a snapshot of the server's "
+    snapshot_period_s: float = Field(5.0, gt=0.0, description="a snapshot of the server's "
                                      "state this often (wall time; longer when one takes "
                                      "more than 5 % of it), so a restart replays only the "
                                      "journal since (server.snapshot)")
