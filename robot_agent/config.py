@@ -129,3 +129,8 @@ class AgentConfig(ConfigModel):
         default_factory=list, description="simulation only: (at [s] of sim time, step [s]): "
         "from then on the robot's own clock, which stamps what it sends, is off by the step "
         "(to try the server with clocks that NTP corrects or that boot in 1970)")
+    sim_odometry_at_zero: bool = Field(
+        False, description="simulation only: odometry starts at zero where the agent first "
+        "hears of its robot, as a real robot's wheel odometry does when it boots (the demo "
+        "sets it for an agent it reboots mid-run); false: the simulator's odometry, which "
+        "starts at the robot's spawn pose")

@@ -353,7 +353,7 @@ def make_backend(cfg: AgentConfig, bus: Bus) -> Backend:
     if cfg.backend == "sim":
         from robot_agent.sim_backend import sim_backend
 
-        return sim_backend(bus, cfg.robot_id, cfg.sim_clock_steps)
+        return sim_backend(bus, cfg.robot_id, cfg.sim_clock_steps, cfg.sim_odometry_at_zero)
     if cfg.backend == "hardware":
         from robot_agent.hardware import hardware_backend
 

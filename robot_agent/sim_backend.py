@@ -8,6 +8,11 @@ sends, is the same unless ``clock_steps`` makes it step (to try how the server c
 robot whose clock is corrected by NTP or boots in 1970). A sweep the simulator re-sends (its ack was
 late or lost) is not handed to the agent again; the step's ack is re-sent instead. Payloads that
 do not decode are counted and logged, never passed on.
+
+The odometry is the simulator's, which starts at the robot's spawn pose and runs on for the whole
+simulation. With ``odometry_at_zero`` it is taken relative to the first pose this backend sees,
+as a real robot's wheel odometry starts at zero when it boots: an agent restarted mid-run (a
+robot rebooted) then reports odometry that has nothing to do with what its previous run sent.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from robot_agent.backend import Backend, Frame, Odometry, Sweep
+from robot_agent.backend import Backend, Frame, Odometry, Pose, Sweep
 from schemas import (
     SchemaError,
     SimImage,
@@ -32,6 +37,7 @@ from schemas import (
     keys,
 )
 from schemas.bus import Bus
+from schemas.se2 import between
 
 log = logging.getLogger(__name__)
 
@@ -40,9 +46,12 @@ class SimBackend:
     """LIDAR source, base, camera and step sync of one simulated robot."""
 
     def __init__(self, bus: Bus, robot_id: str,
-                 clock_steps: Sequence[tuple[float, float]] = ()) -> None:
+                 clock_steps: Sequence[tuple[float, float]] = (),
+                 odometry_at_zero: bool = False) -> None:
         self.bus = bus
         self.robot_id = robot_id
+        self._odometry_at_zero = odometry_at_zero
+        self._odom_origin: Pose | None = None   # the simulator's odometry where ours is zero
         #: (sim time [ns], step [ns]): from that time on, the robot's clock is off by the step
         self._clock_steps = sorted((round(at * 1e9), round(d * 1e9)) for at, d in clock_steps)
         self._lock = threading.Lock()
@@ -141,6 +150,7 @@ class SimBackend:
                 log.warning("simulation time went back to %d ns: a new simulation", msg.stamp_ns)
                 self._odom.clear()
                 self._sim_odom = -1
+                self._odom_origin = None
                 self._last_sweep_seq = self._last_frame_stamp = -1
                 self._last_ack = None
                 self._now_ns = msg.stamp_ns
@@ -150,7 +160,19 @@ class SimBackend:
                 self._odom.clear()   # the robot's clock stepped back: older stamps mislead
             if msg.stamp_ns > self._sim_odom:
                 self._sim_odom = msg.stamp_ns
-                self._odom.append(Odometry(stamp, msg.pose, msg.v_mps, msg.omega_rps))
+                self._odom.append(Odometry(stamp, self._own_odometry(msg.pose), msg.v_mps,
+                                           msg.omega_rps))
+
+    def _own_odometry(self, sim_pose: Pose) -> Pose:
+        """The robot's odometry for the simulator's ``sim_pose`` (see the module's doc)."""
+        if not self._odometry_at_zero:
+            return sim_pose
+        if self._odom_origin is None:
+            self._odom_origin = sim_pose
+            log.info("odometry starts at zero here (the simulator's %s)",
+                     ", ".join(f"{v:.3f}" for v in sim_pose))
+        x, y, th = between(self._odom_origin, sim_pose).tolist()
+        return (x, y, th)
 
     def _image(self, msg: SimImage) -> None:
         if msg.stamp_ns == self._last_frame_stamp:
@@ -192,10 +214,10 @@ class _SimCamera:
         self.backend.start_camera(on_frame)
 
 
-def sim_backend(bus: Bus, robot_id: str,
-                clock_steps: Sequence[tuple[float, float]] = ()) -> Backend:
+def sim_backend(bus: Bus, robot_id: str, clock_steps: Sequence[tuple[float, float]] = (),
+                odometry_at_zero: bool = False) -> Backend:
     """The Backend of ``robot_id`` in a running simulator reachable on ``bus``."""
-    b = SimBackend(bus, robot_id, clock_steps)
+    b = SimBackend(bus, robot_id, clock_steps, odometry_at_zero)
     return Backend(lidar=b, base=b, camera=_SimCamera(b), now_ns=b.now_ns, sync=b,
                    monotonic_ns=b.sim_ns,
                    close=b.close, counters=lambda: dict(b.counters))
