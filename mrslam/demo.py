@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -79,6 +80,13 @@ class DemoConfig(ConfigModel):
     clock_steps: dict[str, list[tuple[Finite, Finite]]] = Field(
         default_factory=dict, description="robots whose own clocks step: {r2: [[at_s, "
         "step_s]]} (sim time, step), to try the server's clock handling")
+    reboot: dict[str, Finite] = Field(
+        default_factory=dict, description="robots that reboot mid-run: {r2: at_s}: once the "
+        "simulation passes at_s [s] the robot's agent is killed (SIGKILL) and, reboot_s later, "
+        "started again with its odometry back at zero (agent sim_odometry_at_zero)")
+    reboot_s: float = Field(
+        3.0, gt=0, description="wall-clock time a rebooting agent stays down (the robot stands "
+        "meanwhile; the others go on)")
     max_sim_time_s: float = Field(
         3600.0, gt=0, description="the simulator stops after this much simulated time")
     wall_timeout_s: float = Field(
@@ -104,8 +112,9 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
     out = Path(cfg.out)
     console = Console(stderr=True)
     plan = plan_run(cfg)
-    if unknown := sorted(set(cfg.clock_steps) - set(plan["robots"])):
-        raise ConfigError(f"clock_steps: no robot {', '.join(unknown)} in this run")
+    for name, ids in (("clock_steps", cfg.clock_steps), ("reboot", cfg.reboot)):
+        if unknown := sorted(set(ids) - set(plan["robots"])):
+            raise ConfigError(f"{name}: no robot {', '.join(unknown)} in this run")
     write_resolved(cfg, out, "demo_config.yaml")
     console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} robot(s), "
                   f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
@@ -115,6 +124,8 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
     from mrslam.report import build_report
 
     report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
+    if cfg.reboot:
+        report["agent_reboots"] = watch.get("agent_reboots", [])
     (out / "report.json").write_text(json.dumps(report, indent=2))
     from mrslam.report import print_summary
 
@@ -179,6 +190,9 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
                  "detector": {"body_radius_m": SimConfig().drive.radius_m},
                  "sim_clock_steps": [list(step) for step in cfg.clock_steps.get(rid, [])]}
         (out / f"agent_{rid}.yaml").write_text(yaml.safe_dump(agent, sort_keys=False))
+        if rid in cfg.reboot:   # how it comes back: a robot's odometry starts at boot
+            (out / f"agent_{rid}_rebooted.yaml").write_text(yaml.safe_dump(
+                {**agent, "sim_odometry_at_zero": True}, sort_keys=False))
     sim = {"camera": {"spurious_rate": cfg.spurious_detections}}
     (out / "sim.yaml").write_text(yaml.safe_dump(sim, sort_keys=False))
 
@@ -216,13 +230,18 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
             sim = procs.start("sim", *sim_args)
             supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,
                                                                  cfg.restart_back_off_s))
-            why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"], console,
-                             progress)
+            reboots = Reboots(procs, mon, cfg.reboot, cfg.reboot_s, out)
+            try:
+                why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"],
+                                 console, progress)
+            finally:
+                reboots.stop()
             procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
             _let_server_come_up(supervisor, mon, timeout_s=60.0)
             procs.stop(["server"], timeout_s=60.0)
             procs.stop(["recorder"])
             watch = mon.results()
+            watch["agent_reboots"] = reboots.rows
             watch["server_restarts"] = [_restart_row(e, mon.recovery(e), t0)
                                         for e in supervisor.exits]
         watch["end"] = why
@@ -254,3 +273,63 @@ def _restart_row(e: Exit, seen: dict[str, Any], t0: float) -> dict[str, Any]:
             "restart_wall_time_s": (None if e.restarted_at is None
                                     else round(e.restarted_at - t0, 3)),
             "new_pid": e.new_pid, **seen}
+
+
+class Reboots:
+    """Reboots agents as a robot that loses power would: once the simulation passes a robot's
+    time its agent is killed with SIGKILL, and ``down_s`` (wall clock) later it is started
+    again with ``agent_<id>_rebooted.yaml``, its odometry back at zero. One row per reboot in
+    ``rows`` (simulated times as the bus's clock showed them): when it was killed, when it
+    was started again, and the stamp of its first scan after that (when it was back)."""
+
+    def __init__(self, procs: ProcessGroup, mon: Monitor, at_s: dict[str, float],
+                 down_s: float, out: Path) -> None:
+        from schemas import Scan, keys
+
+        self.procs, self.mon, self.down_s, self.out = procs, mon, down_s, out
+        self.rows: list[dict[str, Any]] = []
+        self._plan = sorted(at_s.items(), key=lambda kv: kv[1])
+        self._waiting: dict[str, dict[str, Any]] = {}   # robot -> its row, until it is back
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="reboots", daemon=True)
+        if self._plan:
+            for rid, _ in self._plan:
+                mon.bus.subscribe(keys.robot_scan(rid), Scan, self._on_scan)
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=30.0)
+
+    def _on_scan(self, key: str, msg: Any) -> None:
+        with self._lock:
+            row = self._waiting.pop(msg.robot_id, None)
+            if row is not None:
+                row.update(back_sim_s=round(msg.stamp_ns * 1e-9, 3), back_seq=msg.seq)
+
+    def _run(self) -> None:
+        for rid, at_s in self._plan:
+            while self.mon.sim_time_s < at_s:
+                if self._stop.wait(0.02):
+                    return
+            p = next(q for q in self.procs.procs if q.name == f"agent_{rid}")
+            if self._stop.is_set() or p.stopping or not p.alive():
+                return
+            row: dict[str, Any] = {"robot_id": rid, "at_s": at_s,
+                                   "killed_sim_s": round(self.mon.sim_time_s, 3),
+                                   "pid": p.pid}
+            self.rows.append(row)
+            p.popen.kill()   # SIGKILL
+            p.popen.wait()
+            if self._stop.wait(self.down_s):
+                return
+            with self._lock:
+                self._waiting[rid] = row
+            self.procs.restart(p, ("agent", "-c", str(self.out / f"agent_{rid}_rebooted.yaml")))
+            row.update(restarted_sim_s=round(self.mon.sim_time_s, 3), new_pid=p.pid)
+            log.warning("rebooted the agent of %s: killed at %.1f s of sim time, started "
+                        "again at %.1f s (pid %d)", rid, row["killed_sim_s"],
+                        row["restarted_sim_s"], p.pid)
+

@@ -57,15 +57,17 @@ class ProcessGroup:
         log.info("started %s (pid %d)", name, p.pid)
         return p
 
-    def restart(self, p: Proc) -> None:
+    def restart(self, p: Proc, args: tuple[str, ...] | None = None) -> None:
         """Start ``p``'s command again in its place (``p`` must have exited); its log goes on
-        in the same file."""
+        in the same file. ``args``: run these instead from now on."""
         if p.alive():
             raise RuntimeError(f"{p.name} (pid {p.pid}) is still running")
         with p.log_path.open("ab") as out:
             out.write(f"\n--- {time.strftime('%H:%M:%S')} restarted after exit code "
                       f"{p.popen.returncode} ---\n".encode())
         old = p.pid
+        if args is not None:
+            p.args = args
         p.popen = self._spawn(p.log_path, p.args, "ab")
         log.info("restarted %s (pid %d, was %d)", p.name, p.pid, old)
 
