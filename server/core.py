@@ -70,6 +70,9 @@ class ServerCore:
                                  self.stages.pose_sigmas)
         self.progress = Progress(cfg, self.fleet, self.events)
         self.steering = Steering(cfg, self.fleet)
+        #: robots whose agent came back (after a reboot, say), until a scan match places them
+        #: again in their map: their scans since
+        self.returning: dict[str, int] = {}
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
@@ -97,6 +100,7 @@ class ServerCore:
     def _localise(self, r: RobotContext, scan: Scan, ranges: F64, angles: F64) -> None:
         prev = r.pose.copy()
         keyframes = len(r.slam.keyframes)
+        unmatched = r.slam.stats.matches["odometry"]
         r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose,
                                  self.fleet.without_teammates(r, ranges, angles), angles,
                                  scan.range_max_mm / 1000.0)
@@ -107,6 +111,20 @@ class ServerCore:
         if keyframes and len(r.slam.keyframes) > keyframes:
             self.surgery.match_teammates(r)
         r.scans += 1
+        if r.robot_id in self.returning:
+            self._placed_again(r, scan.stamp_ns, r.slam.stats.matches["odometry"] == unmatched)
+
+    def _placed_again(self, r: RobotContext, stamp_ns: int, matched: bool) -> None:
+        """A robot back after its agent was away: its first scan matched to its map places
+        it again (an event); until then its scans are counted."""
+        n = self.returning[r.robot_id] = self.returning[r.robot_id] + 1
+        if not matched:
+            return
+        del self.returning[r.robot_id]
+        x, y, th = (float(v) for v in r.pose)
+        self.events.emit("robot_joined", [r.robot_id], r.team_id,
+                         f"robot {r.robot_id} placed again in its map by scan {n} since it "
+                         f"came back", stamp_ns, transform=(x, y, th))
 
     def _record_online_pose(self, r: RobotContext, stamp_ns: int) -> None:
         """The pose the server believes now, in the robot's own map frame."""
@@ -120,6 +138,9 @@ class ServerCore:
         self.desk.receive(msg)
 
     def set_alive(self, robot_id: str, alive: bool) -> None:
+        r = self.fleet.robots.get(robot_id)
+        if alive and r is not None and not r.alive and r.scans:
+            self.returning[robot_id] = 0
         self.fleet.set_alive(robot_id, alive)
 
     # -- state -----------------------------------------------------------------------------
