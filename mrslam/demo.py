@@ -280,7 +280,8 @@ class Reboots:
     time its agent is killed with SIGKILL, and ``down_s`` (wall clock) later it is started
     again with ``agent_<id>_rebooted.yaml``, its odometry back at zero. One row per reboot in
     ``rows`` (simulated times as the bus's clock showed them): when it was killed, when it
-    was started again, and the stamp of its first scan after that (when it was back)."""
+    was started again, and the stamp (and odometry) of its first scan after that (when it was
+    back)."""
 
     def __init__(self, procs: ProcessGroup, mon: Monitor, at_s: dict[str, float],
                  down_s: float, out: Path) -> None:
@@ -307,7 +308,8 @@ class Reboots:
         with self._lock:
             row = self._waiting.pop(msg.robot_id, None)
             if row is not None:
-                row.update(back_sim_s=round(msg.stamp_ns * 1e-9, 3), back_seq=msg.seq)
+                row.update(back_sim_s=round(msg.stamp_ns * 1e-9, 3), back_seq=msg.seq,
+                           back_odom=[round(v, 4) for v in msg.odom_pose])
 
     def _run(self) -> None:
         for rid, at_s in self._plan:
