@@ -1,3 +1,4 @@
 from mrslam.cli import main
 
-main()
+if __name__ == "__main__":   # not again in a process the server starts (spawn)
+    main()

@@ -171,6 +171,10 @@ class ServerConfig(ConfigModel):
         0.25, gt=0.0, description="robot states (poses, modes, coverage) are published this often "
         "(wall-clock time)")
     queue_per_robot: int = Field(50, ge=1, description="scans waiting beyond this are dropped")
+    planner_processes: int = Field(1, ge=0, description="processes that replan robots' paths "
+                                   "to their targets while the robots drive on, so the server's "
+                                   "own thread only localises and steers (real time only; a "
+                                   "lockstep run plans in line to stay repeatable; 0: in line)")
     out: str | None = Field(None, description="folder for maps, trajectories and the summary")
     exit_when_done: bool = Field(False, description="stop once every team has finished")
     state_dir: str | None = Field(None, description="folder of the journal of everything "

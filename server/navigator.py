@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -28,7 +29,8 @@ from server.control import (
     VfhParams,
 )
 from server.exploration import Decision, Explorer, Finished, VisitedTargets
-from server.planning import OccupancyGrid, PlanningError, plan
+from server.exploration.replan import Decided, Replan, Replanned, decide, replan
+from server.planning import OccupancyGrid, PlanningError
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +80,23 @@ class Navigator:
         self._last_decision_s = -np.inf
         self._looked_around = False
         self._spin_until_s = -np.inf
+        self._replanning: Future[Replanned] | None = None
+        self._deciding: Future[Decided] | None = None
+
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state["_replanning"] = None      # a job in flight is asked again after a restart
+        state["_deciding"] = None
+        return state
 
     def step(self, now_s: float, pose: F64, start_pose: F64, points_robot_xy: F64,
              grid: Callable[[], OccupancyGrid], visited: VisitedTargets,
-             others_robot_xy: F64 | None = None, reserved_xy: F64 | None = None) -> Twist:
-        """The command for this scan. ``grid`` is called only when a decision is due."""
+             others_robot_xy: F64 | None = None, reserved_xy: F64 | None = None,
+             planner: Executor | None = None) -> Twist:
+        """The command for this scan. ``grid`` is called only when a decision is due.
+        ``planner``: where replanning to a kept target runs while the robot follows its
+        current path, and the decisions of a robot that decides alone (not in a team) while
+        it stands; None: here, before the command."""
         if self.mode == DONE:
             return STOP
         if now_s < self._spin_until_s:
@@ -100,14 +114,26 @@ class Navigator:
             self.recovery.start(now_s, points_robot_xy)
             self.mode = RECOVERING
             return self.recovery.command(now_s) or STOP
-        if self.path_xy is None:
-            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
-        elif now_s - self._last_decision_s >= self._recheck_period_s():
+        if self._deciding is not None:
+            if not self._deciding.done():
+                return STOP                   # the decision is being made elsewhere
+            decided, self._deciding = self._deciding, None
+            self._take_decision(now_s, decided)
+            if self.mode == DONE or self.recovery.active or now_s < self._spin_until_s:
+                return STOP
+        if self._replanning is not None and self._replanning.done():
+            job, self._replanning = self._replanning, None
+            if not self._take_replan(job):
+                self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy, planner)
+        if self.path_xy is None and self._deciding is None:
+            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy, planner)
+        elif (self.path_xy is not None and self._replanning is None
+              and now_s - self._last_decision_s >= self._recheck_period_s()):
             # the map has grown: keep the target while it still borders unexplored space
             # (switching between near-equal targets makes a robot dither), else choose again
             g = grid()
-            if not self._replan_to_target(now_s, pose, g):
-                self._decide(now_s, pose, start_pose, g, visited, reserved_xy)
+            if not self._replan_to_target(now_s, pose, g, planner):
+                self._decide(now_s, pose, start_pose, g, visited, reserved_xy, planner)
         if self.mode == DONE or self.path_xy is None:
             return STOP
         assert self.path_xy is not None
@@ -117,7 +143,7 @@ class Navigator:
             if self.target_xy is not None:
                 visited.add(self.target_xy)
             self.path_xy, self.target_xy = None, None
-            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy)
+            self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy, planner)
             if self.path_xy is None:
                 return STOP
             follow = self.pursuit.step(pose, self.path_xy)
@@ -133,24 +159,46 @@ class Navigator:
         return self.replan_period_s if own is None else min(self.replan_period_s, own)
 
     def _decide(self, now_s: float, pose: F64, start_pose: F64, grid: OccupancyGrid,
-                visited: VisitedTargets, reserved_xy: F64 | None) -> None:
-        import time
-
+                visited: VisitedTargets, reserved_xy: F64 | None,
+                planner: Executor | None = None) -> None:
         self._last_decision_s = now_s
-        t0 = time.perf_counter()
+        reserved = np.zeros((0, 2)) if reserved_xy is None else np.asarray(reserved_xy)
+        if planner is not None and self.explorer is self._own_explorer:
+            # alone, the decision depends on nothing but what goes with it: the robot stands
+            # while another process makes it
+            self.path_xy = None
+            try:
+                self._deciding = planner.submit(decide, self._own_explorer, grid, pose.copy(),
+                                                start_pose.copy(), visited, reserved)
+                return
+            except RuntimeError as e:
+                log.warning("deciding here: the planner pool is gone (%s)", e)
+        self._apply_decision(now_s, decide(self.explorer, grid, pose, start_pose, visited,
+                                           reserved))
+
+    def _take_decision(self, now_s: float, job: Future[Decided]) -> None:
         try:
-            outcome = self.explorer.decide(grid, pose, start_pose, visited,
-                                           reserved_xy=() if reserved_xy is None else reserved_xy)
-        except PlanningError as e:
+            answer = job.result()
+        except Exception as e:      # a pool process died: decide again at the next step
+            log.warning("a decision job failed: %s", e)
+            self._last_decision_s = -np.inf
+            return
+        if self.explorer is not self._own_explorer:   # joined a team meanwhile
+            return
+        self._own_explorer.walls_seen = answer.walls   # what it remembered deciding
+        self._apply_decision(now_s, answer)
+
+    def _apply_decision(self, now_s: float, answer: Decided) -> None:
+        self.stats.decision_ms.append(answer.ms)
+        outcome = answer.outcome
+        if isinstance(outcome, PlanningError):
             # e.g. the robot stands inside the inflated zone of a wall: back off, retry
-            log.info("no decision from %s: %s", pose[:2].round(2), e)
+            log.info("no decision: %s", outcome)
             self.stats.decision_failures += 1
             self.path_xy = None
             self.recovery.start(now_s, np.zeros((0, 2)))
             self.mode = RECOVERING
             return
-        finally:
-            self.stats.decision_ms.append((time.perf_counter() - t0) * 1e3)
         self.stats.decisions += 1
         if isinstance(outcome, Finished):
             self.path_xy = self.target_xy = None
@@ -174,25 +222,40 @@ class Navigator:
         self.target_xy = outcome.target_xy
         self.path_xy = outcome.path.xy_m
 
-    def _replan_to_target(self, now_s: float, pose: F64, grid: OccupancyGrid) -> bool:
-        """A fresh path to the current target if it is still open; False when it is not."""
+    def _replan_to_target(self, now_s: float, pose: F64, grid: OccupancyGrid,
+                          planner: Executor | None = None) -> bool:
+        """A fresh path to the current target if it is still open; False when it is not.
+        With a ``planner`` the job is handed to it and the robot keeps its path meanwhile
+        (True); the answer is taken at a later step."""
         if self.target_xy is None:
             return False
         self._last_decision_s = now_s
-        analysis = self.explorer.analyse(grid, pose[:2])
-        fr = analysis.frontiers
-        if len(fr) == 0:
-            return False
-        geo = analysis.layer.geometry
-        d = np.hypot(*(geo.cell_to_world(fr.cells_rc) - np.asarray(self.target_xy)).T)
-        if d.min() > self.commit_radius_m:
-            return False
+        explorer = self._own_explorer
+        explorer.walls_seen.update(grid)
+        job = Replan(grid, explorer.params.analysis, explorer.walls_seen,
+                     (float(pose[0]), float(pose[1])), self.target_xy, self.commit_radius_m)
+        if planner is not None:
+            try:
+                self._replanning = planner.submit(replan, job)
+                return True
+            except RuntimeError as e:    # the pool is shutting down or broken: plan here
+                log.warning("replanning here: the planner pool is gone (%s)", e)
+        return self._apply_replan(replan(job))
+
+    def _take_replan(self, job: Future[Replanned]) -> bool:
         try:
-            path = plan(analysis.layer, pose[:2], self.target_xy)
-        except PlanningError as e:
-            log.info("target %s dropped: %s", self.target_xy, e)
+            return self._apply_replan(job.result())
+        except Exception as e:      # a pool process died: choose again here
+            log.warning("a replanning job failed: %s", e)
             return False
-        self.path_xy = path.xy_m
+
+    def _apply_replan(self, answer: Replanned) -> bool:
+        if answer.target_xy != self.target_xy or self.mode != EXPLORING:
+            return self.path_xy is not None   # the target changed meanwhile: keep the new one
+        if answer.path_xy is None:
+            log.info("target %s dropped: %s", self.target_xy, answer.reason)
+            return False
+        self.path_xy = answer.path_xy
         return True
 
     def _give_up_target(self, visited: VisitedTargets) -> None:
@@ -210,6 +273,7 @@ class Navigator:
 
     def finish(self, reason: str) -> None:
         self.mode, self.finished_reason = DONE, reason
+        self._deciding = self._replanning = None
         self.path_xy = self.target_xy = None
 
     # -- what others may change --------------------------------------------------------------
@@ -231,6 +295,7 @@ class Navigator:
 
     def drop_target(self) -> None:
         """Forget the current target and path (e.g. the map frame changed under them)."""
+        self._deciding = self._replanning = None
         self.target_xy = None
         self.path_xy = None
         self.pursuit.reset()
@@ -238,6 +303,7 @@ class Navigator:
 
     def redirect(self, target_xy: tuple[float, float], path_xy: F64) -> None:
         """Go to a new target along ``path_xy`` (the team's assignment)."""
+        self._deciding = self._replanning = None
         self.pursuit.reset()
         self.stuck.reset()
         self.target_xy = target_xy

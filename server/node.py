@@ -18,6 +18,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import msgspec
@@ -25,6 +26,7 @@ import msgspec
 from schemas import Scan, SimClock, TagDetections, keys
 from schemas.bus import Bus
 from schemas.ratelog import RateLimitedLog
+from server import planner_pool
 from server.clock import ClockPolicy, ServerClock
 from server.config import ServerConfig
 from server.core import ServerCore
@@ -68,6 +70,7 @@ class ServerNode:
         self._barrier = StepBarrier(cfg.clock.step_barrier_s)
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
+        self._planner: ProcessPoolExecutor | None = None
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
@@ -168,6 +171,7 @@ class ServerNode:
                             self.clock.now_ns() if clocked else None)
                         if self.journal is not None:
                             self.journal.scan(scan, now)
+                        self.core.steering.planner = self._planner_now()
                         cmd = self.core.on_scan(scan, now)
                         self.bus.publish(keys.robot_cmd_vel(rid),
                                          msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
@@ -209,6 +213,15 @@ class ServerNode:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
 
+    def _planner_now(self) -> ProcessPoolExecutor | None:
+        """The processes replanning runs in (started at the first need), or None: in lockstep
+        (the run must not depend on how fast they answer) or with ``planner_processes: 0``."""
+        if self._lockstep or self.cfg.planner_processes == 0:
+            return None
+        if self._planner is None:
+            self._planner = planner_pool.start(self.cfg.planner_processes)
+        return self._planner
+
     def snapshot(self) -> None:
         """Snapshot the core as of the journal's next entry (worker thread, or after stop)."""
         if self.journal is None or self.snapshots is None:
@@ -230,6 +243,9 @@ class ServerNode:
         self._stop.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10)
+        if self._planner is not None:
+            self._planner.shutdown(wait=False, cancel_futures=True)
+            self._planner = None
         if self.journal is not None:
             self.guarded("closing the journal", self.journal.close)
 

@@ -3,6 +3,8 @@ moves, its navigator otherwise."""
 
 from __future__ import annotations
 
+from concurrent.futures import Executor
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -20,6 +22,11 @@ class Steering:
 
     def __init__(self, cfg: ServerConfig, fleet: Fleet) -> None:
         self.cfg, self.fleet = cfg, fleet
+        #: where navigators replan while their robots drive on (None: on the scan's path)
+        self.planner: Executor | None = None
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "planner": None}   # processes are not state
 
     def command(self, r: RobotContext, stamp_ns: int, ranges: F64, angles: F64,
                 navigate: bool = True) -> VelocityCommand:
@@ -36,7 +43,8 @@ class Steering:
                 team = self.fleet.team_of(r)
                 twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,
                                    lambda: self.fleet.planning_grid(team.team_id),
-                                   team.visited, self.fleet.mates_in_robot_frame(r))
+                                   team.visited, self.fleet.mates_in_robot_frame(r),
+                                   planner=self.planner)
                 twist = Twist(float(np.clip(twist.v_mps, -5, 5)),
                               float(np.clip(twist.omega_rps, -20, 20)))
         return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=stamp_ns,

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike
 
+from server import navigator
 from server.control import PursuitParams, StuckDetector
 from server.exploration import (
     Explorer,
@@ -15,6 +16,7 @@ from server.exploration import (
     VisitedTargets,
     VoronoiExplorer,
 )
+from server.exploration.replan import Replan, Replanned, replan
 from server.navigator import EXPLORING, Navigator
 from server.planning import OccupancyGrid
 from tests.test_exploration_skeleton import t_corridor
@@ -23,7 +25,8 @@ START = np.array([3.0, 3.75, 0.0])   # in the corridor, both open ends ahead
 
 
 class Counting:
-    """Counts the map analyses an explorer makes (one per decision or target check)."""
+    """Counts the map analyses an explorer makes (one per decision) and the replans to a kept
+    target (each one analysis too)."""
 
     def __init__(self, explorer: Explorer) -> None:
         self.explorer = explorer
@@ -37,6 +40,10 @@ class Counting:
 
         explorer.analyse = analyse  # type: ignore[method-assign]
 
+    def replan(self, job: Replan) -> Replanned:
+        self.analyses += 1
+        return replan(job)
+
 
 def run(explorer: Explorer, times_s: list[float], replan_period_s: float = 4.0) -> list[int]:
     """Analyses made after each step at ``times_s`` (the robot stands still at START)."""
@@ -44,10 +51,12 @@ def run(explorer: Explorer, times_s: list[float], replan_period_s: float = 4.0) 
     nav = Navigator(explorer, PursuitParams(), None, StuckDetector(), replan_period_s)
     grid, visited = t_corridor(), VisitedTargets()
     out = []
-    for t in times_s:
-        nav.step(t, START, START, np.zeros((0, 2)), lambda: grid, visited)
-        assert nav.mode == EXPLORING and nav.target_xy is not None
-        out.append(counting.analyses)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(navigator, "replan", counting.replan)
+        for t in times_s:
+            nav.step(t, START, START, np.zeros((0, 2)), lambda: grid, visited)
+            assert nav.mode == EXPLORING and nav.target_xy is not None
+            out.append(counting.analyses)
     return out
 
 
@@ -69,3 +78,61 @@ def test_frontier_baseline_keeps_the_navigators_period(replan_period_s: float) -
     assert ex.recheck_period_s is None
     steps = [0.0, 1.0, replan_period_s - 0.1, replan_period_s]
     assert run(ex, steps, replan_period_s) == [1, 1, 1, 2]
+
+
+def test_a_replan_in_a_planner_process_gives_the_path_planned_in_line() -> None:
+    """With a planner pool the replan runs in another process: the step that hands it over
+    keeps the robot's path, a later step takes the answer, and it is the path planned here."""
+    import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    grid, visited = t_corridor(), VisitedTargets()
+    here = Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
+                     StuckDetector(), 1.0)
+    away = Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
+                     StuckDetector(), 1.0)
+    pose = START + np.array([0.3, 0.0, 0.0])
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for nav in (here, away):
+            nav.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, visited)
+        assert here.target_xy == away.target_xy and here.path_xy is not None
+        first = away.path_xy
+        here.step(1.0, pose, START, np.zeros((0, 2)), lambda: grid, visited)
+        away.step(1.0, pose, START, np.zeros((0, 2)), lambda: grid, visited, planner=pool)
+        assert away._replanning is not None and away.path_xy is first   # handed over
+        deadline = time.monotonic() + 30
+        while not away._replanning.done() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        away.step(1.1, pose, START, np.zeros((0, 2)), lambda: grid, visited, planner=pool)
+    assert away._replanning is None and away.path_xy is not first
+    assert here.path_xy is not None and away.path_xy is not None
+    assert np.allclose(away.path_xy, here.path_xy)
+
+
+def test_a_robot_alone_stands_while_a_planner_process_decides_for_it() -> None:
+    """A decision handed to the pool: the robot gets STOP until it comes back, then follows
+    the target and path that deciding here gives."""
+    import multiprocessing
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    grid = t_corridor()
+    here = Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
+                     StuckDetector(), 1.0)
+    away = Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
+                     StuckDetector(), 1.0)
+    here.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets())
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        twist = away.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets(),
+                          planner=pool)
+        assert twist.v_mps == 0.0 and twist.omega_rps == 0.0 and away._deciding is not None
+        deadline = time.monotonic() + 30
+        while not away._deciding.done() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        twist = away.step(0.1, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets(),
+                          planner=pool)
+    assert away._deciding is None and away.mode == EXPLORING
+    assert away.target_xy == here.target_xy and away.stats.decisions == 1
+    assert len(away.own_explorer.walls_seen) == len(here.own_explorer.walls_seen) > 0
+    assert twist.v_mps != 0.0 or twist.omega_rps != 0.0
