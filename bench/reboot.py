@@ -19,10 +19,12 @@ after the reboot, and the last one. ``goal_met`` checks the issue's goals:
 - the rebooted robot is placed again within 10 s of scans of its return;
 - its final position error is at most 0.15 m (every scenario run);
 
-and, beside them, that every run still reaches its threshold without a false merge.
+and, beside them, that every run still reaches its threshold without a false merge. With
+``--baseline`` each scenario also runs uninterrupted (same seed), for the same robot's errors
+without a reboot.
 
     python bench/reboot.py [--scenario thesis-case-2 ...] [--robot r2] [--at 40] [--down 3]
-                           [--seed 0] [--out DIR]
+                           [--seed 0] [--baseline] [--out DIR]
 """
 
 from __future__ import annotations
@@ -51,15 +53,16 @@ RUN_TIMEOUT_S = 1800.0
 PLACED = re.compile(r"placed again in its map by scan (\d+)")
 
 
-def demo(run: Path, scenario: str, robot: str, at_s: float, down_s: float,
+def demo(run: Path, scenario: str, robot: str, at_s: float | None, down_s: float,
          seed: int) -> dict[str, Any]:
-    """One demo into ``run`` with ``robot`` rebooted at ``at_s``; its report (or why not)."""
+    """One demo into ``run`` with ``robot`` rebooted at ``at_s`` (None: not); its report (or
+    why not)."""
     from mrslam.demo import run as run_demo
 
     t0 = time.monotonic()
+    reboot = {} if at_s is None else {"reboot": {robot: at_s}, "reboot_s": down_s}
     try:
-        report = run_demo({"scenario": scenario, "seed": seed, "out": str(run),
-                           "reboot": {robot: at_s}, "reboot_s": down_s,
+        report = run_demo({"scenario": scenario, "seed": seed, "out": str(run), **reboot,
                            "wall_timeout_s": RUN_TIMEOUT_S}, progress=False)
     except Exception as e:   # a run that breaks is a result too
         return {"error": f"{type(e).__name__}: {e}", "wall_s": round(time.monotonic() - t0, 1)}
@@ -94,7 +97,11 @@ def score(run: Path, scenario: str, rid: str, seen: dict[str, Any]) -> dict[str,
         "sim_time_to_threshold_s"], false_merges=report["false_merges"], end=report["end"],
         missing=report.get("missing", []))
     reboots = report.get("agent_reboots", [])
+    errors = position_errors(run, rid)
     if not reboots:
+        if errors is not None:
+            row["final_error_m"] = round(float(errors[1][-1]), 4)
+            row["max_error_m"] = round(float(errors[1].max()), 4)
         return {**row, "rebooted": False}
     rb = reboots[0]
     row["reboot"] = {k: rb.get(k) for k in ("at_s", "killed_sim_s", "restarted_sim_s",
@@ -112,7 +119,6 @@ def score(run: Path, scenario: str, rid: str, seen: dict[str, Any]) -> dict[str,
         row["placed_after_scans"] = int(m.group(1))
         row["placed_at_sim_s"] = round(placed["stamp_ns"] * 1e-9, 3)
         row["placed_after_sim_s"] = round(placed["stamp_ns"] * 1e-9 - back_s, 3)
-    errors = position_errors(run, rid)
     if errors is not None:
         stamps_s, err_m = errors[0] * 1e-9, errors[1]
         row["final_error_m"] = round(float(err_m[-1]), 4)
@@ -154,6 +160,8 @@ def main() -> None:
     ap.add_argument("--down", type=float, default=3.0,
                     help="wall-clock time the agent stays down [s]")
     ap.add_argument("--seed", type=int, default=0, help="the simulator's seed")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also run each scenario uninterrupted, for comparison")
     ap.add_argument("--out", type=Path, default=None, help="keep the run folders here")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="mrslam-reboot-"))
@@ -163,6 +171,13 @@ def main() -> None:
         run = out / f"{scenario}-seed{args.seed}"
         seen = demo(run, scenario, args.robot, args.at, args.down, args.seed)
         runs.append(score(run, scenario, args.robot, seen))
+        if args.baseline:
+            base = out / f"{scenario}-seed{args.seed}-uninterrupted"
+            row = score(base, scenario, args.robot,
+                        demo(base, scenario, args.robot, None, args.down, args.seed))
+            runs[-1]["uninterrupted"] = {k: row.get(k) for k in (
+                "reached", "sim_time_to_threshold_s", "false_merges", "final_error_m",
+                "max_error_m", "wall_s")}
     json.dump({"robot": args.robot, "at_s": args.at, "down_s": args.down, "seed": args.seed,
                "out": str(out), "goals": GOALS, "runs": runs, "goal_met": goal_met(runs)},
               sys.stdout, indent=1)
