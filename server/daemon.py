@@ -8,6 +8,7 @@ import logging
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     """Run the server until ``stop`` is set, a signal arrives, or (``exit_when_done``) the
     exploration has finished. Returns the summary."""
     from schemas.config_loading import load_config, write_resolved
-    from server.outputs import write_outputs
+    from server.outputs import collect_outputs, write_outputs
 
     cfg = load_config(ServerConfig, config_path, overrides)
     out = Path(cfg.out) if cfg.out else None
@@ -38,10 +39,18 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
             signal.signal(sig, lambda *_: stop.set())
     t0 = time.monotonic()
 
-    def outputs(node: ServerNode) -> None:
-        if out is not None:
-            write_outputs(node.core, out, {"wall_s": time.monotonic() - t0, **node.summary(),
-                                           "resumed": resumed, "running": True})
+    def outputs(node: ServerNode) -> Callable[[], None] | None:
+        if out is None:
+            return None
+        gathered = collect_outputs(node.core, {"wall_s": time.monotonic() - t0,
+                                               **node.summary(), "resumed": resumed,
+                                               "running": True})
+
+        def write() -> None:
+            assert out is not None
+            gathered.write(out)
+
+        return write
 
     b = cfg.bus
     with Bus.from_config(b) as bus:   # open first: robots reconnect while the state loads

@@ -34,6 +34,7 @@ from server.journal import JournalWriter
 from server.lockstep import StepBarrier
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
 from server.snapshot import Snapshots
+from server.writer import BackgroundWriter
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +42,11 @@ log = logging.getLogger(__name__)
 class ServerNode:
     def __init__(self, bus: Bus, cfg: ServerConfig, core: ServerCore | None = None,
                  journal: JournalWriter | None = None,
-                 outputs: Callable[[ServerNode], None] | None = None) -> None:
+                 outputs: Callable[[ServerNode], Callable[[], None] | None] | None = None
+                 ) -> None:
         """``journal``: where every processed message is appended first; ``outputs``: called
-        by the worker every ``outputs_period_s`` (and nowhere else touches the core)."""
+        by the worker every ``outputs_period_s`` (and nowhere else touches the core) to
+        gather what to write; the writing it returns runs on the writer thread."""
         self.bus = bus
         self.cfg = cfg
         self.core = core or ServerCore(cfg)
@@ -71,6 +74,7 @@ class ServerNode:
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
         self._planner: ProcessPoolExecutor | None = None
+        self._writer = BackgroundWriter(lambda kind, e: self._count_error())
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
@@ -185,13 +189,13 @@ class ServerNode:
             if self.journal is not None and now >= self.journal.next_flush:
                 self.guarded("flushing the journal", self.journal.flush)
             if self.snapshots is not None and now >= next_snapshot:
-                self.guarded("writing a snapshot", self.snapshot)
+                self.guarded("writing a snapshot", self.snapshot, False)
                 # at most ~5 % of the worker's time, however large the state grows
                 next_snapshot = time.monotonic() + max(self.cfg.snapshot_period_s,
                                                        20 * self.snapshots.last_seconds)
             if self.outputs is not None and now >= next_outputs:
                 next_outputs = now + self.cfg.outputs_period_s
-                self.guarded("writing the outputs", self.outputs, self)
+                self.guarded("gathering the outputs", self._outputs)
             if now >= next_forget:
                 next_forget = now + 1.0
                 with self._cv:
@@ -213,6 +217,12 @@ class ServerNode:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
 
+    def _outputs(self) -> None:
+        assert self.outputs is not None
+        job = self.outputs(self)      # gathered here; written by the writer thread
+        if job is not None:
+            self._writer.submit("outputs", job)
+
     def _planner_now(self) -> ProcessPoolExecutor | None:
         """The processes replanning runs in (started at the first need), or None: in lockstep
         (the run must not depend on how fast they answer) or with ``planner_processes: 0``."""
@@ -222,14 +232,30 @@ class ServerNode:
             self._planner = planner_pool.start(self.cfg.planner_processes)
         return self._planner
 
-    def snapshot(self) -> None:
-        """Snapshot the core as of the journal's next entry (worker thread, or after stop)."""
+    def snapshot(self, wait: bool = True) -> None:
+        """Snapshot the core as of the journal's next entry (worker thread, or after stop).
+        Pickled here; compressed and written here (``wait``) or by the writer thread."""
         if self.journal is None or self.snapshots is None:
             return
+        snapshots = self.snapshots
+        if not wait and self._writer.busy("snapshot"):
+            return             # the last one is still being written: the next round takes it
         self.journal.flush()   # the journal holds everything up to the snapshot
-        self.snapshots.write(self.core, self.journal.sequence)
-        self.snapshot_s.append(self.snapshots.last_seconds)
-        self.snapshot_bytes += self.snapshots.last_bytes
+        pending = snapshots.prepare(self.core, self.journal.sequence)
+
+        def commit() -> None:
+            snapshots.commit(pending)
+            self.snapshot_s.append(snapshots.last_seconds)
+            self.snapshot_bytes += snapshots.last_bytes
+
+        if wait:
+            self._writer.drain()
+            commit()
+        else:
+            self._writer.submit("snapshot", commit)
+
+    def _count_error(self) -> None:
+        self.errors += 1
 
     def guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
         try:
@@ -246,6 +272,7 @@ class ServerNode:
         if self._planner is not None:
             self._planner.shutdown(wait=False, cancel_futures=True)
             self._planner = None
+        self._writer.close()
         if self.journal is not None:
             self.guarded("closing the journal", self.journal.close)
 

@@ -11,11 +11,13 @@ import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from server.core import ServerCore
 from server.planning import OccupancyGrid as PlanningGrid
@@ -64,23 +66,53 @@ def write_trajectory(path: Path, stamps_ns: Any, poses: Any) -> None:
             f.write(f"{int(s)},{x:.5f},{y:.5f},{t:.6f}\n")
 
 
+@dataclass
+class Outputs:
+    """What a server run writes, gathered from the core (copies, so another thread may write
+    them while the core goes on)."""
+
+    grids: dict[str, PlanningGrid]
+    clouds: dict[str, NDArray[np.float64]]
+    trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]]
+    summary: dict[str, Any]
+
+    def write(self, out_dir: Path) -> Path:
+        """Write everything under ``out_dir``; returns the summary's path."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "trajectories").mkdir(exist_ok=True)
+        for team_id, grid in self.grids.items():
+            tdir = out_dir / "maps" / team_id
+            write_nav2_grid(grid, tdir)
+            with replaced(tdir / "points.ply") as tmp:
+                write_ply(tmp, self.clouds[team_id])
+        for name, (stamps, poses) in self.trajectories.items():
+            write_trajectory(out_dir / "trajectories" / f"{name}.csv", stamps, poses)
+        path = out_dir / "summary.json"
+        with replaced(path) as tmp:
+            tmp.write_text(json.dumps(self.summary, indent=2))
+        return path
+
+
 def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None = None) -> Path:
     """Write everything under ``out_dir``; returns the summary's path."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "trajectories").mkdir(exist_ok=True)
+    return collect_outputs(core, extra).write(out_dir)
+
+
+def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Outputs:
+    """Team maps and point clouds, trajectories and the summary, as of now."""
+    grids: dict[str, PlanningGrid] = {}
+    clouds: dict[str, NDArray[np.float64]] = {}
     for team in core.teams.values():
-        tdir = out_dir / "maps" / team.team_id
-        write_nav2_grid(core.planning_grid(team.team_id), tdir)
-        pts = np.concatenate([core.robots[r].slam.point_cloud() for r in team.robot_ids])
-        with replaced(tdir / "points.ply") as tmp:
-            write_ply(tmp, pts)
+        grids[team.team_id] = core.planning_grid(team.team_id)
+        clouds[team.team_id] = np.concatenate(
+            [core.robots[r].slam.point_cloud() for r in team.robot_ids])
+    trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]] = {}
     robots: dict[str, Any] = {}
     for rid, r in core.robots.items():
         online = np.array(r.online, dtype=np.float64).reshape(-1, 4)
-        write_trajectory(out_dir / "trajectories" / f"{rid}_online.csv",
-                         [s for s, *_ in r.online], online[:, 1:])
+        trajectories[f"{rid}_online"] = ([s for s, *_ in r.online], online[:, 1:])
         stamps, poses = r.slam.scan_poses()
-        write_trajectory(out_dir / "trajectories" / f"{rid}_final.csv", stamps, poses)
+        trajectories[f"{rid}_final"] = (np.array(stamps), np.array(poses))
         ms = r.nav.stats.decision_ms
         robots[rid] = {
             "team_id": r.team_id, "scans": r.scans, "keyframes": len(r.slam.keyframes),
@@ -94,28 +126,26 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
         }
     summary = {
         "robots": robots,
-        "teams": {t.team_id: {"robot_ids": t.robot_ids, "coverage": t.coverage,
+        "teams": {t.team_id: {"robot_ids": list(t.robot_ids), "coverage": t.coverage,
                               "explored_m2": t.explored_m2, "finished": t.finished,
                               "finished_stamp_ns": t.finished_stamp_ns,
-                              "coverage_history": t.history}
+                              "coverage_history": list(t.history)}
                   for t in core.teams.values()},
-        "merged_teams": {t.team_id: {"merged_into": t.merged_into, "robot_ids": t.robot_ids,
-                                     "coverage_history": t.history}
+        "merged_teams": {t.team_id: {"merged_into": t.merged_into,
+                                     "robot_ids": list(t.robot_ids),
+                                     "coverage_history": list(t.history)}
                          for t in core.retired_teams.values()},
         "merges": [{"stamp_ns": m.stamp_ns, "team_id": m.team_id,
-                    "joined_team_id": m.joined_team_id, "robots_a": m.robots_a,
-                    "robots_b": m.robots_b, "sightings": m.sightings,
+                    "joined_team_id": m.joined_team_id, "robots_a": list(m.robots_a),
+                    "robots_b": list(m.robots_b), "sightings": m.sightings,
                     "T_joint": m.T_joint.tolist(), "T_fused": m.T_fused.tolist(),
                     "cov_fused": m.cov_fused.tolist(), "T_direct_first": m.T_direct_first.tolist(),
                     "map_agreement": m.agreement, "undone_stamp_ns": m.undone_stamp_ns,
                     "kind": m.kind}
                    for m in core.merges],
         "tag_counters": core.tag_counters,
-        "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": e.robot_ids,
+        "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": list(e.robot_ids),
                     "team_id": e.team_id, "message": e.message} for e in core.event_log],
         **(extra or {}),
     }
-    path = out_dir / "summary.json"
-    with replaced(path) as tmp:
-        tmp.write_text(json.dumps(summary, indent=2))
-    return path
+    return Outputs(grids, clouds, trajectories, summary)

@@ -27,6 +27,7 @@ import struct
 import time
 import weakref
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -153,6 +154,17 @@ class _Unpickler(pickle.Unpickler):
         return a
 
 
+@dataclass(frozen=True)
+class Pending:
+    """A snapshot pickled and not yet written: its sequence, the pickle, the bytes its new
+    arrays added to the blob store, and the time pickling took."""
+
+    sequence: int
+    pickled: bytes
+    blob_bytes: int
+    seconds: float
+
+
 class Snapshots:
     """Writes and finds the snapshots of one state folder."""
 
@@ -171,15 +183,26 @@ class Snapshots:
 
     def write(self, core: ServerCore, sequence: int) -> Path:
         """Snapshot ``core`` as of journal entry ``sequence`` (the next one to come)."""
+        return self.commit(self.prepare(core, sequence))
+
+    def prepare(self, core: ServerCore, sequence: int) -> Pending:
+        """The part that must see the core still: pickled (new arrays to the blob store).
+        ``commit`` does the rest, and may do it on another thread while the core goes on."""
         t0 = time.monotonic()
         buf = io.BytesIO()
-        blobs = self.blobs
-        before = blobs.appended_bytes
-        _Pickler(buf, blobs).dump(core)
-        blobs.sync()             # every array the snapshot refers to is on disk before it is
-        body = zlib.compress(buf.getvalue(), 1)
-        head = MAGIC + struct.pack("<Q", sequence) + VERSION.encode()[:64].ljust(64, b" ")
-        path = self.dir / f"snapshot-{sequence:012d}.pkl"
+        before = self.blobs.appended_bytes
+        _Pickler(buf, self.blobs).dump(core)
+        return Pending(sequence, buf.getvalue(), self.blobs.appended_bytes - before,
+                       time.monotonic() - t0)
+
+    def commit(self, pending: Pending) -> Path:
+        """Compress and write a prepared snapshot atomically; drop the oldest."""
+        t0 = time.monotonic()
+        self.blobs.sync()        # every array the snapshot refers to is on disk before it is
+        body = zlib.compress(pending.pickled, 1)
+        head = (MAGIC + struct.pack("<Q", pending.sequence)
+                + VERSION.encode()[:64].ljust(64, b" "))
+        path = self.dir / f"snapshot-{pending.sequence:012d}.pkl"
         tmp = path.with_name(f".{path.name}.tmp")
         with tmp.open("wb") as f:
             f.write(head)
@@ -190,8 +213,8 @@ class Snapshots:
         os.replace(tmp, path)
         for old in self.paths()[self.keep:]:
             old.unlink(missing_ok=True)
-        self.last_seconds = time.monotonic() - t0
-        self.last_bytes = len(body) + blobs.appended_bytes - before
+        self.last_seconds = pending.seconds + time.monotonic() - t0
+        self.last_bytes = len(body) + pending.blob_bytes
         return path
 
     def paths(self) -> list[Path]:
