@@ -91,7 +91,7 @@ class ServerCore:
             self.desk.process(scan.stamp_ns)
         # 4. coverage, termination and λ, every map period
         team = self.fleet.team_of(r)
-        self.progress.tick(scan.stamp_ns if now_ns is None else now_ns)
+        self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)
         if team.finished:
             r.nav.finish("team coverage reached")
         # 5. the command: the lookout's, or the navigator's
@@ -185,10 +185,12 @@ class ServerCore:
     def pop_events(self) -> list[Event]:
         return self.events.pop()
 
-    def map_updates(self) -> list[MapUpdate]:
-        """The latest grid of every team as messages."""
+    def map_updates(self, teams: set[str] | None = None) -> list[MapUpdate]:
+        """The latest grid of every team (or of ``teams``) as messages."""
         out = []
         for team in self.fleet.teams.values():
+            if teams is not None and team.team_id not in teams:
+                continue
             g = self.fleet.latest_grids.get(team.team_id)
             if g is None:
                 continue

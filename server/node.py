@@ -210,9 +210,13 @@ class ServerNode:
                                      self.core.robot_states(self.clock.now_ns()))
                 if self.core.map_stamp_ns != map_stamp:
                     map_stamp = self.core.map_stamp_ns
-                    self._latest_maps = self.core.map_updates()
-                    for m in self._latest_maps:
+                    fresh = self.core.map_updates(self.core.progress.changed_teams())
+                    for m in fresh:
                         self.bus.publish(keys.SERVER_MAP, m)
+                    teams = self.core.teams
+                    latest = {m.team_id: m for m in self._latest_maps if m.team_id in teams}
+                    latest.update((m.team_id, m) for m in fresh)
+                    self._latest_maps = list(latest.values())
             except Exception:
                 self.errors += 1
                 log.exception("publishing server outputs failed")

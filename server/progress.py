@@ -21,23 +21,36 @@ class Progress:
 
     def __init__(self, cfg: ServerConfig, fleet: Fleet, events: EventLog) -> None:
         self.cfg, self.fleet, self.events = cfg, fleet, events
-        self.next_update_ns = 0
-        #: when the team grids in ``fleet.latest_grids`` were made
+        #: per team: when its next update is due
+        self.next_update_ns: dict[str, int] = {}
+        #: when the newest team grid in ``fleet.latest_grids`` was made
         self.map_stamp_ns = 0
+        #: teams whose grid was made again since ``changed_teams`` was last asked
+        self._changed: set[str] = set()
 
-    def tick(self, stamp_ns: int) -> None:
-        """``update`` when ``map_period_s`` has passed since the last one."""
-        if stamp_ns < self.next_update_ns:
+    def tick(self, stamp_ns: int, team_id: str) -> None:
+        """``update`` the team when ``map_period_s`` has passed since its last one (each team
+        on its own robots' scans, so the work spreads over the period however many teams)."""
+        if stamp_ns < self.next_update_ns.get(team_id, 0):
             return
-        self.next_update_ns = stamp_ns + int(self.cfg.map_period_s * 1e9)
-        self.update(stamp_ns)
+        self.next_update_ns[team_id] = stamp_ns + int(self.cfg.map_period_s * 1e9)
+        self.update(stamp_ns, team_id)
 
-    def update(self, stamp_ns: int) -> None:
-        """Coverage of every team from a fresh grid; finish the teams that are done."""
+    def changed_teams(self) -> set[str]:
+        """The teams with a new grid since the last call."""
+        changed, self._changed = self._changed, set()
+        return changed
+
+    def update(self, stamp_ns: int, team_id: str | None = None) -> None:
+        """Coverage of every team (or of ``team_id``) from a fresh grid; finish the teams
+        that are done."""
         self.map_stamp_ns = stamp_ns
         total = self.cfg.explore.total_area_m2
         fleet = self.fleet
-        for team in fleet.teams.values():
+        for team in list(fleet.teams.values()):
+            if team_id is not None and team.team_id != team_id:
+                continue
+            self._changed.add(team.team_id)
             grid = fleet.latest_grids[team.team_id] = fleet.planning_grid(team.team_id)
             team.explored_m2 = explored_area_m2(grid)
             team.coverage = team.explored_m2 / total if total else 0.0

@@ -10,7 +10,8 @@ only what changes and costs little however long the run.
 A server that resumes loads the newest snapshot that reads back and replays only the journal
 after it; a snapshot that is missing, cut short or from another version of mrslam is
 passed over for the one before (the last ``keep`` are kept), and without any the journal is
-replayed whole. Written atomically (beside, fsync, rename). The state folder is the server's
+replayed whole. A snapshot is read back only by the code that wrote it (the header holds the
+version and a digest of the server's code): an upgraded server replays the journal instead. Written atomically (beside, fsync, rename). The state folder is the server's
 own: unpickling runs code, so it must not be writable by others.
 """
 
@@ -45,10 +46,19 @@ _BLOB_HEAD = struct.Struct("<2s16sI")   # magic, digest, length of the compresse
 
 
 def _version() -> str:
+    """mrslam's version and a digest of the code whose objects a snapshot holds: a snapshot
+    is read back only by the very code that wrote it (another one replays the journal)."""
     try:
-        return importlib.metadata.version("mrslam")
+        version = importlib.metadata.version("mrslam")
     except importlib.metadata.PackageNotFoundError:
-        return "unknown"
+        version = "unknown"
+    h = hashlib.blake2b(digest_size=8)
+    root = Path(__file__).resolve().parents[1]
+    for package in ("server", "factors", "schemas"):
+        for f in sorted((root / package).rglob("*.py")):
+            h.update(f.relative_to(root).as_posix().encode())
+            h.update(f.read_bytes())
+    return f"{version}+{h.hexdigest()}"
 
 
 VERSION = _version()

@@ -240,3 +240,18 @@ def test_a_torn_blob_store_falls_back_to_the_snapshot_it_still_serves(tmp_path: 
     loaded = Snapshots(tmp_path).load()
     assert loaded is not None and loaded[1] == 120
     assert store.stat().st_size == kept                   # the torn tail was cut
+
+
+def test_a_snapshot_written_by_other_code_is_passed_over(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """The header holds mrslam's version and a digest of the server's code: an upgraded (or
+    edited) server does not unpickle objects whose classes changed, it replays the journal."""
+    import server.snapshot as snapshot
+
+    assert "+" in snapshot.VERSION          # version + code digest
+    live = ServerCore(config(), navigate=False)
+    feed(live, messages(20), None)
+    Snapshots(tmp_path).write(live, 7)
+    assert Snapshots(tmp_path).load() is not None
+    monkeypatch.setattr(snapshot, "VERSION", "0.1.0+another")
+    assert Snapshots(tmp_path).load() is None
