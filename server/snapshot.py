@@ -11,8 +11,9 @@ A server that resumes loads the newest snapshot that reads back and replays only
 after it; a snapshot that is missing, cut short or from another version of mrslam is
 passed over for the one before (the last ``keep`` are kept), and without any the journal is
 replayed whole. A snapshot is read back only by the code that wrote it (the header holds the
-version and a digest of the server's code): an upgraded server replays the journal instead. Written atomically (beside, fsync, rename). The state folder is the server's
-own: unpickling runs code, so it must not be writable by others.
+version and a digest of the server's code): an upgraded server replays the journal instead.
+Written atomically (beside, fsync, rename). The state folder is the server's own: unpickling
+runs code, so it must not be writable by others.
 """
 
 from __future__ import annotations

@@ -12,7 +12,11 @@ def test_a_newer_job_of_a_kind_replaces_the_waiting_one_and_errors_are_counted()
     errors: list[str] = []
     w = BackgroundWriter(lambda kind, e: errors.append(f"{kind}: {e}"))
     gate, done = threading.Event(), []
-    w.submit("snapshot", lambda: (gate.wait(10), done.append("first")) and None)
+    def first() -> None:
+        gate.wait(10)
+        done.append("first")
+
+    w.submit("snapshot", first)
     assert w.busy("snapshot")
     w.submit("outputs", lambda: done.append("outputs-old"))
     w.submit("outputs", lambda: done.append("outputs-new"))   # replaces the waiting one
