@@ -85,6 +85,10 @@ class BusStats:
         }
 
 
+#: how often a client tries to reach its router again after losing it
+RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 1.5}
+
+
 def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
                  config_file: str | None = None, multicast_scouting: bool = False,
                  connect_timeout_ms: int | None = None,
@@ -104,6 +108,10 @@ def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] 
         settings.append(("listen/endpoints", list(listen)))
     if connect:
         settings.append(("connect/endpoints", list(connect)))
+        if conf.get_json("connect/retry") in ("null", None):
+            # a robot whose server restarted is served again within ~1 s, not after Zenoh's
+            # default back-off of up to 4 s (a config file's own setting is kept)
+            settings.append(("connect/retry", RECONNECT_RETRY))
     if connect_timeout_ms is not None:
         settings.append(("connect/timeout_ms", connect_timeout_ms))
     settings += [("scouting/multicast/enabled", multicast_scouting),

@@ -6,6 +6,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -123,3 +124,18 @@ def test_unreachable_router_is_a_bus_error() -> None:
 def test_bad_listen_endpoint_is_a_bus_error() -> None:
     with pytest.raises(BusError):
         Bus.open("router", listen=["tcp/256.1.1.1:1"])
+
+
+def test_clients_retry_their_router_soon_unless_their_config_file_says(tmp_path: Path) -> None:
+    """A client that lost its router (a server restarting) tries again within a second, not
+    after Zenoh's default back-off of up to 4 s; a config file's own retry setting is kept."""
+    import json
+
+    from schemas.bus import RECONNECT_RETRY, zenoh_config
+
+    conf = zenoh_config("client", connect=["tcp/127.0.0.1:7447"])
+    assert json.loads(conf.get_json("connect/retry")) == RECONNECT_RETRY
+    own = tmp_path / "zenoh.json5"
+    own.write_text('{ connect: { retry: { period_init_ms: 5000 } } }')
+    conf = zenoh_config("client", connect=["tcp/127.0.0.1:7447"], config_file=str(own))
+    assert json.loads(conf.get_json("connect/retry"))["period_init_ms"] == 5000
