@@ -183,9 +183,10 @@ class ServerConfig(ConfigModel):
                                   "journal without out)")
     journal: bool = Field(True, description="keep the journal (server.journal)")
     snapshot_period_s: float = Field(5.0, gt=0.0, description="a snapshot of the server's "
-                                     "state this often (wall time; longer when one takes "
-                                     "more than 5 % of it), so a restart replays only the "
-                                     "journal since (server.snapshot)")
+                                     "state this often (wall time; longer when snapshots "
+                                     "would take more than ~4 % of the CPU the server uses), "
+                                     "so a restart replays only the journal since "
+                                     "(server.snapshot)")
     outputs_period_s: float = Field(10.0, gt=0.0, description="maps, trajectories and the "
                                     "summary are rewritten this often while running (wall "
                                     "time; each file replaced whole), so a crash leaves the "

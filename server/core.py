@@ -131,7 +131,7 @@ class ServerCore:
         own = r.pose
         if len(self.fleet.team_of(r).robot_ids) > 1:
             own = compose(inverse(r.own_frame_in_team()), r.pose)
-        r.online.append((stamp_ns, float(own[0]), float(own[1]), float(own[2])))
+        r.online.append(stamp_ns, own[:3])
 
     def on_tags(self, msg: TagDetections) -> None:
         """A robot's tag sightings (see ``server.rendezvous.desk``)."""

@@ -28,6 +28,7 @@ from server.slam import RobotSlam
 from server.slam.backend import FactorRecord, robot_key_space
 from server.slam.grid import OccupancyGrid
 from server.slam.mapping import GridMapper
+from server.slam.stamped import StampedRows
 from server.stages import Stages
 
 log = logging.getLogger(__name__)
@@ -49,9 +50,9 @@ class RobotContext:
     last_stamp_ns: int = 0
     alive: bool = True
     start_checked: bool = False   # a known start pose was used (or there was none to use)
-    #: the pose the server believed at each scan (stamp_ns, x, y, θ), in the robot's own map
-    #: frame (its first pose is the origin; a merge does not move it)
-    online: list[tuple[int, float, float, float]] = field(default_factory=list)
+    #: the pose the server believed at each scan (stamps; values x, y, θ), in the robot's own
+    #: map frame (its first pose is the origin; a merge does not move it)
+    online: StampedRows = field(default_factory=lambda: StampedRows(3))
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first

@@ -74,6 +74,7 @@ class ServerNode:
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
         self._planner: ProcessPoolExecutor | None = None
+        self._cpu_mark = (time.process_time(), time.monotonic())
         self._writer = BackgroundWriter(lambda kind, e: self._count_error())
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
@@ -190,9 +191,7 @@ class ServerNode:
                 self.guarded("flushing the journal", self.journal.flush)
             if self.snapshots is not None and now >= next_snapshot:
                 self.guarded("writing a snapshot", self.snapshot, False)
-                # at most ~5 % of the worker's time, however large the state grows
-                next_snapshot = time.monotonic() + max(self.cfg.snapshot_period_s,
-                                                       20 * self.snapshots.last_seconds)
+                next_snapshot = time.monotonic() + self._snapshot_interval_s(now)
             if self.outputs is not None and now >= next_outputs:
                 next_outputs = now + self.cfg.outputs_period_s
                 self.guarded("gathering the outputs", self._outputs)
@@ -220,6 +219,16 @@ class ServerNode:
             except Exception:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
+
+    def _snapshot_interval_s(self, now: float) -> float:
+        """``snapshot_period_s``, or longer so that snapshots take at most ~4 % of the CPU
+        the server uses (however large the state grows, however busy the server is)."""
+        cpu, wall = time.process_time(), now
+        last_cpu, last_wall = self._cpu_mark
+        self._cpu_mark = (cpu, wall)
+        used = (cpu - last_cpu) / max(wall - last_wall, 1e-3)   # cores the server uses
+        cost = self.snapshots.last_seconds if self.snapshots is not None else 0.0
+        return max(self.cfg.snapshot_period_s, cost / (0.04 * max(used, 0.05)))
 
     def _outputs(self) -> None:
         assert self.outputs is not None

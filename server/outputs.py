@@ -109,8 +109,7 @@ def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Ou
     trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]] = {}
     robots: dict[str, Any] = {}
     for rid, r in core.robots.items():
-        online = np.array(r.online, dtype=np.float64).reshape(-1, 4)
-        trajectories[f"{rid}_online"] = ([s for s, *_ in r.online], online[:, 1:])
+        trajectories[f"{rid}_online"] = (r.online.stamps.copy(), r.online.values.copy())
         stamps, poses = r.slam.scan_poses()
         trajectories[f"{rid}_final"] = (np.array(stamps), np.array(poses))
         ms = r.nav.stats.decision_ms

@@ -171,3 +171,22 @@ def test_beams_without_return_clear_free_space_up_to_the_sensor_range(
         assert _state_at(grid, (free_until, 0.0)) == "free"
     assert _state_at(grid, (unknown_from, 0.0)) == "unknown"
     assert not any(_state_at(grid, (x, 0.0)) == "occupied" for x in np.arange(0.3, 6.0, 0.1))
+
+
+def test_stamped_rows_grow_search_and_pickle_as_columns() -> None:
+    """Per-scan rows (stamp, tag, values) in growing columns: appended in order, read back
+    as arrays, pickled as three arrays (not one object per row) and appendable after."""
+    import pickle
+
+    from server.slam.stamped import StampedRows
+
+    rows = StampedRows(3)
+    for i in range(100):
+        rows.append(1000 + 10 * i, (i, 2.0 * i, -i), tag=i // 7)
+    assert len(rows) == 100 and rows.stamps[-1] == 1990 and rows.tags[50] == 7
+    assert np.array_equal(rows.values[3], [3.0, 6.0, -3.0])
+    back = pickle.loads(pickle.dumps(rows))
+    assert np.array_equal(back.stamps, rows.stamps) and np.array_equal(back.values, rows.values)
+    back.append(5000, (1.0, 1.0, 1.0), tag=99)
+    assert len(back) == 101 and back.row(100)[:2] == (5000, 99) and len(rows) == 100
+    assert len(pickle.dumps(rows)) < 100 * 40      # not an object per row

@@ -3,7 +3,6 @@ by the server daemon). Its pose graph may be shared with other robots (see ``bac
 
 from __future__ import annotations
 
-import bisect
 import logging
 import math
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ from server.slam.keyframes import Keyframe, local_point_map
 from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
 from server.slam.mapping import GridMapper, point_cloud
 from server.slam.scan import ScanPoints, scan_to_points
+from server.slam.stamped import StampedRows
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class RobotSlam:
         self._loops = LoopCloser(c.loop, self._icp)
         self._mapper = GridMapper(GridParams(**c.grid.model_dump()))
         self._T_map_start = np.asarray(T_map_start, dtype=np.float64)
-        self._scan_poses: list[ScanPose] = []
+        self._scan_poses = StampedRows(3)   # per scan: stamp, keyframe, pose in its frame
         self._local_map: PointMap | None = None
         self._last_odom: F64 | None = None
         self._last_stamp_ns: int | None = None
@@ -133,8 +133,7 @@ class RobotSlam:
             if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
                 self._close_loops(k)                                   # 5. loop closure
             self._refresh_local_map()                                  # 6. maps follow poses
-        self._scan_poses.append(ScanPose(stamp_ns, len(self.keyframes) - 1,
-                                         self._T_kf_robot.copy()))
+        self._scan_poses.append(stamp_ns, self._T_kf_robot, tag=len(self.keyframes) - 1)
         self.stats.scans += 1
         return self.pose
 
@@ -166,7 +165,7 @@ class RobotSlam:
         self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom))
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         self._T_kf_map_cache = self._T_map_start.copy()
-        self._scan_poses.append(ScanPose(stamp_ns, 0, IDENTITY.copy()))
+        self._scan_poses.append(stamp_ns, IDENTITY, tag=0)
         self.stats.scans += 1
         self.stats.keyframes = 1
         self._refresh_local_map()
@@ -285,18 +284,18 @@ class RobotSlam:
         to that keyframe, interpolated between the scans around that instant (the nearest scan
         within ``tolerance_ns`` at either end). None when no scan is close enough."""
         sp = self._scan_poses
-        if not sp:
+        if not len(sp):
             return None
-        stamps = [s.stamp_ns for s in sp]
-        i = bisect.bisect_left(stamps, stamp_ns)
+        stamps = sp.stamps
+        i = int(np.searchsorted(stamps, stamp_ns, side="left"))
         if i < len(sp) and stamps[i] == stamp_ns:
-            return sp[i].keyframe, sp[i].T_kf_robot.copy()
+            return int(sp.tags[i]), sp.values[i].copy()
         if i == 0 or i == len(sp):
             j = 0 if i == 0 else len(sp) - 1
-            if abs(stamps[j] - stamp_ns) > tolerance_ns:
+            if abs(int(stamps[j]) - stamp_ns) > tolerance_ns:
                 return None
-            return sp[j].keyframe, sp[j].T_kf_robot.copy()
-        a, b = sp[i - 1], sp[i]
+            return int(sp.tags[j]), sp.values[j].copy()
+        a, b = ScanPose(*sp.row(i - 1)), ScanPose(*sp.row(i))
         if b.stamp_ns - a.stamp_ns > 2 * tolerance_ns:
             near = a if stamp_ns - a.stamp_ns <= b.stamp_ns - stamp_ns else b
             if abs(near.stamp_ns - stamp_ns) > tolerance_ns:
@@ -330,12 +329,10 @@ class RobotSlam:
     def scan_poses(self) -> tuple[NDArray[np.int64], F64]:
         """Stamps [ns] and optimised map-frame poses (N, 3) of every scan added so far."""
         kf_poses = self.keyframe_poses()
-        stamps = np.array([s.stamp_ns for s in self._scan_poses], dtype=np.int64)
-        if not self._scan_poses:
-            return stamps, np.zeros((0, 3))
-        idx = np.array([s.keyframe for s in self._scan_poses], dtype=np.int64)
-        rel = np.array([s.T_kf_robot for s in self._scan_poses], dtype=np.float64)
-        return stamps, compose(kf_poses[idx], rel)
+        sp = self._scan_poses
+        if not len(sp):
+            return sp.stamps.copy(), np.zeros((0, 3))
+        return sp.stamps.copy(), compose(kf_poses[sp.tags], sp.values)
 
     def occupancy_grid(self) -> OccupancyGrid:
         """The occupancy grid at the current poses (incremental, or re-rendered if they moved)."""
