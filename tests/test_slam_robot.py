@@ -189,4 +189,4 @@ def test_stamped_rows_grow_search_and_pickle_as_columns() -> None:
     assert np.array_equal(back.stamps, rows.stamps) and np.array_equal(back.values, rows.values)
     back.append(5000, (1.0, 1.0, 1.0), tag=99)
     assert len(back) == 101 and back.row(100)[:2] == (5000, 99) and len(rows) == 100
-    assert len(pickle.dumps(rows)) < 100 * 40      # not an object per row
+    assert len(pickle.dumps(rows)) < 100 * 45      # 40 bytes of data a row, no objects
