@@ -9,7 +9,7 @@ Pairs stand side by side (the second robot ``--gap`` metres to the left of the f
 the same way), so both must turn or drive past each other to leave.
 
     python bench/collisions.py [--gap 1.0] [--max-sim-time 120] [--full] [--seed 0]
-                               [--out DIR]
+                               [--rtf 5] [--out DIR]
 """
 
 from __future__ import annotations
@@ -48,6 +48,9 @@ def main() -> None:
     ap.add_argument("--max-sim-time", type=float, default=120.0, help="sim time per run [s]")
     ap.add_argument("--full", action="store_true", help="run to the coverage threshold")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rtf", type=float, default=None,
+                    help="real time × RTF instead of lockstep: the server must keep up (at "
+                    "RTF 5 ten robots send fifty robots' worth of scans)")
     ap.add_argument("--out", type=Path, default=None, help="keep the run folder here")
     args = ap.parse_args()
     from mrslam.demo import run
@@ -57,10 +60,13 @@ def main() -> None:
     report = run({"scenario": "thesis-case-4", "robots": {k: list(v) for k, v in robots.items()},
                   "seed": args.seed, "out": str(out),
                   "max_sim_time_s": 3600.0 if args.full else args.max_sim_time,
-                  "record": False, "wall_timeout_s": 5400}, progress=False)
+                  "record": False, "wall_timeout_s": 5400,
+                  **({"lockstep": False, "rtf": args.rtf} if args.rtf else {})},
+                 progress=False)
     per_robot: dict[str, Any] = {rid: r["collisions"] for rid, r in report["robots"].items()}
     total = sum(per_robot.values())
     json.dump({"robots": len(robots), "gap_m": args.gap, "seed": args.seed,
+               "mode": f"real time x{args.rtf}" if args.rtf else "lockstep",
                "sim_time_s": report["sim_time_s"], "reached": report["reached"],
                "collisions": total, "collisions_per_robot": per_robot,
                "false_merges": report["false_merges"], "out": str(out),
