@@ -117,14 +117,22 @@ class JournalWriter:
             self.flush()
         self.seconds += time.perf_counter() - t0
 
-    def flush(self) -> None:
-        """Close the chunk in progress and hand it to the disk: what a crash keeps."""
+    def flush(self, sync: bool = True) -> None:
+        """Close the chunk in progress and hand it to the operating system — what a killed
+        process keeps — and (``sync``) to the disk: what a power cut keeps. Without ``sync``
+        the caller calls ``sync`` soon, e.g. from another thread."""
         if self._closed:
             return
         self._writer.flush()
         self._file.flush()
-        os.fsync(self._file.fileno())
+        if sync:
+            self.sync()
         self.next_flush = time.monotonic() + self.flush_period_s
+
+    def sync(self) -> None:
+        """Wait until what was flushed is on the disk (safe beside further writes)."""
+        if not self._closed:
+            os.fsync(self._file.fileno())
 
     def close(self) -> None:
         if self._closed:

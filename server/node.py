@@ -188,7 +188,9 @@ class ServerNode:
                                      rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
             now = time.monotonic()
             if self.journal is not None and now >= self.journal.next_flush:
-                self.guarded("flushing the journal", self.journal.flush)
+                # the chunk goes to the operating system here, to the disk on the writer thread
+                self.guarded("flushing the journal", self.journal.flush, False)
+                self._writer.submit("journal", self.journal.sync)
             if self.snapshots is not None and now >= next_snapshot:
                 self.guarded("writing a snapshot", self.snapshot, False)
                 next_snapshot = time.monotonic() + self._snapshot_interval_s(now)
@@ -253,10 +255,12 @@ class ServerNode:
         snapshots = self.snapshots
         if not wait and self._writer.busy("snapshot"):
             return             # the last one is still being written: the next round takes it
-        self.journal.flush()   # the journal holds everything up to the snapshot
-        pending = snapshots.prepare(self.core, self.journal.sequence)
+        journal = self.journal
+        journal.flush(sync=False)   # the journal holds everything up to the snapshot ...
+        pending = snapshots.prepare(self.core, journal.sequence)
 
         def commit() -> None:
+            journal.sync()           # ... on the disk before the snapshot is
             snapshots.commit(pending)
             self.snapshot_s.append(snapshots.last_seconds)
             self.snapshot_bytes += snapshots.last_bytes
