@@ -115,12 +115,9 @@ class AgentConfig(ConfigModel):
     omega_max_rps: float = Field(2.0, gt=0.0, le=20.0, description="turn rates are clipped to this")
     stop_on_server_loss: bool = Field(
         True, description="stop the motors when the server's liveliness token disappears")
-    command_max_age_s: float = Field(1.0, gt=0.0, description="commands stamped longer ago "
-                                     "on the robot's clock are ignored: the server stamps each "
-                                     "with the time of the scan it answers, and one that comes "
-                                     "back this late (a server far behind, a replay, a stamp-0 "
-                                     "stranger) was decided on what the robot saw long ago; "
-                                     "the robot stops on its last command's time-to-live")
+    command_max_age_s: float = Field(10.0, gt=0.0, description="commands stamped longer ago "
+                                     "on the robot's clock are ignored (a replay, a stamp-0 "
+                                     "stranger); the server stamps each with its scan's time")
     command_max_ahead_s: float = Field(1.0, ge=0.0, description="commands stamped this far "
                                        "ahead of the robot's clock are ignored")
     max_queued_frames: int = Field(4, ge=1, description="older frames are dropped beyond this")

@@ -91,8 +91,10 @@ def test_scans_flow_commands_move_the_robot_and_it_stops_when_they_stop(
         router.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
             robot_id="r7", v_mps=0.3, omega_rps=0.0))
         for _ in range(12):  # 1.2 s of wall time = 2.4 s simulated, ttl 0.5 s simulated
+            # stamped as the server stamps them: with the scan each answers
             router.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
-                robot_id="r1", v_mps=0.3, omega_rps=0.0, ttl_s=0.5))
+                robot_id="r1", stamp_ns=scans[-1].stamp_ns, v_mps=0.3, omega_rps=0.0,
+                ttl_s=0.5))
             time.sleep(0.1)
         assert truth.pose("r1")[0] > start[0] + 0.3
         time.sleep(1.0)                          # the watchdog stops the robot ...
@@ -117,8 +119,10 @@ def test_the_robot_stops_when_the_server_disappears(router: Bus, endpoint: str) 
             server.declare_alive(keys.SERVER_ALIVE)
             assert within(lambda: truth.latest is not None, 10.0)
             start = truth.pose("r1")
+            assert truth.latest is not None      # stamped now on the robot's (simulated) clock
             server.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
-                robot_id="r1", v_mps=0.2, omega_rps=0.0, ttl_s=10.0), block=True)
+                robot_id="r1", stamp_ns=truth.latest.stamp_ns, v_mps=0.2, omega_rps=0.0,
+                ttl_s=10.0), block=True)
             assert within(lambda: truth.pose("r1")[0] > start[0] + 0.1, 10.0)
         finally:
             server.close()                       # liveliness gone, command still valid
