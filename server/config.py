@@ -44,6 +44,10 @@ class ControlConfig(ConfigModel):
     command_ttl_s: float = Field(
         0.5, gt=0.0, le=10.0, description="each velocity command holds this long; without a newer "
         "one the robot stops")
+    max_scan_age_s: float = Field(
+        0.5, gt=0.0, description="a scan the server gets to later than this after it was taken "
+        "(the server is behind) is mapped as any other, but answered with a stop: a robot "
+        "must not drive on what it saw that long ago (real time only)")
     vfh: bool = Field(
         True, description="steer around obstacles and teammates close ahead (vector field "
         "histogram)")

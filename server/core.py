@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 
+import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
@@ -94,8 +95,13 @@ class ServerCore:
         self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)
         if team.finished:
             r.nav.finish("team coverage reached")
-        # 5. the command: the lookout's, or the navigator's
-        return self.steering.command(r, scan.stamp_ns, ranges, angles, self.navigate)
+        # 5. the command: the lookout's, or the navigator's — or a stop, for a scan the
+        #    server got to too late to steer by
+        cmd = self.steering.command(r, scan.stamp_ns, ranges, angles, self.navigate)
+        if now_ns is not None and now_ns - scan.stamp_ns > self.cfg.control.max_scan_age_s * 1e9:
+            r.late_scans += 1
+            cmd = msgspec.structs.replace(cmd, v_mps=0.0, omega_rps=0.0)
+        return cmd
 
     def _localise(self, r: RobotContext, scan: Scan, ranges: F64, angles: F64) -> None:
         prev = r.pose.copy()

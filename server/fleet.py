@@ -47,6 +47,7 @@ class RobotContext:
     pose: F64 = field(default_factory=lambda: np.zeros(3))
     distance_m: float = 0.0
     scans: int = 0
+    late_scans: int = 0          # answered with a stop: the server got to them too late
     last_stamp_ns: int = 0
     alive: bool = True
     start_checked: bool = False   # a known start pose was used (or there was none to use)

@@ -255,3 +255,22 @@ def test_a_snapshot_written_by_other_code_is_passed_over(tmp_path: Path,
     assert Snapshots(tmp_path).load() is not None
     monkeypatch.setattr(snapshot, "VERSION", "0.1.0+another")
     assert Snapshots(tmp_path).load() is None
+
+
+def test_a_scan_the_server_gets_to_too_late_is_mapped_but_answered_with_a_stop() -> None:
+    """A server behind its robots still maps every scan, but does not steer a robot by what it
+    saw longer ago than ``control.max_scan_age_s``: the answer is a stop, and it is counted."""
+    core = ServerCore(config())
+    moving = 0
+    scans = [m for m in messages(60) if isinstance(m, Scan) and m.robot_id == "r1"]
+    for m in scans[:-1]:
+        cmd = core.on_scan(m, m.stamp_ns + 20_000_000)         # answered 20 ms after
+        moving += cmd.v_mps != 0.0 or cmd.omega_rps != 0.0
+    assert moving > 0 and core.robots["r1"].late_scans == 0
+    last = scans[-1]
+    keyframes = len(core.robots["r1"].slam.keyframes)
+    cmd = core.on_scan(last, last.stamp_ns + 2_000_000_000)    # two seconds behind
+    assert cmd.v_mps == 0.0 and cmd.omega_rps == 0.0 and cmd.stamp_ns == last.stamp_ns
+    r = core.robots["r1"]
+    assert r.late_scans == 1 and r.scans == len(scans)          # mapped as any other
+    assert len(r.slam.keyframes) >= keyframes
