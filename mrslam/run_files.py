@@ -41,16 +41,24 @@ class Gaps:
             log.warning("%s", text)
 
 
-def read_json(path: Path, gaps: Gaps) -> dict[str, Any]:
-    """A JSON object file; ``{}`` when it is missing, unreadable or not an object."""
+def _read_bytes(path: Path, gaps: Gaps, missing: str) -> bytes | None:
+    """The file's bytes; None (and a note: ``missing``, or why it cannot be read) otherwise."""
     try:
-        data = json.loads(path.read_text())
+        return path.read_bytes()
     except FileNotFoundError:
-        gaps.note(path, "missing")
-        return {}
+        gaps.note(path, missing)
     except OSError as e:
         gaps.note(path, f"cannot read ({e.strerror})")
+    return None
+
+
+def read_json(path: Path, gaps: Gaps) -> dict[str, Any]:
+    """A JSON object file; ``{}`` when it is missing, unreadable or not an object."""
+    raw = _read_bytes(path, gaps, "missing")
+    if raw is None:
         return {}
+    try:
+        data = json.loads(raw)
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         gaps.note(path, f"not valid JSON, cut short or damaged ({e})")
         return {}
@@ -66,14 +74,10 @@ def read_truth(path: Path, gaps: Gaps) -> dict[str, dict[str, Any]]:
     not parse are skipped and noted."""
     rows: dict[str, dict[str, list[Any]]] = {}
     last: dict[str, dict[str, Any]] = {}
-    try:
-        lines = path.read_bytes().splitlines()
-    except FileNotFoundError:
-        gaps.note(path, "missing: no ground truth to score against")
+    raw = _read_bytes(path, gaps, "missing: no ground truth to score against")
+    if raw is None:
         return {}
-    except OSError as e:
-        gaps.note(path, f"cannot read ({e.strerror})")
-        return {}
+    lines = raw.splitlines()
     bad = 0
     for n, line in enumerate(lines):
         try:

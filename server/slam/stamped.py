@@ -59,6 +59,3 @@ class StampedRows:
         self._stamps, self._tags = state["stamps"], state["tags"]
         self._values = state["values"].reshape(-1, self.width)
         self._n = len(self._stamps)
-        if not self._stamps.flags.writeable or not self._values.flags.writeable:
-            self._stamps, self._tags = self._stamps.copy(), self._tags.copy()
-            self._values = self._values.copy()
