@@ -27,10 +27,14 @@
 // A-leads-B as forward; -1 (a mirror-mounted motor) the opposite.
 const int8_t L_SIGN = 1, R_SIGN = -1;
 
-// --- speed control: PI on wheel ticks/s plus feed-forward, output a duty in [-1, 1] -----------
-// Defaults to calibrate on the real base (README "Calibrating"): KFF is 1 / (no-load wheel
-// speed at full duty), KP duty per tick/s of error, KI duty per tick of accumulated error.
-const float KFF = 1.0f / 2000.0f, KP = 0.0004f, KI = 0.004f;
+// --- speed control: feed-forward plus PI, output a duty in [-1, 1] ----------------------------
+// The feed-forward KFF * target does most of the work; the PI corrects the wheel's deviation
+// from the response expected of it (the target filtered by the motor's time constant TAU_S),
+// so that it only acts on what the feed-forward got wrong (load, friction, a weaker motor) and
+// does not wind up while the wheel accelerates. Defaults to calibrate on the real base
+// (README "Calibrating"): KFF is 1 / (wheel ticks/s at full duty), TAU_S the time the wheel
+// takes to reach 63 % of a step in speed, KP duty per tick/s of deviation, KI duty per tick.
+const float KFF = 1.0f / 2000.0f, TAU_S = 0.1f, KP = 0.0004f, KI = 0.004f;
 const uint16_t CONTROL_MS = 20;            // control step and ENCODERS period
 const uint16_t MAX_TIMEOUT_MS = 500;       // the longest a SPEED may hold
 const uint16_t RX_GAP_MS = 20;             // a frame whose bytes stop this long is cut off
@@ -127,7 +131,8 @@ uint8_t crc8(const uint8_t *p, uint8_t n) {        // polynomial 0x07, init 0
 // --- motors ----------------------------------------------------------------------------------
 int32_t targetL = 0, targetR = 0;          // ticks/s
 uint32_t deadline = 0;                     // boardMs at which the SPEED lapses
-float integL = 0, integR = 0;              // accumulated speed error [ticks]
+float integL = 0, integR = 0;              // accumulated speed deviation [ticks]
+float expectL = 0, expectR = 0;            // the speed expected by now [ticks/s]
 uint8_t flags = 0, txSeq = 0;
 bool driven = false;                       // motors driven since the last report
 
@@ -161,16 +166,19 @@ void driveRight(float out) {
 void stopMotors() {
   targetL = targetR = 0;
   integL = integR = 0;
+  expectL = expectR = 0;
   driveLeft(0);
   driveRight(0);
 }
 
 float clampf(float x, float lo, float hi) { return x < lo ? lo : (x > hi ? hi : x); }
 
-// One PI step for one wheel: returns the duty in the wheel's forward direction.
-float control(int32_t target, float measured, float &integ) {
-  float e = (float)target - measured;
-  integ = clampf(integ + e * (CONTROL_MS / 1000.0f), -1.0f / KI, 1.0f / KI);
+// One control step for one wheel: returns the duty in the wheel's forward direction.
+float control(int32_t target, float measured, float &expect, float &integ) {
+  const float dt = CONTROL_MS / 1000.0f;
+  expect += ((float)target - expect) * dt / (TAU_S + dt);
+  float e = expect - measured;
+  integ = clampf(integ + e * dt, -1.0f / KI, 1.0f / KI);
   return clampf(KFF * (float)target + KP * e + KI * integ, -1.0f, 1.0f);
 }
 
@@ -286,7 +294,7 @@ int main() {
   for (;;) {
     uint32_t now = atomicRead(boardMs);
     receive(now);
-    if ((targetL || targetR) && (int32_t)(now - deadline) > 0) {
+    if ((targetL || targetR) && (int32_t)(now - deadline) >= 0) {
       flags |= F_TIMEOUT;
       stopMotors();
     }
@@ -298,8 +306,8 @@ int main() {
       const float perS = 1000.0f / CONTROL_MS;
       float measuredL = (float)(int32_t)(l - lastL) * perS;
       float measuredR = (float)(int32_t)(r - lastR) * perS;
-      driveLeft(L_SIGN * control(targetL, measuredL, integL));
-      driveRight(R_SIGN * control(targetR, measuredR, integR));
+      driveLeft(L_SIGN * control(targetL, measuredL, expectL, integL));
+      driveRight(R_SIGN * control(targetR, measuredR, expectR, integR));
       driven = true;
     }
     lastL = l;
