@@ -195,7 +195,7 @@ class Board:
             level[name] = v
         if not any(level.values()):
             return after_us
-        for t, name, v in pins[len(before):] if False else pins:
+        for t, name, v in pins:
             if t < after_us or name not in level:
                 continue
             level[name] = v

@@ -8,6 +8,7 @@ wall-clock timers (50 ms keep-alive, 0.4 s hold, 0.5 s link timeout) meet a boar
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Iterator
@@ -65,7 +66,7 @@ def test_speed_commands_are_followed_by_closed_loop_control(
     figures = []
     for v, w in [(0.2, 0.0), (0.0, 1.0), (-0.15, -0.5)]:
         t_start = board.now_us()
-        board.run_for(1.5, lambda v=v, w=w: base.set_velocity(v, w))   # type: ignore[misc]
+        board.run_for(1.5, lambda v=v, w=w: base.set_velocity(v, w))
         t_end = board.now_us()
         vl, vr = proto.wheel_speeds(v, w, TRACK)
         want = (round(vl / M_PER_TICK), round(vr / M_PER_TICK))
@@ -107,10 +108,10 @@ def test_reports_come_every_20_ms_of_simulated_time(rig: tuple[Board, SerialBase
     board.run_for(2.0, lambda: base.set_velocity(0.25, 0.4))   # both directions busy
     reports = board.reports()
     assert len(reports) >= 95
-    gaps = [b.t_us - a.t_us for a, b in zip(reports, reports[1:], strict=False)]
+    gaps = [b.t_us - a.t_us for a, b in itertools.pairwise(reports)]
     assert all(abs(g - PERIOD_US) <= 2_000 for g in gaps), gaps
     stamps = [r.enc.time_ms for r in reports]
-    assert all(b - a == 20 for a, b in zip(stamps, stamps[1:], strict=False))
+    assert all(b - a == 20 for a, b in itertools.pairwise(stamps))
     print(f"report period (simulated): {len(gaps)} gaps, min {min(gaps) / 1000:.3f} ms, "
           f"max {max(gaps) / 1000:.3f} ms, mean {sum(gaps) / len(gaps) / 1000:.3f} ms")
 
@@ -130,12 +131,12 @@ def test_silence_stops_the_motors_within_the_frames_timeout(
     assert timeout_ms == base.firmware_timeout_ms
     stops = [board.stopped_at(side, last_t + 1) for side in "LR"]
     assert None not in stops
-    delays = [(s - last_t) / 1000 for s in stops]   # type: ignore[operator]
+    delays = [(s - last_t) / 1000 for s in stops]
     # the board counts whole milliseconds: it stops in (timeout - 1, timeout] after the
     # frame reached it (its last byte plus the UART's byte time, 0.1 ms after t_last)
     assert all(timeout_ms - 1 < d <= timeout_ms + 0.5 for d in delays), delays
     # the next report says why
-    after = [r for r in board.reports() if r.t_us > max(stops)]   # type: ignore[type-var]
+    after = [r for r in board.reports() if r.t_us > max(stops)]
     assert after[0].enc.flags & proto.FLAG_TIMEOUT
     assert not after[1].enc.flags & proto.FLAG_DRIVING
     # the line back: the agent's renewed commands drive again
@@ -159,14 +160,14 @@ def test_a_corrupted_frame_stops_the_motors_and_is_flagged(
     bad = [t for t, f in board.received() if f is None]
     assert len(bad) == 1
     stops = [board.stopped_at(side, bad[0]) for side in "LR"]
-    assert None not in stops and max(stops) - bad[0] <= 1_000   # type: ignore[operator]
+    assert None not in stops and max(stops) - bad[0] <= 1_000
     flagged = [r for r in board.reports() if r.enc.flags & proto.FLAG_BAD_FRAME]
     assert len(flagged) == 1 and 0 < flagged[0].t_us - bad[0] <= PERIOD_US + 2_000
     assert within(lambda: base.counters["firmware_bad_frames"] == 1, 2.0)
     # the next SPEED (the driver renews every 50 ms) drives again
     board.run_for(0.5, renew)
     assert board.samples[-1].speed[0] > 500
-    print(f"bad frame from the host: motors stopped {(max(stops) - bad[0]) / 1000:.3f} ms "   # type: ignore[operator]
+    print(f"bad frame from the host: motors stopped {(max(stops) - bad[0]) / 1000:.3f} ms "
           f"after it, flagged in the report {(flagged[0].t_us - bad[0]) / 1000:.1f} ms later")
 
     # board -> host: the driver rejects the report and stops the motors itself
@@ -194,12 +195,12 @@ def test_board_time_and_tick_counters_wrap(built: None, tmp_path: Path) -> None:
         reports = board.reports()
         stamps = [r.enc.time_ms for r in reports]
         assert stamps[0] >= start_ms and stamps[-1] < 5_000          # it wrapped
-        assert all((b - a) % 2**32 == 20 for a, b in zip(stamps, stamps[1:], strict=False))
-        gaps = [b.t_us - a.t_us for a, b in zip(reports, reports[1:], strict=False)]
+        assert all((b - a) % 2**32 == 20 for a, b in itertools.pairwise(stamps))
+        gaps = [b.t_us - a.t_us for a, b in itertools.pairwise(reports)]
         assert all(abs(g - PERIOD_US) <= 2_000 for g in gaps)
         lefts = [r.enc.left_ticks for r in reports]
         assert lefts[0] > 0 and lefts[-1] < 0                        # wrapped to negative
-        steps = [proto.tick_delta(b, a) for a, b in zip(lefts, lefts[1:], strict=False)]
+        steps = [proto.tick_delta(b, a) for a, b in itertools.pairwise(lefts)]
         assert all(0 <= s <= 20 for s in steps)                     # ≤ 1000 ticks/s, no jump
         # every edge counted across the wrap, on both wheels
         true = board.samples[-1].ticks
@@ -207,7 +208,7 @@ def test_board_time_and_tick_counters_wrap(built: None, tmp_path: Path) -> None:
                                                    reports[-1].enc.right_ticks)] == list(true)
         # the speed loop did not notice: within 10 % of the command around both wraps
         want = round(0.2 / M_PER_TICK)
-        wraps = [next(b.t_us for a, b in zip(reports, reports[1:], strict=False)
+        wraps = [next(b.t_us for a, b in itertools.pairwise(reports)
                       if key(a) > key(b)) for key in (lambda r: r.enc.time_ms,
                                                       lambda r: r.enc.left_ticks,
                                                       lambda r: r.enc.right_ticks)]
