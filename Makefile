@@ -2,7 +2,7 @@
 SHELL := /bin/bash
 VENV := .venv/bin
 
-.PHONY: demo test test-fast lint venv schemas clean
+.PHONY: demo test test-fast lint venv schemas firmware clean
 
 venv:
 	@bash deploy/bootstrap.sh all,dev
@@ -23,6 +23,10 @@ lint: venv
 
 schemas: venv
 	$(VENV)/python -m schemas.export
+
+# the motor base's firmware (deploy/firmware/README.md); venv installs its toolchain (as root)
+firmware: venv
+	$(MAKE) -C deploy/firmware all harness
 
 clean:
 	rm -rf .venv .mypy_cache .pytest_cache .ruff_cache runs

@@ -56,7 +56,23 @@ if [[ "$extras" == *all* || "$extras" == *server* ]]; then
   fi
 fi
 
-# 4. the project and its extras
+# 4. the motor-base firmware's toolchain and AVR simulator, for its tests (dev only; see
+#    deploy/firmware/README.md). Without root the firmware tests skip and say what to install.
+if [[ "$extras" == *dev* ]]; then
+  avr_pkgs="gcc-avr avr-libc binutils-avr libsimavr-dev libelf-dev"
+  if ! command -v avr-g++ >/dev/null 2>&1 || [ ! -f /usr/include/simavr/sim_avr.h ] ||
+     [ ! -f /usr/include/gelf.h ]; then
+    if as_root; then
+      echo "installing the AVR toolchain and simavr (the motor-base firmware's tests)" >&2
+      # shellcheck disable=SC2086
+      apt_install $avr_pkgs
+    else
+      echo "no AVR toolchain: the firmware tests will skip. Run: sudo apt-get install -y $avr_pkgs" >&2
+    fi
+  fi
+fi
+
+# 5. the project and its extras
 stamp=".venv/.installed-$(cat pyproject.toml <(echo "$extras") | sha1sum | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   echo "installing mrslam[$extras] into .venv (first run takes a minute)" >&2
