@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import itertools
 import math
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,7 +20,7 @@ import pytest
 
 from robot_agent.drivers import base_protocol as proto
 from robot_agent.drivers.base import SerialBase
-from tests.support_firmware import Board, Report, build
+from tests.support_firmware import FIRMWARE, Board, Report, build
 from tests.waiting import within
 
 #: starts the simulator process: the e2e tier
@@ -250,3 +252,20 @@ def test_the_driver_reconnects_after_the_port_closes(rig: tuple[Board, SerialBas
     # and the base drives again
     board.run_for(1.0, renew)
     assert within_pct(board.samples[-1].speed[0], round(0.2 / M_PER_TICK), 10)
+
+
+def test_calibration_measures_the_simulated_motors(built: None, tmp_path: Path) -> None:
+    board = Board(tmp_path / "base", "--max-speed", "2100,1800", "--tau", "0.1")
+    try:
+        out = subprocess.run([sys.executable, str(FIRMWARE / "calibrate.py"), "--port",
+                              str(board.link)], capture_output=True, text=True, timeout=120)
+    finally:
+        board.close()
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    found = [(float(line.split()[3]), float(line.split()[7])) for line in lines[:2]]
+    (left, tau_l), (right, tau_r) = found
+    assert left == pytest.approx(2100, rel=0.03) and right == pytest.approx(1800, rel=0.03)
+    assert 0.07 <= tau_l <= 0.14 and 0.07 <= tau_r <= 0.14
+    assert lines[2].startswith("const float KFF = 1.0f / ") and "TAU_S" in lines[2]
+    print("calibration on the simulated motors:", "; ".join(lines[:2]))

@@ -139,28 +139,38 @@ bool driven = false;                       // motors driven since the last repor
 // out in [-1, 1], already in the motor's own direction.
 void driveLeft(float out) {
   uint16_t duty = (uint16_t)((out < 0 ? -out : out) * PWM_TOP + 0.5f);
-  if (duty > PWM_TOP) duty = PWM_TOP;
   if (duty == 0) {
-    TCCR3A &= (uint8_t)~_BV(COM3A1);       // pin back to PORTE3 = low: no pulse at all
+    TCCR3A &= (uint8_t)~_BV(COM3A1);       // the pin back to PORTE = low: no pulse at all
+    PORTE &= (uint8_t)~_BV(PE3);
     PORTA &= (uint8_t)~(_BV(PA0) | _BV(PA1));
     return;
   }
   PORTA = (uint8_t)((PORTA & ~(_BV(PA0) | _BV(PA1))) | (out > 0 ? _BV(PA0) : _BV(PA1)));
-  OCR3A = duty;
-  TCCR3A |= _BV(COM3A1);
+  if (duty >= PWM_TOP) {                  // full duty: a steady high, not a compare at TOP
+    PORTE |= _BV(PE3);
+    TCCR3A &= (uint8_t)~_BV(COM3A1);
+  } else {
+    OCR3A = duty;
+    TCCR3A |= _BV(COM3A1);
+  }
 }
 
 void driveRight(float out) {
   uint16_t duty = (uint16_t)((out < 0 ? -out : out) * PWM_TOP + 0.5f);
-  if (duty > PWM_TOP) duty = PWM_TOP;
   if (duty == 0) {
-    TCCR4A &= (uint8_t)~_BV(COM4A1);
+    TCCR4A &= (uint8_t)~_BV(COM4A1);       // the pin back to PORTH = low: no pulse at all
+    PORTH &= (uint8_t)~_BV(PH3);
     PORTA &= (uint8_t)~(_BV(PA2) | _BV(PA3));
     return;
   }
   PORTA = (uint8_t)((PORTA & ~(_BV(PA2) | _BV(PA3))) | (out > 0 ? _BV(PA2) : _BV(PA3)));
-  OCR4A = duty;
-  TCCR4A |= _BV(COM4A1);
+  if (duty >= PWM_TOP) {                  // full duty: a steady high, not a compare at TOP
+    PORTH |= _BV(PH3);
+    TCCR4A &= (uint8_t)~_BV(COM4A1);
+  } else {
+    OCR4A = duty;
+    TCCR4A |= _BV(COM4A1);
+  }
 }
 
 void stopMotors() {
