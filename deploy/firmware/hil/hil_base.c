@@ -14,6 +14,10 @@
  * encoder whose A and B channels it sets on PE4/PG5 (left) and PE5/PH4 (right), A leading B
  * for positive rotation; one tick is one edge of A.
  *
+ * The bridge runs in the simulation's own thread and hands the host's bytes to the UART at the
+ * wire's rate (one per 87 us); simavr 1.6's uart_pty part is not used because its thread feeds
+ * the UART without synchronising with the simulation.
+ *
  * Options:
  *   --link PATH          symlink to the pseudo-terminal (required)
  *   --speed F            simulated time runs at most F times wall time (default 1; 0: no limit)
