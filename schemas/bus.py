@@ -385,6 +385,21 @@ class Bus:
         self._handles.append(token)
         return token
 
+    def declare_token(self, key: str) -> Any:
+        """A bare liveliness token on ``key`` (no holder companion); ``undeclare`` ends it."""
+        token = self.session.liveliness().declare_token(key)
+        with self._lock:
+            self._handles.append(token)
+        return token
+
+    def undeclare(self, handle: Any) -> None:
+        """End a token, subscription or queryable this bus declared."""
+        with self._lock:
+            if handle in self._handles:
+                self._handles.remove(handle)
+        with contextlib.suppress(Exception):   # already gone with the session
+            handle.undeclare()
+
     def watch_holders(self, key: str, callback: Callable[[str, bool], None]) -> Any:
         """Call ``callback(zid, alive)`` when a session declaring ``key`` with
         ``declare_alive`` appears or goes (existing ones on declaration)."""
@@ -428,6 +443,48 @@ class Bus:
         q = self.session.declare_queryable(key, on_query)
         self._handles.append(q)
         return q
+
+    def serve_queries(self, key: str, on_query: Callable[[Any], None]) -> Any:
+        """Hand each query on ``key`` to ``on_query`` (on a Zenoh thread). The query may be
+        answered later, from any thread: ``query.reply(key, bytes)`` as often as needed,
+        or ``query.reply_err(bytes)``, then ``query.drop()`` ends it."""
+
+        def guarded(query: Any) -> None:
+            try:
+                on_query(query)
+            except Exception as e:
+                log.exception("queryable %s failed", key)
+                query.reply_err(f"{type(e).__name__}: {e}".encode())
+                query.drop()
+
+        q = self.session.declare_queryable(key, guarded)
+        self._handles.append(q)
+        return q
+
+    def ask(self, key: str, payload: bytes,
+            on_done: Callable[[list[bytes], list[str]], None], timeout_s: float) -> None:
+        """Query ``key`` with ``payload`` without waiting: every reply is kept (none merged
+        away), and ``on_done(replies, errors)`` is called once, on a Zenoh thread, when the
+        query has ended (all answered, or ``timeout_s`` passed)."""
+        import zenoh
+
+        replies: list[bytes] = []
+        errors: list[str] = []
+
+        def on_reply(reply: Any) -> None:
+            if reply.ok is not None:
+                replies.append(reply.ok.payload.to_bytes())
+            else:
+                errors.append(reply.err.payload.to_bytes().decode(errors="replace"))
+
+        def on_end() -> None:
+            try:
+                on_done(replies, errors)
+            except Exception:
+                log.exception("the answer to %s could not be taken", key)
+
+        self.session.get(key, zenoh.handlers.Callback(on_reply, on_end), payload=payload,
+                         consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s)
 
     def get(self, key: str, cls: type[M], timeout_s: float = 2.0) -> list[M]:
         """Query ``key``; valid replies decoded, invalid ones counted and dropped."""

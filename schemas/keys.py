@@ -57,6 +57,42 @@ ALL_STATUS = f"{ROOT}/robot/*/status"
 ALL_ALIVE = f"{ROOT}/robot/*/alive"
 
 
+# the workers of a server split over several processes (server.cluster)
+def cluster_worker(index: int) -> str:
+    """Liveliness token of worker ``index``."""
+    return f"{ROOT}/cluster/worker/{int(index)}"
+
+
+def cluster_owner(robot_id: str, index: int) -> str:
+    """Liveliness token: worker ``index`` serves robot ``robot_id``."""
+    return f"{ROOT}/cluster/owner/{_rid(robot_id)}/{int(index)}"
+
+
+def cluster_give(index: int) -> str:
+    """Worker ``index``'s queryable that hands a team over to the worker asking."""
+    return f"{ROOT}/cluster/give/{int(index)}"
+
+
+ALL_CLUSTER_WORKERS = f"{ROOT}/cluster/worker/*"
+ALL_CLUSTER_OWNERS = f"{ROOT}/cluster/owner/*/*"
+
+
+def cluster_owner_of(key: str) -> tuple[str, int] | None:
+    """(robot, worker) of an owner token's key, or None."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[:3] != [ROOT, "cluster", "owner"] or not _ID.match(parts[3]) \
+            or not parts[4].isdigit():
+        return None
+    return parts[3], int(parts[4])
+
+
+def cluster_worker_of(key: str) -> int | None:
+    parts = key.split("/")
+    if len(parts) != 4 or parts[:3] != [ROOT, "cluster", "worker"] or not parts[3].isdigit():
+        return None
+    return int(parts[3])
+
+
 # simulator <-> sim backend
 SIM_CLOCK = f"{ROOT}/sim/clock"
 SIM_TRUTH = f"{ROOT}/sim/truth"

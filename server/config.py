@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from schemas.config import DEFAULT_PORT, BusConfig, ConfigModel, Finite
 from server.slam.config import GridConfig, SlamConfig
@@ -152,6 +152,18 @@ class AdmissionConfig(ConfigModel):
                                "beyond this the oldest waiting goes")
 
 
+class ClusterConfig(ConfigModel):
+    """A server split over several worker processes, on one machine or several
+    (server.cluster; docs/scale.md)."""
+
+    worker: int | None = Field(None, ge=0, lt=64, description="this worker's number, unique "
+                               "among the server's workers (0-63); null: the only server")
+    handover_timeout_s: float = Field(10.0, gt=0.0, description="a worker asked for a team "
+                                      "answers within this long, or the asking worker "
+                                      "serves the robot afresh; two workers that both claim "
+                                      "a robot for this long leave it to the lower number")
+
+
 def _router() -> BusConfig:
     # loopback: other interfaces take TLS and access rules, or bus.insecure_listen
     return BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{DEFAULT_PORT}"], connect=[])
@@ -163,6 +175,7 @@ class ServerConfig(ConfigModel):
         None, description="robots allowed to join; null accepts any robot that appears")
     clock: ClockConfig = ClockConfig()
     admission: AdmissionConfig = AdmissionConfig()
+    cluster: ClusterConfig = ClusterConfig()
     # one observation decides a cell for exploration: a beam through it makes it free
     # (p 0.35 < 0.4), an endpoint in it makes it occupied (p 0.75 > 0.7)
     slam: SlamConfig = SlamConfig(grid=GridConfig(p_hit=0.75, p_miss=0.35))
@@ -195,6 +208,13 @@ class ServerConfig(ConfigModel):
                                     "summary are rewritten this often while running (wall "
                                     "time; each file replaced whole), so a crash leaves the "
                                     "last good set")
+
+    @model_validator(mode="after")
+    def _cluster_runs_in_real_time(self) -> ServerConfig:
+        if self.cluster.worker is not None and self.clock.source == "sim":
+            raise ValueError("cluster.worker: a server split over workers runs in real time "
+                             "(clock.source wall); a lockstep simulation needs one server")
+        return self
 
     def resolved_state_dir(self) -> str | None:
         """Where the journal lives, or None for no journal."""

@@ -119,12 +119,16 @@ class Fleet:
         #: each team's planning grid as of the last coverage update (``server.progress``)
         self.latest_grids: dict[str, PlanningGrid] = {}
         self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
+        #: a worker of a split server numbers its robots n·64 + its worker number, so that
+        #: graphs moved between workers never share keys
+        w = cfg.cluster.worker
+        self._key_stride, self._key_offset = (1, 0) if w is None else (64, w)
 
     # -- robots ----------------------------------------------------------------------------
     def add_robot(self, robot_id: str) -> RobotContext:
         """A robot heard of for the first time: its own graph symbols, navigator, lookout and
         a team of its own."""
-        char, block = robot_key_space(self._robots_added)
+        char, block = robot_key_space(self._robots_added * self._key_stride + self._key_offset)
         self._robots_added += 1
         nav = self.stages.navigator()
         team_id = f"team-{robot_id}"

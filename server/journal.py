@@ -8,9 +8,11 @@ same robots, graphs, teams and merges: a server killed at any moment resumes whe
 Files: ``<state_dir>/journal-NNNN.mcap``, one segment per server start (an MCAP file cannot be
 appended to once finished, and a killed server never finishes its file). Each record is a
 msgpack envelope on the channel ``journal``: ``{"k": "scan" | "tags" | "alive", "now": int |
-None, "msg": bytes, "rid": str, "alive": bool}``; the MCAP sequence number is the processing
-order across all segments. Chunks are closed at least once a second, so a crash loses at most
-that much; a segment cut anywhere (a torn tail) is read up to its last intact chunk.
+None, "msg": bytes, "rid": str, "alive": bool}``, or, for a server split over workers, a team
+that left (``{"k": "gave", "rids": [str]}``) or came (``{"k": "adopted", "parcel": bytes}``);
+the MCAP sequence number is the processing order across all segments. Chunks are closed at least
+once a second, so a crash loses at most that much; a segment cut anywhere (a torn tail) is read
+up to its last intact chunk.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import msgspec
 from schemas import Scan, TagDetections
 from schemas.codec import decode, encode
 from schemas.errors import SchemaError
+from server import handover
 
 if TYPE_CHECKING:
     from server.core import ServerCore
@@ -48,12 +51,14 @@ class JournalError(ValueError):
 class Entry:
     """One thing the server processed."""
 
-    kind: str                       # scan | tags | alive
+    kind: str                       # scan | tags | alive | gave | adopted
     now_ns: int | None              # the time the core's periodic work ran on (scans)
     message: Scan | TagDetections | None = None
     sequence: int = 0               # processing order across all segments
     robot_id: str = ""              # alive
     alive: bool = False
+    robot_ids: list[str] = field(default_factory=list)   # gave: the team that left
+    parcel: bytes = b""             # adopted: the team that came (server.handover)
 
 
 @dataclass
@@ -102,6 +107,14 @@ class JournalWriter:
 
     def alive(self, robot_id: str, alive: bool, stamp_ns: int) -> None:
         self._add({"k": "alive", "now": None, "rid": robot_id, "alive": alive}, stamp_ns)
+
+    def gave(self, robot_ids: list[str], stamp_ns: int) -> None:
+        """These robots' team went to another worker (``server.cluster``)."""
+        self._add({"k": "gave", "now": None, "rids": list(robot_ids)}, stamp_ns)
+
+    def adopted(self, parcel: bytes, stamp_ns: int) -> None:
+        """A team came from another worker: its parcel (``server.handover``) whole."""
+        self._add({"k": "adopted", "now": None, "parcel": parcel}, stamp_ns)
 
     def _add(self, envelope: dict[str, Any], stamp_ns: int) -> None:
         if self._closed:
@@ -188,6 +201,10 @@ def _entry(env: dict[str, Any], sequence: int) -> Entry:
     if kind == "alive":
         return Entry("alive", None, robot_id=str(env["rid"]), alive=bool(env["alive"]),
                      sequence=sequence)
+    if kind == "gave":
+        return Entry("gave", None, robot_ids=[str(r) for r in env["rids"]], sequence=sequence)
+    if kind == "adopted":
+        return Entry("adopted", None, parcel=bytes(env["parcel"]), sequence=sequence)
     raise ValueError(f"unknown journal record kind {kind!r}")
 
 
@@ -223,6 +240,11 @@ def _feed(core: ServerCore, entries: Iterator[Entry], from_sequence: int,
             elif e.kind == "tags":
                 assert isinstance(e.message, TagDetections)
                 core.on_tags(e.message)
+            elif e.kind == "gave":
+                for rid in e.robot_ids:
+                    handover.release(core, rid)
+            elif e.kind == "adopted":
+                handover.adopt(core, handover.unpack(e.parcel))
             else:
                 core.set_alive(e.robot_id, e.alive)
         except Exception as exc:   # as live: one message's failure does not stop the rest

@@ -26,8 +26,9 @@ import msgspec
 from schemas import Scan, SimClock, TagDetections, keys
 from schemas.bus import Bus
 from schemas.ratelog import RateLimitedLog
-from server import planner_pool
+from server import handover, planner_pool
 from server.clock import ClockPolicy, ServerClock
+from server.cluster import Cluster, Handover, Route
 from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter
@@ -76,6 +77,13 @@ class ServerNode:
         self._planner: ProcessPoolExecutor | None = None
         self._cpu_mark = (time.process_time(), time.monotonic())
         self._writer = BackgroundWriter(lambda kind, e: self._count_error())
+        #: one worker of several (``server.cluster``), or None: the only server
+        self.cluster = None if cfg.cluster.worker is None else Cluster(
+            bus, cfg.cluster, self._on_give, self._on_handover)
+        self._held: dict[str, list[tuple[str, int, Any]]] = {}   # robots whose team is coming
+        #: each robot's own stamp of the last scan the core took (a team that moves here
+        #: brings the giver's: what it had not processed yet is taken from those held here)
+        self._own_stamps: dict[str, int] = {}
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
@@ -86,6 +94,8 @@ class ServerNode:
         self.bus.subscribe(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
         self.bus.serve(keys.SERVER_MAP, lambda: list(self._latest_maps))
+        if self.cluster is not None:
+            self.cluster.start()
         self._worker.start()
 
     def _on_sim_clock(self, _key: str, msg: SimClock) -> None:
@@ -100,7 +110,39 @@ class ServerNode:
                                             msg.stamp_ns, self.clock.reference_ns(), msg)
             except Refused:
                 return
+            if self.cluster is not None:
+                ready = self._routed(msg.robot_id, ready)
             self._enqueue(msg.robot_id, ready)
+
+    def _routed(self, rid: str, ready: list[tuple[str, int, Any]]
+                ) -> list[tuple[str, int, Any]]:
+        """Of the admitted messages, those this worker serves; a robot whose team is on its
+        way here has its scans held until it arrives (the caller holds ``_cv``)."""
+        assert self.cluster is not None
+        route = self.cluster.route(rid)
+        out = []
+        for item in ready:
+            if item[0] == "tags":
+                if self.cluster.tags_here(item[2], route):
+                    out.append(item)
+            elif route is Route.MINE:
+                out.append(item)
+            elif route is Route.WAIT:
+                self._held.setdefault(rid, []).append(item)
+        return out
+
+    # -- a team moving between workers (Zenoh threads) -------------------------------------
+    def _on_give(self, query: Any, robots: list[str]) -> None:
+        self._queue_item("#give:", (query, robots))
+
+    def _on_handover(self, h: Handover) -> None:
+        self._queue_item("#adopt:", h)
+
+    def _queue_item(self, name: str, payload: Any) -> None:
+        with self._cv:
+            self._queues.setdefault(name, deque()).append(payload)
+            self._order.append(name)
+            self._cv.notify()
 
     def _enqueue(self, rid: str, ready: list[tuple[str, int, Any]]) -> None:
         """Queue admitted messages (stamps in server time); the caller holds ``_cv``."""
@@ -129,6 +171,7 @@ class ServerNode:
             self._enqueue(rid, ready)
 
     def _queue_alive(self, rid: str, alive: bool) -> None:
+        """(the caller holds ``_cv``)"""
         self._queues.setdefault(f"#alive:{rid}", deque()).append(alive)
         self._order.append(f"#alive:{rid}")
         self._cv.notify()
@@ -164,12 +207,18 @@ class ServerNode:
                         if self.journal is not None:
                             self.journal.alive(robot, alive, self.clock.now_ns())
                         self.core.set_alive(robot, alive)
+                    elif rid.startswith("#give:"):
+                        self._give(*payload)
+                    elif rid.startswith("#adopt:"):
+                        self._adopt(payload)
                     elif rid.startswith("#tags:"):
                         if self.journal is not None:
                             self.journal.tags(payload[0])
                         self.core.on_tags(payload[0])
                     else:
                         scan, own_stamp_ns = payload
+                        if self.cluster is not None and not self.cluster.serves(rid):
+                            continue      # its team went to another worker meanwhile
                         # (in lockstep the step's own time: the simulator's clock message
                         # may come before or after the step's scans)
                         now = scan.stamp_ns if self._lockstep else (
@@ -178,6 +227,7 @@ class ServerNode:
                             self.journal.scan(scan, now)
                         self.core.steering.planner = self._planner_now()
                         cmd = self.core.on_scan(scan, now)
+                        self._own_stamps[rid] = own_stamp_ns
                         self.bus.publish(keys.robot_cmd_vel(rid),
                                          msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
                                          block=True)
@@ -199,6 +249,9 @@ class ServerNode:
                 self.guarded("gathering the outputs", self._outputs)
             if now >= next_forget:
                 next_forget = now + 1.0
+                if self.cluster is not None:
+                    for rid in self.cluster.tick():
+                        self.guarded("leaving a robot to another worker", self._drop, rid)
                 with self._cv:
                     for rid in self.registry.forget_silent(self.clock.now_ns()):
                         self._queue_alive(rid, False)
@@ -237,6 +290,69 @@ class ServerNode:
         job = self.outputs(self)      # gathered here; written by the writer thread
         if job is not None:
             self._writer.submit("outputs", job)
+
+    # -- a team moving between workers (the worker thread) ---------------------------------
+    def _give(self, query: Any, robots: list[str]) -> None:
+        """Another worker asks for a team: the first of ``robots`` served here leaves with its
+        whole team (journaled as given); a team that cannot be packed stays."""
+        assert self.cluster is not None
+        for rid in robots:
+            if not self.cluster.serves(rid) or rid not in self.core.robots:
+                continue
+            parcel = handover.release(self.core, rid)
+            assert parcel is not None
+            team = parcel.robot_ids
+            parcel.extra = {r: self._own_stamps.get(r, 0) for r in team}
+            try:
+                data = handover.pack(parcel)
+            except Exception as e:
+                handover.adopt(self.core, parcel)
+                self.cluster.answer(query, [], None, f"team of {rid} could not be packed: {e}")
+                raise
+            if self.journal is not None:
+                self.journal.gave(team, self.clock.now_ns())
+            for r in team:
+                self._own_stamps.pop(r, None)
+            self.cluster.answer(query, team, data)
+            log.info("team of %s (%s) given to another worker (%d kB)", rid, ", ".join(team),
+                     len(data) // 1024)
+            return
+        self.cluster.answer(query, [], None,
+                            f"worker {self.cluster.index} does not serve {', '.join(robots)}")
+
+    def _adopt(self, h: Handover) -> None:
+        """A team asked for arrived (into the core, journaled whole), or did not (its robots
+        are served here afresh); then the robots' held scans that the giver had not taken."""
+        assert self.cluster is not None
+        adopted: list[str] = []
+        if h.parcel is not None:
+            try:
+                parcel = handover.unpack(h.parcel)
+                handover.adopt(self.core, parcel)
+            except handover.ParcelError as e:
+                self.errors += 1
+                log.error("the team of %s arrived unreadable (%s): served afresh", h.asked, e)
+            else:
+                adopted = parcel.robot_ids
+                self._own_stamps.update(parcel.extra)
+                if self.journal is not None:
+                    self.journal.adopted(h.parcel, self.clock.now_ns())
+        else:
+            log.warning("the team of %s did not come (%s): served afresh", h.asked, h.error)
+        with self._cv:
+            self.cluster.settled(h, adopted)
+            for rid in {h.asked, *h.robots}:
+                last = self._own_stamps.get(rid, -1)
+                self._enqueue(rid, [it for it in self._held.pop(rid, [])
+                                    if it[2].stamp_ns > last])
+
+    def _drop(self, rid: str) -> None:
+        """Another worker (a lower number) serves ``rid`` too: it keeps it, this one lets
+        the robot's team go."""
+        parcel = handover.release(self.core, rid)
+        if parcel is not None and self.journal is not None:
+            self.journal.gave(parcel.robot_ids, self.clock.now_ns())
+        log.warning("robot %s left to a lower-numbered worker that serves it too", rid)
 
     def _planner_now(self) -> ProcessPoolExecutor | None:
         """The processes replanning runs in (started at the first need), or None: in lockstep
@@ -299,6 +415,7 @@ class ServerNode:
                 "errors": self.errors, "bus": self.bus.stats.as_dict(),
                 "lockstep_barrier_timeouts": self._barrier.timeouts,
                 "cpu_s": round(time.process_time(), 3),
+                "cluster": None if self.cluster is None else self.cluster.summary(),
                 "journal": None if self.journal is None else {
                     "entries": self.journal.sequence, "bytes": self.journal.bytes,
                     "journal_s": round(self.journal.seconds, 3),

@@ -1,0 +1,156 @@
+"""A team moves whole between two server cores: the robots meet in the small house while each
+is served by its own worker's core; at the first sighting one worker gives its team to the
+other (packed to bytes and back, as it travels), and the merge that follows is as accurate as
+in one core. A merged team moved on afterwards keeps its joint graph and its merge record."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robot_agent.aruco import TagDetector
+from schemas import Scan, TagDetection, TagDetections
+from schemas.messages import quantise_ranges_mm
+from schemas.se2 import between, compose, pose_distance
+from schemas.tags import CameraMount, TagLayout
+from server import handover
+from server.config import ServerConfig
+from server.core import ServerCore
+from sim.loader import load_world
+from sim.simulator import SimParams, Simulator
+from tests.test_team_merge import SPAWN, WORLD, config
+
+
+def worker_config(index: int) -> ServerConfig:
+    return ServerConfig.model_validate({**config().model_dump(), "cluster": {"worker": index}})
+
+
+def step_messages(sim: Simulator, detector: TagDetector, obs) -> tuple[dict[str, Scan],  # type: ignore[no-untyped-def]
+                                                                        list[TagDetections]]:
+    lidar = sim.p.lidar
+    scans = {rid: Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
+                       odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
+                       angle_increment_rad=lidar.angle_increment_rad,
+                       range_min_mm=round(lidar.range_min_m * 1000),
+                       range_max_mm=round(lidar.range_max_m * 1000),
+                       ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
+                                                    lidar.range_max_m))
+             for rid in SPAWN}
+    tags = []
+    for rid, frame in obs.frames.items():
+        found = detector.detect(frame.image, sim.p.camera.camera.K, rid)
+        dets = [TagDetection(tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
+                             bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
+                             sigma_range_m=s.sigma_range_m,
+                             sigma_bearing_rad=s.sigma_bearing_rad,
+                             sigma_yaw_rad=s.sigma_yaw_rad) for s in found.sightings]
+        if dets:
+            tags.append(TagDetections(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
+                                      detections=dets))
+    return scans, tags
+
+
+class TwoWorkers:
+    """r1 served by worker 0's core, r2 by worker 1's, until a team moves."""
+
+    def __init__(self) -> None:
+        self.sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=3)
+        self.cores = {0: ServerCore(worker_config(0)), 1: ServerCore(worker_config(1))}
+        self.owner = {"r1": 0, "r2": 1}
+        self.detector = TagDetector(TagLayout(), CameraMount())
+        self.moved: list[tuple[int, int, int]] = []   # (step, from, to)
+        self.parcel_bytes = 0
+
+    def move(self, robot_id: str, to: int, step: int) -> None:
+        src = self.owner[robot_id]
+        parcel = handover.release(self.cores[src], robot_id)
+        assert parcel is not None
+        data = handover.pack(parcel)
+        self.parcel_bytes = len(data)
+        handover.adopt(self.cores[to], handover.unpack(data))
+        for rid in parcel.robot_ids:
+            self.owner[rid] = to
+        self.moved.append((step, src, to))
+
+    def run(self, steps: int) -> None:
+        for _ in range(steps):
+            obs = self.sim.sense()
+            scans, tags = step_messages(self.sim, self.detector, obs)
+            for rid, scan in scans.items():
+                cmd = self.cores[self.owner[rid]].on_scan(scan)
+                self.sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
+            for msg in tags:
+                seen = {d.observed_robot_id for d in msg.detections}
+                for other in seen & set(self.owner):
+                    a, b = self.owner[msg.robot_id], self.owner[other]
+                    if a != b:   # the lower-numbered worker takes the other's team
+                        self.move(msg.robot_id if a > b else other, min(a, b), obs.step)
+                self.cores[self.owner[msg.robot_id]].on_tags(msg)
+            self.sim.advance()
+
+
+@pytest.fixture(scope="module")
+def workers() -> TwoWorkers:
+    w = TwoWorkers()
+    w.run(250)
+    return w
+
+
+def test_the_team_moves_at_the_first_sighting_and_merges_there(workers: TwoWorkers) -> None:
+    assert len(workers.moved) == 1 and workers.moved[0][1:] == (1, 0)
+    core, left = workers.cores[0], workers.cores[1]
+    assert not left.robots and not left.teams      # nothing of r2 stays behind
+    assert len(core.merges) == 1 and len(core.teams) == 1
+    assert core.robots["r1"].slam.graph is core.robots["r2"].slam.graph
+    assert any(e.kind == "robot_joined" and "moved here" in e.message for e in core.event_log)
+
+
+def test_the_moved_robots_have_keys_of_their_own(workers: TwoWorkers) -> None:
+    core = workers.cores[0]
+    spaces = {(core.robots[r].slam.trajectory.robot_char, core.robots[r].slam.trajectory.block)
+              for r in SPAWN}
+    assert len(spaces) == 2    # worker 0's first robot and worker 1's first robot
+
+
+def test_the_merge_is_as_accurate_as_in_one_core(workers: TwoWorkers) -> None:
+    m = workers.cores[0].merges[0]
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+    err = pose_distance(between(T_true, m.T_joint))
+    assert err[0] <= 0.05 and err[1] <= math.radians(1.0)
+    r1_start = np.array(SPAWN["r1"])
+    for rid in SPAWN:
+        truth = np.array(workers.sim.robots[rid].pose)
+        est = compose(r1_start, workers.cores[0].robots[rid].pose)
+        assert math.hypot(*(est[:2] - truth[:2])) < 0.1
+
+
+def test_a_merged_team_moves_on_with_its_graph_and_merge(workers: TwoWorkers) -> None:
+    keyframes = {r: len(workers.cores[0].robots[r].slam.keyframes) for r in SPAWN}
+    workers.move("r1", 1, -1)
+    core = workers.cores[1]
+    assert not workers.cores[0].robots and not workers.cores[0].merges
+    assert len(core.merges) == 1 and core.retired_teams
+    assert {r: len(core.robots[r].slam.keyframes) for r in SPAWN} == keyframes
+    workers.run(60)       # and goes on exploring there, on the truth
+    r1_start = np.array(SPAWN["r1"])
+    for rid in SPAWN:
+        truth = np.array(workers.sim.robots[rid].pose)
+        est = compose(r1_start, core.robots[rid].pose)
+        assert math.hypot(*(est[:2] - truth[:2])) < 0.1
+    assert len(core.teams) == 1 and not workers.cores[0].robots
+
+
+def test_a_parcel_from_other_code_or_damaged_is_refused() -> None:
+    w = TwoWorkers()
+    w.run(3)
+    parcel = handover.release(w.cores[w.owner["r2"]], "r2")
+    assert parcel is not None
+    data = handover.pack(parcel)
+    with pytest.raises(handover.ParcelError, match="written by mrslam"):
+        handover.unpack(handover.MAGIC + b"0.0.0-other\n" + data.split(b"\n", 2)[2])
+    with pytest.raises(handover.ParcelError, match="unreadable"):
+        handover.unpack(data[:-50])
+    with pytest.raises(handover.ParcelError, match="not a team parcel"):
+        handover.unpack(b"hello")
