@@ -6,21 +6,26 @@ in one core. A merged team moved on afterwards keeps its joint graph and its mer
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from robot_agent.aruco import TagDetector
-from schemas import Scan, TagDetection, TagDetections
+from schemas import Scan, TagDetection, TagDetections, VelocityCommand, keys
+from schemas.bus import Bus, free_local_endpoint
 from schemas.messages import quantise_ranges_mm
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server import handover
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.journal import JournalWriter, replay
+from server.node import ServerNode
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.test_team_merge import SPAWN, WORLD, config
+from tests.waiting import within
 
 
 def worker_config(index: int) -> ServerConfig:
@@ -154,3 +159,106 @@ def test_a_parcel_from_other_code_or_damaged_is_refused() -> None:
         handover.unpack(data[:-50])
     with pytest.raises(handover.ParcelError, match="not a team parcel"):
         handover.unpack(b"hello")
+
+
+# -- two worker nodes over Zenoh on loopback ----------------------------------------------------
+# r1 ranks for worker 1 and r7 for worker 0 (rendezvous hashing over workers {0, 1})
+BUS_SPAWN = {"r1": SPAWN["r1"], "r7": SPAWN["r2"]}
+
+
+class Robots:
+    """The robots' side of the wire: liveliness tokens, scans and tags out, commands in."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        self.cmds: dict[str, dict[int, VelocityCommand]] = {rid: {} for rid in BUS_SPAWN}
+        for rid in BUS_SPAWN:
+            bus.declare_alive(keys.robot_alive(rid))
+            bus.subscribe(keys.robot_cmd_vel(rid), VelocityCommand, self._on_cmd)
+
+    def _on_cmd(self, _key: str, cmd: VelocityCommand) -> None:
+        self.cmds[cmd.robot_id][cmd.stamp_ns] = cmd
+
+
+@pytest.mark.e2e
+def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
+    from server.cluster import _rank
+    assert [max((0, 1), key=lambda w: _rank(r, w)) for r in BUS_SPAWN] == [1, 0]
+    endpoint = free_local_endpoint()
+    base = {**config(("r1", "r7")).model_dump(), "clock": {"source": "stamps"}}
+    sim = Simulator(load_world(WORLD), BUS_SPAWN, SimParams(), seed=3)
+    detector = TagDetector(TagLayout(), CameraMount())
+    with Bus.open("router", listen=[endpoint]), \
+            Bus.open("client", connect=[endpoint]) as robot_bus:
+        nodes = {}
+        for w in (0, 1):
+            cfg = ServerConfig.model_validate({**base, "cluster": {"worker": w},
+                                               "bus": {"connect": [endpoint]}})
+            bus = Bus.open("client", connect=[endpoint])
+            nodes[w] = ServerNode(bus, cfg, journal=JournalWriter(tmp_path / f"w{w}"))
+            nodes[w].start()
+        robots = Robots(robot_bus)
+        assert within(lambda: all(n.cluster is not None and n.cluster.workers == {0, 1}
+                                  for n in nodes.values()), 10.0)
+        unanswered = 0
+        lidar = sim.p.lidar
+        try:
+            for _ in range(200):
+                obs = sim.sense()
+                for rid in BUS_SPAWN:
+                    robot_bus.publish(keys.robot_scan(rid), Scan(
+                        robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
+                        odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
+                        angle_increment_rad=lidar.angle_increment_rad,
+                        range_min_mm=round(lidar.range_min_m * 1000),
+                        range_max_mm=round(lidar.range_max_m * 1000),
+                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
+                                                     lidar.range_max_m)), block=True)
+                stamp = obs.stamp_ns
+                if not within(lambda s=stamp: all(s in robots.cmds[r] for r in BUS_SPAWN), 5.0):
+                    unanswered += 1
+                for rid in BUS_SPAWN:
+                    cmd = robots.cmds[rid].get(stamp)
+                    if cmd is not None:
+                        sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
+                for rid, frame in obs.frames.items():
+                    found = detector.detect(frame.image, sim.p.camera.camera.K, rid)
+                    dets = [TagDetection(
+                        tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
+                        bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
+                        sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
+                        sigma_yaw_rad=s.sigma_yaw_rad) for s in found.sightings]
+                    if dets:
+                        robot_bus.publish(keys.robot_tags(rid), TagDetections(
+                            robot_id=rid, seq=obs.step + 1, stamp_ns=stamp, detections=dets),
+                            block=True)
+                sim.advance()
+            merged = within(lambda: len(nodes[0].core.merges) == 1, 10.0)
+        finally:
+            summaries = {w: n.summary() for w, n in nodes.items()}
+            for n in nodes.values():
+                n.stop()
+                n.bus.close()
+    # worker 0 asked worker 1 for r1's team, got it and merged it with r7's
+    c0, c1 = summaries[0]["cluster"], summaries[1]["cluster"]
+    assert c0["asked"] == 1 and c0["adopted"] == 1 and c1["given"] == 1
+    assert c0["robots_served"] == ["r1", "r7"] and c1["robots_served"] == []
+    assert merged and not nodes[1].core.robots
+    core = nodes[0].core
+    assert core.robots["r1"].slam.graph is core.robots["r7"].slam.graph
+    # every scan was taken by one worker or the other, once: none lost in the move
+    assert core.robots["r1"].scans == core.robots["r7"].scans == 200
+    assert unanswered <= 2
+    m = core.merges[0]
+    T_true = between(np.array(BUS_SPAWN["r7"]), np.array(BUS_SPAWN["r1"]))
+    if m.team_id != "team-r7":
+        T_true = between(np.array(BUS_SPAWN["r1"]), np.array(BUS_SPAWN["r7"]))
+    err = pose_distance(between(T_true, m.T_joint))
+    assert err[0] <= 0.05 and err[1] <= math.radians(1.0)
+    # each worker's journal gives back its own state: the team moved, and where to
+    for w, robots_there in ((0, {"r1", "r7"}), (1, set())):
+        again = ServerCore(nodes[w].cfg)
+        report = replay(again, tmp_path / f"w{w}")
+        assert report.unreadable == 0
+        assert set(again.robots) == robots_there
+    assert len(again.merges) == 0
