@@ -17,12 +17,17 @@ tracks. After ``--warmup-s`` the bench measures for ``--window-s``:
   second; ``server_rss_mb`` (VmRSS at the window's end, the whole process tree) and its peak;
 - the generators' own rate: a run whose slowest robot sent below 95 % of the rate is invalid.
 
+With ``--workers K`` the server is split over K worker processes (``server.cluster``): worker
+0 is the router the robots connect to, the others connect to it; CPU and memory are summed
+over all of them, and each run lists how many robots each worker served.
+
 The series stops after the first N that fails both limits widely (p99 over ``WIDE`` × the limit
 and dropped over ``WIDE`` × the limit). ``capacity_robots`` is the largest valid N with
 p99 ≤ 100 ms and ≤ 1 % dropped (null when none).
 
     python bench/load.py [--robots 5 10 20 ...] [--warmup-s 5] [--window-s 20] [--quick]
                          [--keep-going] [--out DIR] [--server-config server.yaml]
+                         [--workers K]
 
 Prints one JSON object. The machine's cores are shared between the server and the generators;
 the generators' CPU is reported beside the server's.
@@ -138,13 +143,17 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
             folder: Path) -> dict[str, Any]:
     folder.mkdir(parents=True, exist_ok=True)
     config = yaml.safe_load(Path(args.server_config).read_text()) if args.server_config else {}
-    srv = ServerProcess(folder, config)
+    servers = start_servers(folder, config, args.workers)
+    srv = servers[0]
     gens: list[subprocess.Popen[str]] = []
     results: list[dict[str, Any]] = []
     cpu = rss_end = rss_peak = busy = 0.0
     period = 1.0 / args.rate_hz
     try:
-        srv.client(timeout_s=60.0).close()   # up: its liveliness token seen
+        for sp in servers:
+            sp.client(timeout_s=60.0).close()   # up: its liveliness token seen
+        if len(servers) > 1:
+            time.sleep(2.0)    # the workers see each other's tokens before robots come
         n_procs = max(1, math.ceil(n / args.robots_per_process))
         robots = [[f"L{i:03d}", i % n_tracks, (i // n_tracks) * 173 % (2 * steps - 2),
                    period * i / n] for i in range(n)]
@@ -172,15 +181,22 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
                                       "t_end": t_end}) + "\n")
             g.stdin.flush()
         time.sleep(max(0.0, t_measure - time.monotonic()))
-        pid = srv.proc.pid
-        cpu0, busy0, w0 = tree_cpu_s(pid), machine_busy_s(), time.monotonic()
+        pids = [sp.proc.pid for sp in servers]
+
+        def cpu_s() -> float:
+            return sum(tree_cpu_s(p) for p in pids)
+
+        def rss() -> float:
+            return sum(tree_rss_mb(p) for p in pids)
+
+        cpu0, busy0, w0 = cpu_s(), machine_busy_s(), time.monotonic()
         while time.monotonic() < t_end:
-            rss_peak = max(rss_peak, tree_rss_mb(pid))
+            rss_peak = max(rss_peak, rss())
             time.sleep(min(0.5, max(0.0, t_end - time.monotonic())))
         wall = time.monotonic() - w0
-        cpu = (tree_cpu_s(pid) - cpu0) / wall
+        cpu = (cpu_s() - cpu0) / wall
         busy = (machine_busy_s() - busy0) / wall
-        rss_end = tree_rss_mb(pid)
+        rss_end = rss()
         rss_peak = max(rss_peak, rss_end)
         for g in gens:
             results.append(_read_json_line(g, args.answer_timeout_s + 60.0))
@@ -190,15 +206,42 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
             if g.poll() is None:
                 g.kill()
                 g.wait()
-        code = srv.stop()
-    summary_path = folder / "server" / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        codes = [sp.stop() for sp in servers]
+    summaries = []
+    for sp in servers:
+        path = sp.folder / "server" / "summary.json"
+        summaries.append(json.loads(path.read_text()) if path.exists() else {})
+    summary = dict(summaries[0])    # every worker admits every robot: its registry counts all
+    summary["dropped_scans"] = {f"{w}:{k}": v for w, sm in enumerate(summaries)
+                                for k, v in sm.get("dropped_scans", {}).items()}
+    summary["errors"] = sum(sm.get("errors") or 0 for sm in summaries)
+    code = max(codes, key=abs)
     run = summarise(n, n_procs, results, cpu, rss_end, rss_peak, summary, code, args)
+    if len(servers) > 1:
+        run["workers"] = [{"worker": w, "robots_served": len(c.get("robots_served", [])),
+                           **{k: c.get(k, 0) for k in ("claimed", "asked", "given",
+                                                       "conflicts_lost")}}
+                          for w, c in enumerate(sm.get("cluster") or {} for sm in summaries)]
     # everything else on the machine meanwhile (other users' work competes for the cores)
     run["machine_busy_cores"] = round(busy, 3)
     run["git_commit"] = git_state()["commit"]   # others commit while the series runs
     run["other_busy_cores"] = round(max(0.0, busy - cpu - run["generator"]["cpu_cores"]), 3)
     return run
+
+
+def start_servers(folder: Path, config: dict[str, Any], workers: int) -> list[ServerProcess]:
+    """One server, or ``workers`` worker processes of one (``server.cluster``): worker 0 is
+    the Zenoh router the robots connect to, the others its clients."""
+    if workers <= 1:
+        return [ServerProcess(folder, config)]
+    for w in range(workers):
+        (folder / f"worker{w}").mkdir(parents=True, exist_ok=True)
+    first = ServerProcess(folder / "worker0", {**config, "cluster": {"worker": 0}})
+    return [first] + [
+        ServerProcess(folder / f"worker{w}", {
+            **config, "cluster": {"worker": w},
+            "bus": {"mode": "client", "listen": [], "connect": [first.endpoint]}})
+        for w in range(1, workers)]
 
 
 def summarise(n: int, n_procs: int, gens: list[dict[str, Any]], cpu: float, rss_end: float,
@@ -275,6 +318,8 @@ def main() -> None:
     ap.add_argument("--answer-timeout-s", type=float, default=1.0,
                     help="a scan not answered within this counts as dropped")
     ap.add_argument("--robots-per-process", type=int, default=25)
+    ap.add_argument("--workers", type=int, default=1,
+                    help="split the server over this many worker processes (server.cluster)")
     ap.add_argument("--track-steps", type=int, default=1200,
                     help="length of the recorded tracks, in LIDAR periods")
     ap.add_argument("--server-config", default=None,
@@ -328,7 +373,7 @@ def main() -> None:
                    "generator_rate_hz_min": RATE_MIN_SHARE * args.rate_hz},
         "settings": {"robots": series, "warmup_s": args.warmup_s, "window_s": args.window_s,
                      "rate_hz": args.rate_hz, "answer_timeout_s": args.answer_timeout_s,
-                     "robots_per_process": args.robots_per_process,
+                     "robots_per_process": args.robots_per_process, "workers": args.workers,
                      "track_steps": args.track_steps, "server_config": args.server_config,
                      "keep_going": args.keep_going, "quick": args.quick,
                      "tracks": f"large house, {tracks.ranges_mm.shape[0]} robots x "
