@@ -58,6 +58,7 @@ ROOT = _HERE.parent
 
 from bench.support.fleet import ServerProcess  # noqa: E402
 from bench.support.load_gen import Tracks, make_tracks  # noqa: E402
+from schemas import keys  # noqa: E402
 
 P99_LIMIT_MS = 100.0
 DROP_LIMIT = 0.01
@@ -150,10 +151,20 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
     cpu = rss_end = rss_peak = busy = 0.0
     period = 1.0 / args.rate_hz
     try:
-        for sp in servers:
-            sp.client(timeout_s=60.0).close()   # up: its liveliness token seen
-        if len(servers) > 1:
-            time.sleep(2.0)    # the workers see each other's tokens before robots come
+        bus = srv.client(timeout_s=60.0)   # up: its liveliness token seen
+        try:
+            if len(servers) > 1:   # ... and every worker's
+                seen: set[str] = set()
+                bus.watch_alive(keys.ALL_CLUSTER_WORKERS, lambda k, alive: seen.add(k))
+                deadline = time.monotonic() + 60.0
+                while len(seen) < len(servers):
+                    if time.monotonic() > deadline or any(sp.proc.poll() is not None
+                                                          for sp in servers):
+                        raise RuntimeError(f"only workers {sorted(seen)} came up")
+                    time.sleep(0.1)
+                time.sleep(1.0)    # and each other's
+        finally:
+            bus.close()
         n_procs = max(1, math.ceil(n / args.robots_per_process))
         robots = [[f"L{i:03d}", i % n_tracks, (i // n_tracks) * 173 % (2 * steps - 2),
                    period * i / n] for i in range(n)]
@@ -237,11 +248,14 @@ def start_servers(folder: Path, config: dict[str, Any], workers: int) -> list[Se
     for w in range(workers):
         (folder / f"worker{w}").mkdir(parents=True, exist_ok=True)
     first = ServerProcess(folder / "worker0", {**config, "cluster": {"worker": 0}})
-    return [first] + [
-        ServerProcess(folder / f"worker{w}", {
+    out = [first]
+    for w in range(1, workers):
+        sp = ServerProcess(folder / f"worker{w}", {
             **config, "cluster": {"worker": w},
             "bus": {"mode": "client", "listen": [], "connect": [first.endpoint]}})
-        for w in range(1, workers)]
+        sp.endpoint = first.endpoint    # reached through the router
+        out.append(sp)
+    return out
 
 
 def summarise(n: int, n_procs: int, gens: list[dict[str, Any]], cpu: float, rss_end: float,
