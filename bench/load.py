@@ -151,20 +151,6 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
     cpu = rss_end = rss_peak = busy = 0.0
     period = 1.0 / args.rate_hz
     try:
-        bus = srv.client(timeout_s=60.0)   # up: its liveliness token seen
-        try:
-            if len(servers) > 1:   # ... and every worker's
-                seen: set[str] = set()
-                bus.watch_alive(keys.ALL_CLUSTER_WORKERS, lambda k, alive: seen.add(k))
-                deadline = time.monotonic() + 60.0
-                while len(seen) < len(servers):
-                    if time.monotonic() > deadline or any(sp.proc.poll() is not None
-                                                          for sp in servers):
-                        raise RuntimeError(f"only workers {sorted(seen)} came up")
-                    time.sleep(0.1)
-                time.sleep(1.0)    # and each other's
-        finally:
-            bus.close()
         n_procs = max(1, math.ceil(n / args.robots_per_process))
         robots = [[f"L{i:03d}", i % n_tracks, (i // n_tracks) * 173 % (2 * steps - 2),
                    period * i / n] for i in range(n)]
@@ -241,20 +227,43 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
 
 
 def start_servers(folder: Path, config: dict[str, Any], workers: int) -> list[ServerProcess]:
-    """One server, or ``workers`` worker processes of one (``server.cluster``): worker 0 is
-    the Zenoh router the robots connect to, the others its clients."""
+    """One server, up; or ``workers`` worker processes of one (``server.cluster``), all up and
+    seeing each other: worker 0 is the Zenoh router the robots connect to, the others its
+    clients (started once it listens)."""
     if workers <= 1:
-        return [ServerProcess(folder, config)]
+        srv = ServerProcess(folder, config)
+        try:
+            srv.client(timeout_s=60.0).close()   # up: its liveliness token seen
+        except BaseException:
+            srv.stop()
+            raise
+        return [srv]
     for w in range(workers):
         (folder / f"worker{w}").mkdir(parents=True, exist_ok=True)
     first = ServerProcess(folder / "worker0", {**config, "cluster": {"worker": 0}})
     out = [first]
-    for w in range(1, workers):
-        sp = ServerProcess(folder / f"worker{w}", {
-            **config, "cluster": {"worker": w},
-            "bus": {"mode": "client", "listen": [], "connect": [first.endpoint]}})
-        sp.endpoint = first.endpoint    # reached through the router
-        out.append(sp)
+    bus = first.client(timeout_s=60.0)
+    try:
+        seen: set[str] = set()
+        bus.watch_alive(keys.ALL_CLUSTER_WORKERS, lambda k, alive: seen.add(k))
+        for w in range(1, workers):
+            sp = ServerProcess(folder / f"worker{w}", {
+                **config, "cluster": {"worker": w},
+                "bus": {"mode": "client", "listen": [], "connect": [first.endpoint]}})
+            sp.endpoint = first.endpoint    # reached through the router
+            out.append(sp)
+        deadline = time.monotonic() + 60.0
+        while len(seen) < workers:
+            if time.monotonic() > deadline or any(sp.proc.poll() is not None for sp in out):
+                raise RuntimeError(f"only workers {sorted(seen)} came up")
+            time.sleep(0.1)
+        time.sleep(1.0)    # and each other's
+    except BaseException:
+        for sp in out:
+            sp.stop()
+        raise
+    finally:
+        bus.close()
     return out
 
 
