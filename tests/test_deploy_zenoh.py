@@ -28,7 +28,7 @@ pytestmark = [pytest.mark.e2e,
 def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("certs")
     subprocess.run(["bash", str(DEPLOY / "make-certs.sh"), str(out), "127.0.0.1", "r1", "r2",
-                    "dashboard"], check=True, capture_output=True)
+                    "dashboard", "worker1"], check=True, capture_output=True)
     return out
 
 
@@ -45,7 +45,7 @@ def write_config(tmp: Path, name: str, *args: str) -> str:
 def secured(certs: Path, tmp_path: Path) -> Iterator[tuple[Bus, str, Path]]:
     endpoint = free_local_endpoint().replace("tcp/", "tls/")
     conf = write_config(tmp_path, "server", "server", "--certs", str(certs), "--listen",
-                        endpoint, "--observer", "dashboard", "r1", "r2")
+                        endpoint, "--observer", "dashboard", "--worker", "worker1", "r1", "r2")
     with Bus.open("router", config_file=conf) as server:
         yield server, endpoint, tmp_path
 
@@ -168,3 +168,28 @@ def test_robot_can_publish_only_under_its_own_keys(
     finally:
         for b in (r1, r2, rogue, dash):
             b.close()
+
+
+def test_a_server_worker_may_serve_robots_and_a_robot_may_not_pose_as_one(
+        secured: tuple[Bus, str, Path], certs: Path) -> None:
+    """Another worker of the server (``server.cluster``) claims robots and answers for teams
+    through the router; a robot's certificate cannot claim anything there."""
+    server, endpoint, tmp = secured
+    owners: list[tuple[str, bool]] = []
+    server.watch_alive(keys.ALL_CLUSTER_OWNERS, lambda k, alive: owners.append((k, alive)))
+    server.serve_queries(keys.cluster_give(0), lambda q: (q.reply(keys.cluster_give(0), b"ok"),
+                                                          q.drop()))
+    robot = client(certs, tmp, endpoint, "r1")
+    worker = client(certs, tmp, endpoint, "worker1")
+    try:
+        robot.declare_token(keys.cluster_owner("r2", 1))
+        worker.declare_token(keys.cluster_owner("r1", 1))
+        assert wait_for(lambda: (keys.cluster_owner("r1", 1), True) in owners, 5.0)
+        answers: list[list[bytes]] = []
+        worker.ask(keys.cluster_give(0), b"{}", lambda r, e: answers.append(r), 3.0)
+        assert wait_for(lambda: answers == [[b"ok"]], 5.0)
+        time.sleep(0.5)
+        assert (keys.cluster_owner("r2", 1), True) not in owners
+    finally:
+        robot.close()
+        worker.close()

@@ -7,6 +7,8 @@
     python deploy/zenoh/config.py zenohd --certs DIR --name site-b --listen tls/0.0.0.0:7447 \
         --connect tls/server:7447 r3 r4 > site-b.json5        # a site router for zenohd
     python deploy/zenoh/config.py server ... --site site-b=r3,r4 r1 r2    # and the server side
+    python deploy/zenoh/config.py server ... --worker worker1 r1 r2    # a second server worker
+    python deploy/zenoh/config.py client --certs DIR --connect tls/server:7447 --name worker1
 
 The server's router requires mutual TLS and applies access control keyed on the certificate's
 common name: robot <id> may publish, declare tokens and queryables only under
@@ -14,8 +16,10 @@ common name: robot <id> may publish, declare tokens and queryables only under
 commands, the map, the server's liveliness). It is told which keys under ``mrslam/`` have
 subscribers (declarations only, no data): without that, a client's declared publisher delivers
 its first put at most and drops the rest. Names passed with ``--observer`` (dashboards,
-loggers) may read everything and write nothing. Everything else is denied. The server's own
-session is the router, so its publications and subscriptions are local and always allowed.
+loggers) may read everything and write nothing; names passed with ``--worker`` (the server's
+other worker processes, ``server.cluster``) may do what the server does. Everything else is
+denied. The server's own session is the router, so its publications and subscriptions are
+local and always allowed.
 
 Several sites: robots at a remote site connect to a ``zenohd`` router there, which connects to
 the server over mutual TLS with its own certificate. The site router enforces the per-robot
@@ -57,10 +61,19 @@ def _rule(rid: str, flow: str, messages: list[str], keys: list[str]) -> dict[str
 
 
 def access_control(robots: list[str], observers: list[str],
-                   sites: dict[str, list[str]] | None = None) -> dict[str, Any]:
+                   sites: dict[str, list[str]] | None = None,
+                   workers: list[str] | None = None) -> dict[str, Any]:
     rules: list[dict[str, object]] = []
     subjects: list[dict[str, object]] = []
     policies: list[dict[str, object]] = []
+    if workers:
+        # the server's other worker processes (server.cluster) do what the server does
+        everything = WRITE + SUBSCRIBE
+        rules += [_rule("worker-in", "ingress", everything, ["mrslam/**"]),
+                  _rule("worker-out", "egress", everything + RECEIVE, ["mrslam/**"])]
+        subjects.append({"id": "workers", "cert_common_names": workers})
+        policies.append({"id": "policy-workers", "subjects": ["workers"],
+                         "rules": ["worker-in", "worker-out"]})
     for site, site_robots in (sites or {}).items():
         own = [f"mrslam/robot/{rid}/**" for rid in site_robots]
         readable = [*own, "mrslam/server/**"]
@@ -98,14 +111,14 @@ def access_control(robots: list[str], observers: list[str],
 
 
 def server_config(certs: Path, listen: list[str], robots: list[str],
-                  observers: list[str], sites: dict[str, list[str]] | None = None
-                  ) -> dict[str, object]:
+                  observers: list[str], sites: dict[str, list[str]] | None = None,
+                  workers: list[str] | None = None) -> dict[str, object]:
     return {
         "mode": "router",
         "listen": {"endpoints": listen},
         "scouting": {"multicast": {"enabled": False}},
         "transport": {"link": {"tls": tls_block(certs, "server", listen=True)}},
-        "access_control": access_control(robots, observers, sites),
+        "access_control": access_control(robots, observers, sites, workers),
     }
 
 
@@ -160,6 +173,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="a site router and the robots behind it (server)")
     ap.add_argument("--observer", action="append", default=[],
                     help="certificate name allowed to read everything (server)")
+    ap.add_argument("--worker", action="append", default=[],
+                    help="certificate name of another worker of the server, allowed what the "
+                    "server does (server; docs/scale.md)")
     ap.add_argument("robots", nargs="*", help="robot ids (server)")
     a = ap.parse_intermixed_args(argv)
     if a.role == "server":
@@ -170,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
                 ap.error(f"--site {spec!r}: expected NAME=R1,R2")
             sites[name] = [r for r in ids.split(",") if r]
         conf = server_config(a.certs, a.listen or ["tls/0.0.0.0:7447"], a.robots, a.observer,
-                             sites)
+                             sites, a.worker)
     elif a.role == "zenohd":
         if not a.name or not a.connect:
             ap.error("zenohd needs --name (its certificate) and --connect (the server)")
