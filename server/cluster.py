@@ -10,7 +10,9 @@ in one worker — its joint graph with it.
 - **Ownership** is a liveliness token too, ``mrslam/cluster/owner/<robot>/<N>``. A robot
   without an owner is claimed by the live worker that ranks highest for it (rendezvous
   hashing: every worker computes the same choice from the same workers, and a worker joining
-  or leaving moves only the robots it wins or held). Two workers that claim the same robot for
+  or leaving moves only the robots it wins or held). The robots of a worker that vanished wait
+  ``handover_timeout_s`` for it (restarted on its state, it takes them back with their maps)
+  before another worker serves them afresh. Two workers that claim the same robot for
   longer than ``handover_timeout_s`` (their views of the live workers differed) leave it to
   the lower number.
 - **Teams move.** When robots of two workers see each other's tags, the lower-numbered worker
@@ -87,6 +89,11 @@ class Cluster:
         self.pulling: dict[str, float] = {}       # robot -> when asked (monotonic)
         self.released: dict[str, float] = {}      # robot -> when its token goes
         self._contested: dict[str, float] = {}    # robot -> since when another claims it too
+        #: robots whose worker vanished: (that worker, since when); they wait for it to come
+        #: back for ``timeout_s`` before another worker serves them afresh
+        self.orphans: dict[str, tuple[int, float]] = {}
+        #: robots this worker served before it restarted (in the state it resumed)
+        self.resumed: set[str] = set()
         self.counters: Counter[str] = Counter()
 
     def start(self) -> None:
@@ -116,10 +123,13 @@ class Cluster:
             held = self.owners.setdefault(rid, set())
             if alive:
                 held.add(w)
+                self.orphans.pop(rid, None)
             else:
                 held.discard(w)
                 if not held:
                     del self.owners[rid]
+                    if w != self.index:
+                        self.orphans[rid] = (w, time.monotonic())
 
     def _winner(self, robot_id: str) -> int:
         live = self.workers | {self.index}
@@ -147,8 +157,12 @@ class Cluster:
                 return Route.MINE
             if self.owners.get(robot_id):
                 return Route.OTHER
-            if self._winner(robot_id) != self.index:
-                return Route.OTHER
+            if robot_id not in self.resumed:
+                gone = self.orphans.get(robot_id)
+                if gone is not None and time.monotonic() - gone[1] < self.timeout_s:
+                    return Route.OTHER        # its worker may be back in a moment
+                if self._winner(robot_id) != self.index:
+                    return Route.OTHER
             self._claim(robot_id)
             self.counters["claimed"] += 1
             return Route.MINE
@@ -253,6 +267,7 @@ class Cluster:
             with self._lock:
                 for rid in robots:
                     self.released[rid] = time.monotonic() + RELEASE_GRACE_S
+                self.resumed.difference_update(robots)
             self.counters["given"] += 1
         finally:
             query.drop()

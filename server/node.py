@@ -80,6 +80,8 @@ class ServerNode:
         #: one worker of several (``server.cluster``), or None: the only server
         self.cluster = None if cfg.cluster.worker is None else Cluster(
             bus, cfg.cluster, self._on_give, self._on_handover)
+        if self.cluster is not None:
+            self.cluster.resumed = set(self.core.robots)
         self._held: dict[str, list[tuple[str, int, Any]]] = {}   # robots whose team is coming
         #: each robot's own stamp of the last scan the core took (a team that moves here
         #: brings the giver's: what it had not processed yet is taken from those held here)

@@ -6,6 +6,7 @@ in one core. A merged team moved on afterwards keeps its joint graph and its mer
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -262,3 +263,65 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
         assert report.unreadable == 0
         assert set(again.robots) == robots_there
     assert len(again.merges) == 0
+
+
+@pytest.mark.e2e
+def test_a_vanished_workers_robots_wait_for_it_then_go_to_another(tmp_path: Path) -> None:
+    """Worker 1 dies: its robots are not taken at once; restarted on its journal within the
+    timeout, it serves them again with their maps. Dead for longer, worker 0 takes them."""
+    from bench.support.fleet import RoomRobot
+    from server.cluster import _rank
+    assert all(max((0, 1), key=lambda w: _rank(r, w)) == 1 for r in ("r1", "r2"))
+    endpoint = free_local_endpoint()
+
+    def node(w: int, core: ServerCore | None = None, first: int = 0) -> ServerNode:
+        cfg = ServerConfig.model_validate({
+            "cluster": {"worker": w, "handover_timeout_s": 3.0},
+            "bus": {"connect": [endpoint]}})
+        n = ServerNode(Bus.open("client", connect=[endpoint]), cfg, core=core,
+                       journal=JournalWriter(tmp_path / f"w{w}", first_sequence=first))
+        n.start()
+        return n
+
+    def served(n: ServerNode) -> list[str]:
+        assert n.cluster is not None
+        return n.cluster.summary()["robots_served"]
+
+    with Bus.open("router", listen=[endpoint]):
+        w0, w1 = node(0), node(1)
+        robots: list[RoomRobot] = []
+        try:
+            assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0, 1}, 10)
+            robots = [RoomRobot(endpoint, r).start() for r in ("r1", "r2")]
+            assert within(lambda: served(w1) == ["r1", "r2"] and all(
+                w1.core.robots.get(r) is not None and w1.core.robots[r].scans > 20
+                for r in ("r1", "r2")), 20.0)
+            assert served(w0) == []
+            # worker 1 is killed (its session gone at once, as a killed process's)
+            w1.bus.close()
+            w1.stop()
+            scans_before = w1.core.robots["r1"].scans
+            assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0}, 5.0)
+            time.sleep(1.0)
+            assert served(w0) == []           # waiting for worker 1 to come back
+            # ... and it comes back on its journal, with the robots' maps
+            core = ServerCore(w1.cfg)
+            report = replay(core, tmp_path / "w1")
+            assert core.robots["r1"].scans >= scans_before - 15
+            w1 = node(1, core, report.last_sequence + 1)
+            assert within(lambda: w1.core.robots["r1"].scans > scans_before + 10, 10.0)
+            assert served(w1) == ["r1", "r2"] and served(w0) == []
+            # killed again and gone for good: worker 0 serves the robots after the timeout
+            w1.bus.close()
+            w1.stop()
+            t_dead = time.monotonic()
+            assert within(lambda: served(w0) == ["r1", "r2"], 10.0)
+            assert time.monotonic() - t_dead >= 2.5
+            assert within(lambda: all(r in w0.core.robots and w0.core.robots[r].scans > 5
+                                      for r in ("r1", "r2")), 10.0)
+        finally:
+            for r in robots:
+                r.close()
+            for n in (w0, w1):
+                n.stop()
+                n.bus.close()
