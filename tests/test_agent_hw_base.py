@@ -146,3 +146,17 @@ def test_a_bad_frame_stops_the_motors_and_unplugging_reconnects(
     assert before is not None and after is not None
     # the board restarted its counters: the pose continues instead of jumping back to 0
     assert after.pose[0] == pytest.approx(before.pose[0], abs=0.05) and after.pose[0] > 0.05
+
+
+def test_the_boards_flags_count_in_every_report() -> None:
+    """A bad-frame flag counts even in the first report after connecting or in one whose
+    time does not advance; a stop on silence counts once per stop."""
+    base = SerialBase("/dev/null-never-opened", TRACK, RADIUS, TICKS)
+    t = time.time_ns()
+    base._on_encoders(proto.Encoders(1000, 0, 0, proto.FLAG_BAD_FRAME), t)   # first report
+    base._on_encoders(proto.Encoders(1000, 0, 0, proto.FLAG_BAD_FRAME), t)   # same time
+    assert base.counters["firmware_bad_frames"] == 2
+    for ms, flags in ((1020, proto.FLAG_TIMEOUT), (1040, proto.FLAG_TIMEOUT), (1060, 0),
+                      (1080, proto.FLAG_TIMEOUT)):
+        base._on_encoders(proto.Encoders(ms, 0, 0, flags), t + (ms - 1000) * 1_000_000)
+    assert base.counters["firmware_timeouts"] == 2

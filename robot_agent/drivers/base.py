@@ -79,6 +79,7 @@ class SerialBase:
         self._target_set = 0.0                   # monotonic time of the last set_velocity
         self._pose: Pose = (0.0, 0.0, 0.0)
         self._ticks: tuple[int, int] | None = None
+        self._board_timed_out = False   # the last report said the board stopped on silence
         self._offsets: deque[int] = deque(maxlen=100)
         self._last_device_ms: int | None = None
         self._wraps = 0
@@ -251,6 +252,13 @@ class SerialBase:
                 log.info("no velocity command for %g s: stopping", self.hold_s)
 
     def _on_encoders(self, e: proto.Encoders, recv_ns: int) -> None:
+        # the board's own verdicts first: every report counts, whatever its time and ticks
+        if e.flags & proto.FLAG_BAD_FRAME:
+            self.counters["firmware_bad_frames"] += 1
+        timed_out = bool(e.flags & proto.FLAG_TIMEOUT)
+        if timed_out and not self._board_timed_out:
+            self.counters["firmware_timeouts"] += 1   # the board stopped on silence
+        self._board_timed_out = timed_out
         with self._lock:
             if self._last_device_ms is not None and e.time_ms < self._last_device_ms:
                 if self._last_device_ms - e.time_ms < 2**31:
@@ -277,5 +285,3 @@ class SerialBase:
             v = 0.5 * (dl + dr) / dt if dt > 0 else 0.0
             w = (dr - dl) / self.track_m / dt if dt > 0 else 0.0
             self._history.append(Odometry(stamp, self._pose, v, w))
-            if e.flags & proto.FLAG_BAD_FRAME:
-                self.counters["firmware_bad_frames"] += 1
