@@ -16,7 +16,10 @@ Figures: ``decision_ms`` = one ``Explorer.decide`` call (coverage, crop, cost la
 skeleton + graph, rule-1 candidates and frontiers, Dijkstra from the robot, path lengths to the
 candidates, the chosen path and its shortcutting); ``analysis_ms`` and ``dijkstra_ms`` time those
 two stages again on their own; ``astar_ms`` is a single-query A* (``server.planning.plan``) from
-the robot to the chosen target, as the daemon would use when replanning.
+the robot to the chosen target. ``replan``: half way along each path (the map has grown), the
+target is replanned as the server does it — around the robot and the target first
+(``server.exploration.replan``) — and on the whole map, with both times, whether both
+answers agree (a path, or none) and the ratio of their path lengths.
 """
 
 from __future__ import annotations
@@ -110,6 +113,49 @@ def walk(path_xy: np.ndarray, step_m: float, every_m: float
     return out
 
 
+def compare_replans(grid: OccupancyGrid, pose: tuple[float, float, float],
+                    target_xy: tuple[float, float], explorer: Any,
+                    out: list[dict[str, Any]]) -> None:
+    """A replan half way to the target, as the server does it (around the robot and its
+    target first) and on the whole map: times, answers and path lengths."""
+    from server.exploration.replan import Replan, _replan_on, replan, replan_window
+
+    job = Replan(grid, explorer.params.analysis, explorer.walls_seen, (pose[0], pose[1]),
+                 target_xy, 1.5)
+    t0 = time.perf_counter()
+    fast = replan(job)
+    t1 = time.perf_counter()
+    full = _replan_on(grid, job)
+    t2 = time.perf_counter()
+
+    def length(a: Any) -> float | None:
+        if a.path_xy is None:
+            return None
+        return float(np.hypot(*np.diff(a.path_xy, axis=0).T).sum())
+
+    out.append({"ms": (t1 - t0) * 1e3, "full_ms": (t2 - t1) * 1e3,
+                "windowed": replan_window(job) is not None,
+                "same_answer": (fast.path_xy is None) == (full.path_xy is None),
+                "length": length(fast), "full_length": length(full)})
+
+
+def replan_figures(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    if not rows:
+        return {}
+    ms = np.array([r["ms"] for r in rows])
+    full = np.array([r["full_ms"] for r in rows])
+    ratios = [r["length"] / r["full_length"] for r in rows
+              if r["length"] is not None and r["full_length"]]
+    return {"replans": len(rows), "windowed": sum(r["windowed"] for r in rows),
+            "ms_median": round(float(np.median(ms)), 2),
+            "ms_p90": round(float(np.percentile(ms, 90)), 2),
+            "full_map_ms_median": round(float(np.median(full)), 2),
+            "full_map_ms_p90": round(float(np.percentile(full, 90)), 2),
+            "same_answer_share": round(float(np.mean([r["same_answer"] for r in rows])), 3),
+            "path_length_ratio_median": round(float(np.median(ratios)), 3) if ratios else None,
+            "path_length_ratio_max": round(float(max(ratios)), 3) if ratios else None}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--decisions", type=int, default=300, help="at most this many")
@@ -134,6 +180,7 @@ def main() -> None:
     visited = VisitedTargets(radius_m=1.0)
     mapper.scan(pose)
     decide_ms, analysis_ms, field_ms, astar_ms, known, reasons = [], [], [], [], [], {}
+    replans: list[dict[str, Any]] = []
     travelled_m = 0.0
     finished = None
     for _ in range(args.decisions):
@@ -161,8 +208,10 @@ def main() -> None:
         except PlanningError:
             pass
         poses = walk(out.path.xy_m, args.step_m, 0.5)
-        for p in poses:
+        for i, p in enumerate(poses):
             mapper.scan(p)
+            if i == len(poses) // 2 and len(poses) >= 4:   # half way: the map has grown
+                compare_replans(mapper.grid(), p, out.target_xy, explorer, replans)
         if poses:
             pose = poses[-1]
             travelled_m += min(args.step_m, out.path.length_m)
@@ -184,6 +233,7 @@ def main() -> None:
         "path_travelled_m": round(travelled_m, 1),
         "decision_ms": stats(decide_ms), "analysis_ms": stats(analysis_ms),
         "dijkstra_ms": stats(field_ms), "astar_ms": stats(astar_ms),
+        "replan": replan_figures(replans),
         "goal_median_ms": 100.0,
         "goal_met": bool(decide_ms) and float(np.median(decide_ms)) <= 100.0,
     }))

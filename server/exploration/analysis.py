@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,8 +43,13 @@ class MapAnalysis:
     layer: CostLayer               # includes the skeleton preference
     space: NDArray[np.bool_]       # known free space (free cells and small unobserved pockets)
     unexplored: NDArray[np.bool_]  # unobserved cells outside those pockets
-    graph: SkeletonGraph
+    skeleton: NDArray[np.bool_]    # Voronoi ridge cells of the known free space
     frontiers: Frontiers
+
+    @functools.cached_property
+    def graph(self) -> SkeletonGraph:
+        """The skeleton as a graph (built on first use: a path search needs only the layer)."""
+        return skeleton_graph(self.skeleton, clearance=self.layer.clearance_m)
 
 
 def analyse(grid: OccupancyGrid, params: AnalysisParams,
@@ -67,7 +73,6 @@ def analyse(grid: OccupancyGrid, params: AnalysisParams,
     nearest = layer.nearest_obstacle if cp.unknown_is_obstacle else None
     skeleton = voronoi_skeleton(space, min_separation_cells=params.min_separation_m / res,
                                 nearest_boundary=nearest)
-    graph = skeleton_graph(skeleton, clearance=layer.clearance_m)
     layer = layer.with_preferred(skeleton, cp.skeleton_factor)
     # wall cells: occupied, or observed without a verdict (beams both hit and crossed them)
     walls = crop.occupied | (crop.unobserved & (crop.data != UNKNOWN))
@@ -82,4 +87,4 @@ def analyse(grid: OccupancyGrid, params: AnalysisParams,
         near = np.isfinite(d)
         mask[cells[near, 0], cells[near, 1]] = False
     frontiers = cluster_frontiers(mask, min_cells=int(np.ceil(params.min_frontier_m / res)))
-    return MapAnalysis(crop, layer, space, unexplored, graph, frontiers)
+    return MapAnalysis(crop, layer, space, unexplored, skeleton, frontiers)

@@ -48,10 +48,43 @@ class Replanned:
     target_xy: tuple[float, float]
     path_xy: F64 | None
     reason: str = ""
+    planning_failed: bool = False    # no path found (not: the target is no longer open)
+
+
+#: A replan looks at the map around the robot and its target first: the box of both, widened
+#: by this much, by half their distance and by the commit radius. Only if no path is found
+#: there does it look at the whole map. Its cost then follows the distance to the target, not
+#: the size of the explored map (a 50 × 50 m house is 750 × 750 cells).
+WINDOW_MARGIN_M = 4.0
+#: a window larger than this share of the map is not worth cutting out
+WINDOW_MAX_SHARE = 0.5
 
 
 def replan(job: Replan) -> Replanned:
-    analysis = analyse(job.grid, job.params, include_xy=np.asarray(job.pose_xy),
+    window = replan_window(job)
+    if window is not None:
+        answer = _replan_on(window, job)
+        if answer.path_xy is not None or not answer.planning_failed:
+            return answer   # (whether the target still borders unexplored space is settled
+    return _replan_on(job.grid, job)   # within the window, which holds its commit radius)
+
+
+def replan_window(job: Replan) -> OccupancyGrid | None:
+    """The part of ``job.grid`` a replan looks at first, or None: the whole map."""
+    p, t = np.asarray(job.pose_xy, np.float64), np.asarray(job.target_xy, np.float64)
+    m = WINDOW_MARGIN_M + 0.5 * float(np.hypot(*(p - t))) + job.commit_radius_m
+    g = job.grid
+    (r0, c0), (r1, c1) = g.geometry.world_to_cell(np.stack([np.minimum(p, t) - m,
+                                                            np.maximum(p, t) + m]))
+    H, W = g.data.shape
+    r0, c0, r1, c1 = max(0, int(r0)), max(0, int(c0)), min(H, int(r1) + 1), min(W, int(c1) + 1)
+    if r1 <= r0 or c1 <= c0 or (r1 - r0) * (c1 - c0) > WINDOW_MAX_SHARE * H * W:
+        return None
+    return g.crop(r0, r1, c0, c1)
+
+
+def _replan_on(grid: OccupancyGrid, job: Replan) -> Replanned:
+    analysis = analyse(grid, job.params, include_xy=np.asarray(job.pose_xy),
                        seen_xy=None, walls_seen=job.walls)
     fr = analysis.frontiers
     if len(fr) == 0:
@@ -63,7 +96,7 @@ def replan(job: Replan) -> Replanned:
     try:
         path = plan(analysis.layer, job.pose_xy, job.target_xy)
     except PlanningError as e:
-        return Replanned(job.target_xy, None, str(e))
+        return Replanned(job.target_xy, None, str(e), planning_failed=True)
     return Replanned(job.target_xy, path.xy_m)
 
 
