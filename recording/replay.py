@@ -20,10 +20,13 @@ from pathlib import Path
 from typing import Any
 
 from recording.reader import RecordedMessage, read_recording
+from schemas import keys
 from schemas.bus import Bus
 from schemas.config import BusConfig
 
 log = logging.getLogger(__name__)
+
+WIRE_PREFIX = f"{keys.ROOT}/"
 
 
 @lru_cache(maxsize=256)
@@ -50,10 +53,11 @@ def key_matches(key_expr: str, key: str) -> bool:
 
 def select(messages: Iterable[RecordedMessage], only: Sequence[str] = (),
            until_ns: int | None = None) -> list[RecordedMessage]:
-    """The messages to replay, in log-time order: on keys matching any of ``only`` (all when
-    empty), logged at or before ``until_ns``."""
+    """The messages to replay, in log-time order: on keys matching any of ``only`` (all wire
+    keys when empty: not the Foxglove channels beside them), logged at or before ``until_ns``."""
     return sorted((m for m in messages
-                   if (not only or any(key_matches(k, m.topic) for k in only))
+                   if m.topic.startswith(WIRE_PREFIX)
+                   and (not only or any(key_matches(k, m.topic) for k in only))
                    and (until_ns is None or m.log_time_ns <= until_ns)),
                   key=lambda m: m.log_time_ns)
 

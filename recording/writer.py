@@ -15,13 +15,16 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Literal
+from typing import TYPE_CHECKING, Any, BinaryIO, Literal
 
 from mcap.writer import CompressionType, Writer
 
-from recording import foxglove
 from recording.channels import MESSAGE_ENCODING, SCHEMA_ENCODING, header_of, kind_of
 from schemas.errors import SchemaError
+
+if TYPE_CHECKING:
+    from recording.foxglove import FoxgloveView
+    from recording.live import FoxgloveLive
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +56,9 @@ class McapRecorder:
     """Thread-safe: Zenoh calls ``add`` from several threads."""
 
     def __init__(self, path: str | Path, compression: Compression = "zstd",
-                 foxglove_channels: bool = False, chunk_size: int = 1 << 20,
-                 metadata: dict[str, str] | None = None) -> None:
+                 foxglove_channels: bool = True, chunk_size: int = 1 << 20,
+                 metadata: dict[str, str] | None = None,
+                 live: FoxgloveLive | None = None) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file: BinaryIO = self.path.open("wb")
@@ -64,6 +68,12 @@ class McapRecorder:
         if metadata:
             self._writer.add_metadata("mrslam", metadata)
         self.foxglove = foxglove_channels
+        self.live = live
+        self._view: FoxgloveView | None = None
+        if foxglove_channels or live is not None:
+            from recording.foxglove import FoxgloveView
+
+            self._view = FoxgloveView()
         self.stats = RecorderStats()
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
@@ -99,8 +109,8 @@ class McapRecorder:
                                      sequence=seq % 2**32)
             self.stats.messages[key] += 1
             self.stats.payload_bytes += len(payload)
-        if self.foxglove and header is not None:
-            self._add_foxglove(kind.type_name, payload, stamp)
+            if self._view is not None and header is not None:
+                self._add_foxglove(kind.type_name, payload, stamp)
 
     def _receive_stamp(self, receive_ns: int) -> int:
         if self._clock_ref is None:
@@ -108,7 +118,8 @@ class McapRecorder:
         stamp, recv = self._clock_ref
         return max(0, stamp + receive_ns - recv)
 
-    def _channel(self, topic: str, schema_name: str, schema: bytes, encoding: str) -> int:
+    def _channel(self, topic: str, schema_name: str, schema: bytes, encoding: str,
+                 schema_encoding: str = SCHEMA_ENCODING) -> int:
         ch = self._channels.get(topic)
         if ch is None:
             sid = 0
@@ -116,26 +127,31 @@ class McapRecorder:
                 sid = self._schemas.get(schema_name, 0)
                 if not sid:
                     sid = self._schemas[schema_name] = self._writer.register_schema(
-                        schema_name, SCHEMA_ENCODING, schema)
+                        schema_name, schema_encoding, schema)
             ch = self._channels[topic] = self._writer.register_channel(topic, encoding, sid)
         return ch
 
     def _add_foxglove(self, type_name: str | None, payload: bytes, stamp_ns: int) -> None:
+        """Called under the lock: the view's frame tree follows the messages in file order."""
+        from recording.foxglove import MESSAGE_ENCODING, schema_of
+
+        assert self._view is not None
         try:
-            converted = foxglove.convert(type_name, payload)
+            converted = self._view.convert(type_name, payload)
         except (SchemaError, ValueError) as e:
-            with self._lock:
-                self.stats.foxglove_errors += 1
+            self.stats.foxglove_errors += 1
             log.debug("no Foxglove view of a %s: %s", type_name, e)
             return
-        with self._lock:
-            if self._closed:
-                return
-            for topic, schema_name, data in converted:
-                ch = self._channel(topic, schema_name, foxglove.SCHEMAS[schema_name], "json")
-                self._writer.add_message(ch, log_time=stamp_ns, data=data,
+        if self.foxglove:
+            for topic, msg in converted:
+                schema = schema_of(msg)
+                ch = self._channel(topic, schema.name, schema.data, MESSAGE_ENCODING,
+                                   schema.encoding)
+                self._writer.add_message(ch, log_time=stamp_ns, data=msg.encode(),
                                          publish_time=stamp_ns)
                 self.stats.foxglove_messages += 1
+        if self.live is not None:
+            self.live.publish(converted, stamp_ns)
 
     def flush(self) -> None:
         """Close the chunk in progress and push it to the file (survives a crash after this)."""

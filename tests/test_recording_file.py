@@ -1,4 +1,5 @@
-"""MCAP recordings as files: round trips, channel schemas, Foxglove views, damaged files."""
+"""MCAP recordings as files: round trips, channel schemas, damaged files (the Foxglove channels
+beside the wire ones: tests/test_foxglove_channels.py)."""
 
 from __future__ import annotations
 
@@ -6,13 +7,12 @@ import json
 from pathlib import Path
 
 import msgspec
-import numpy as np
 import pytest
 from mcap.reader import make_reader
 
 from recording.reader import RecordingError, read_recording
 from recording.writer import Compression, McapRecorder
-from schemas import MapUpdate, RobotEstimate, RobotStates, RobotStatus, decode, encode, keys
+from schemas import RobotStatus, decode, encode, keys
 from tests.examples import STAMP, all_examples, scan
 
 T0 = 5_000_000_000  # sim-time stamps, 100 ms apart
@@ -81,7 +81,7 @@ def test_the_mcap_library_reads_channels_schemas_and_stamps(tmp_path: Path) -> N
 
 def test_payloads_without_a_stamp_are_kept_at_their_receive_time(tmp_path: Path) -> None:
     good = scan(seq=1)
-    with McapRecorder(tmp_path / "odd.mcap") as rec:
+    with McapRecorder(tmp_path / "odd.mcap", foxglove_channels=False) as rec:
         rec.add(keys.robot_scan("r1"), b"\xc1garbage", receive_ns=100)  # before any stamp
         rec.add(keys.robot_scan("r1"), encode(good), receive_ns=1_000)
         rec.add(keys.robot_scan("r1"), b"not msgpack at all", receive_ns=1_250)
@@ -91,36 +91,6 @@ def test_payloads_without_a_stamp_are_kept_at_their_receive_time(tmp_path: Path)
     assert [m.log_time_ns for m in msgs] == [0, STAMP, STAMP + 250, STAMP]
     assert msgs[2].data == b"not msgpack at all"
     assert msgs[3].type_name is None
-
-
-def test_foxglove_channels_carry_well_known_json(tmp_path: Path) -> None:
-    ex = all_examples()
-    states = RobotStates(stamp_ns=STAMP, robots=[
-        RobotEstimate(robot_id="r1", team_id="t1", pose=(1.0, 2.0, np.pi / 2))])
-    stream = [(keys.robot_scan("r1"), encode(ex["Scan"])),
-              (keys.SERVER_MAP, encode(ex["MapUpdate"])), (keys.SERVER_ROBOTS, encode(states))]
-    write(tmp_path / "fox.mcap", stream, foxglove=True)
-    with (tmp_path / "fox.mcap").open("rb") as f:
-        by_topic = {ch.topic: (schema.name if schema else "", json.loads(m.data))
-                    for schema, ch, m in make_reader(f).iter_messages()
-                    if ch.message_encoding == "json"}
-    name, ls = by_topic["foxglove/robot/r1/scan"]
-    assert name == "foxglove.LaserScan" and len(ls["ranges"]) == 400
-    assert ls["ranges"][1] == pytest.approx(ex["Scan"].ranges_m()[1], abs=1e-3)  # type: ignore[attr-defined]
-    assert ls["ranges"][0] == 0.0  # a no-return beam
-    name, g = by_topic["foxglove/map/t1"]
-    grid = ex["MapUpdate"]
-    assert isinstance(grid, MapUpdate)
-    import base64
-
-    cells = np.frombuffer(base64.b64decode(g["data"]), np.int8).reshape(grid.height, -1)
-    assert name == "foxglove.Grid" and np.array_equal(cells, grid.grid())
-    assert g["pose"]["position"]["x"] == grid.origin[0]
-    name, tf = by_topic["foxglove/tf"]
-    assert name == "foxglove.FrameTransform" and tf["child_frame_id"] == "r1"
-    assert tf["rotation"]["z"] == pytest.approx(np.sqrt(0.5))
-    name, pose = by_topic["foxglove/robot/r1/pose"]
-    assert name == "foxglove.PoseInFrame" and pose["frame_id"] == "t1"
 
 
 # -- damaged files ----------------------------------------------------------------------------
