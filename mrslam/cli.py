@@ -100,12 +100,18 @@ def main_callback(
     """mrslam command line."""
 
 
+FoxgloveOpt = Annotated[int | None, typer.Option(
+    "--foxglove", metavar="PORT", min=0, max=65535, help="serve the Foxglove channels live "
+    "over a WebSocket on this loopback port (0: any free one), for Foxglove to connect to")]
+
+
 @app.command()
 def server(
     config: ConfigOpt = None,
     insecure: Annotated[bool, typer.Option(
         "--insecure", help="allow listening beyond this machine without TLS and access rules "
         "(bus.insecure_listen; warned at every start)")] = False,
+    foxglove: FoxgloveOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
@@ -114,7 +120,8 @@ def server(
     def body() -> Any:
         from server.daemon import run
 
-        return run(config, {"bus": {"insecure_listen": True}} if insecure else None)
+        return run(config, {"bus": {"insecure_listen": True}} if insecure else None,
+                   foxglove_port=foxglove)
 
     call("server", body)
 
@@ -229,6 +236,7 @@ def demo(
         "start")] = False,
     record: Annotated[bool, typer.Option("--record/--no-record",
                                          help="record the run into run.mcap")] = True,
+    foxglove: FoxgloveOpt = None,
     server_restarts: Annotated[int, typer.Option(
         help="restart a server that dies at most this many times (0: never)")] = 5,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
@@ -259,7 +267,7 @@ def demo(
                      ("out", str(out) if out else None)):
             if v is not None:
                 opts[k] = v
-        report = run(opts)
+        report = run(opts, foxglove_port=foxglove)
         if not report["reached"]:
             raise typer.Exit(1)
         return report
@@ -294,8 +302,10 @@ def _bus_config(connect: list[str] | None, listen: list[str] | None,
 @app.command()
 def record(
     out: Annotated[Path, typer.Option(help="MCAP file to write, e.g. run.mcap")],
-    foxglove: Annotated[bool, typer.Option(
-        "--foxglove", help="also write Foxglove's scan, grid and pose types (JSON)")] = False,
+    foxglove_channels: Annotated[bool, typer.Option(
+        "--foxglove-channels/--wire-only", help="also write the Foxglove channels (scans, "
+        "maps, frames, trajectories, events) beside the wire messages")] = True,
+    foxglove: FoxgloveOpt = None,
     compression: Annotated[str, typer.Option(help="chunk compression: zstd, lz4 or none")
                            ] = "zstd",
     duration: Annotated[float | None, typer.Option(help="stop after this many seconds")] = None,
@@ -316,7 +326,8 @@ def record(
     def body() -> Any:
         from recording.record import run
 
-        summary = run(out, _bus_config(connect, listen, zenoh_config), foxglove=foxglove,
+        summary = run(out, _bus_config(connect, listen, zenoh_config),
+                      foxglove=foxglove_channels, foxglove_port=foxglove,
                       compression=compression, duration_s=duration,  # type: ignore[arg-type]
                       exclude=tuple(exclude or ()))
         typer.echo(f"recorded {summary['messages']} messages on {summary['keys']} keys "

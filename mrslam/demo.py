@@ -101,8 +101,11 @@ class DemoConfig(ConfigModel):
     out: str = Field("", description="the run folder; empty: runs/<scenario>-<date>-<time>")
 
 
-def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[str, Any]:
-    """Run one demo; returns the report (also written to ``<out>/report.json``)."""
+def run(overrides: dict[str, Any] | None = None, progress: bool = True,
+        foxglove_port: int | None = None) -> dict[str, Any]:
+    """Run one demo; returns the report (also written to ``<out>/report.json``).
+    ``foxglove_port``: serve the run live to Foxglove on that loopback port (the recorder
+    serves it, else the server)."""
     from rich.console import Console
 
     cfg = load_config(DemoConfig, overrides=overrides or {}, environ={})  # bad values: ConfigError
@@ -120,7 +123,7 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True) -> dict[
                   f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
                   f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; run folder {out}")
     t0 = time.monotonic()
-    watch = _execute(cfg, plan, out, console, progress, t0)
+    watch = _execute(cfg, plan, out, console, progress, t0, foxglove_port)
     from mrslam.report import build_report
 
     report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
@@ -198,14 +201,16 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
 
 
 def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
-             progress: bool, t0: float) -> dict[str, Any]:
+             progress: bool, t0: float, foxglove_port: int | None = None) -> dict[str, Any]:
     from mrslam.monitor import Monitor
     from schemas.bus import free_local_endpoint
 
     endpoint = free_local_endpoint()
     _configs(cfg, plan, out, endpoint)
     with ProcessGroup(out / "logs") as procs:
-        server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v")
+        live = [] if foxglove_port is None else ["--foxglove", str(foxglove_port)]
+        server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v",
+                             *([] if cfg.record else live))
         with Monitor(endpoint, list(plan["robots"])) as mon:
             if not mon.wait_for_server(30.0, server.alive):
                 raise RuntimeError(f"the server did not come up:\n{server.tail()}")
@@ -213,7 +218,8 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                 # camera images are the simulator's business (the agents' tag detections are
                 # recorded): leaving them out keeps a run's file small
                 rec = procs.start("recorder", "record", "--out", str(out / "run.mcap"),
-                                  "--connect", endpoint, "--exclude", "mrslam/sim/robot/*/image")
+                                  "--connect", endpoint, "--exclude", "mrslam/sim/robot/*/image",
+                                  *live)
                 until = time.monotonic() + 30.0
                 while rec.alive() and not (out / "run.mcap").exists() and \
                         time.monotonic() < until:

@@ -23,9 +23,10 @@ log = logging.getLogger(__name__)
 
 
 def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None = None,
-        stop: threading.Event | None = None) -> dict[str, Any]:
+        stop: threading.Event | None = None, foxglove_port: int | None = None) -> dict[str, Any]:
     """Run the server until ``stop`` is set, a signal arrives, or (``exit_when_done``) the
-    exploration has finished. Returns the summary."""
+    exploration has finished. Returns the summary. ``foxglove_port``: serve the bus's Foxglove
+    channels live on that loopback port (``recording.live``)."""
     from schemas.config_loading import load_config, write_resolved
     from server.outputs import collect_outputs, write_outputs
 
@@ -56,6 +57,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     with Bus.from_config(b) as bus:   # open first: robots reconnect while the state loads
         core, journal, resumed = _resume(cfg)
         node = ServerNode(bus, cfg, core, journal, outputs)
+        live = _foxglove_live(bus, foxglove_port)
         node.start()
         log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))
         while not stop.wait(0.2):
@@ -64,11 +66,26 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
                 if node.core.finished:  # not when a merge was undone meanwhile
                     break
         node.stop()
+        if live is not None:
+            live.close()
         node.guarded("writing the last snapshot", node.snapshot)
         summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
         if out is not None:
             write_outputs(node.core, out, summary)
     return summary
+
+
+def _foxglove_live(bus: Bus, port: int | None) -> Any:
+    """The Foxglove WebSocket server fed by everything on the bus (the server's own messages
+    and the robots'), or None without a port."""
+    if port is None:
+        return None
+    from recording.live import FoxgloveLive
+    from schemas import keys
+
+    live = FoxgloveLive(port)
+    bus.subscribe_raw(keys.ALL, live.add)
+    return live
 
 
 def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
