@@ -1,0 +1,92 @@
+"""A server split over two worker processes (``server.cluster``), killed as a crash would:
+SIGKILL. Worker 1, restarted on its state folder within the timeout, takes its robots back
+with their maps; killed for good, worker 0 serves its robots after the timeout."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from bench.support.fleet import RoomRobot, ServerProcess
+from schemas import keys
+from server.cluster import _rank
+from tests.waiting import within
+
+pytestmark = pytest.mark.e2e
+
+MINE_1, MINE_0 = ("r1", "r2"), ("r7",)     # how rendezvous hashing ranks them over {0, 1}
+
+
+def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path) -> None:
+    assert all(max((0, 1), key=lambda w: _rank(r, w)) == 1 for r in MINE_1)
+    assert all(max((0, 1), key=lambda w: _rank(r, w)) == 0 for r in MINE_0)
+    (tmp_path / "w0").mkdir()
+    (tmp_path / "w1").mkdir()
+    w0 = ServerProcess(tmp_path / "w0", {"cluster": {"worker": 0}})
+    w1_config = {"cluster": {"worker": 1, "handover_timeout_s": 10.0},
+                 "bus": {"mode": "client", "listen": [], "connect": [w0.endpoint]}}
+    w1 = ServerProcess(tmp_path / "w1", w1_config)
+    watch = w0.client()
+    robots: list[RoomRobot] = []
+    owners: dict[str, set[int]] = {}
+    history: list[tuple[float, str, int, bool]] = []
+    lock = threading.Lock()
+
+    def on_owner(key: str, alive: bool) -> None:
+        parsed = keys.cluster_owner_of(key)
+        if parsed is None:
+            return
+        rid, w = parsed
+        with lock:
+            history.append((time.monotonic(), rid, w, alive))
+            (owners.setdefault(rid, set()).add if alive else
+             owners.setdefault(rid, set()).discard)(w)
+
+    def served_by(w: int, rids: tuple[str, ...]) -> bool:
+        with lock:
+            return all(owners.get(r) == {w} for r in rids)
+
+    try:
+        watch.watch_alive(keys.ALL_CLUSTER_OWNERS, on_owner)
+        seen: set[str] = set()
+        watch.watch_alive(keys.ALL_CLUSTER_WORKERS, lambda k, alive: alive and seen.add(k))
+        assert within(lambda: len(seen) == 2, 60.0)
+        time.sleep(1.0)
+        robots = [RoomRobot(w0.endpoint, r).start() for r in (*MINE_1, *MINE_0)]
+        assert within(lambda: served_by(1, MINE_1) and served_by(0, MINE_0), 30.0)
+        assert within(lambda: all(r.answered_since(time.monotonic() - 1.0) >= 5
+                                  for r in robots), 30.0)
+        time.sleep(3.0)                       # worker 1 takes a snapshot or two meanwhile
+        r1 = robots[0]
+        sent_before_kill = len(r1.sent)
+        w1.proc.kill()                        # a crash: no goodbye, no outputs written
+        w1.proc.wait()
+        t_kill = time.monotonic()
+        w1 = ServerProcess(tmp_path / "w1", w1_config)   # restarted on its state folder
+        assert within(lambda: served_by(1, MINE_1), 60.0)
+        with lock:
+            assert not any(rid in MINE_1 and w == 0 and alive and t > t_kill
+                           for t, rid, w, alive in history)   # worker 0 waited for it
+        assert within(lambda: r1.answered_since(time.monotonic() - 1.0) >= 5, 30.0)
+        time.sleep(2.0)
+        assert w1.stop() == 0
+        summary = json.loads((tmp_path / "w1" / "server" / "summary.json").read_text())
+        assert summary["resumed"]
+        scans = summary["robots"]["r1"]["scans"]
+        # the map went on from where it was: scans from before the kill are in it
+        assert scans > sent_before_kill - 20
+        # stopped for good: after the timeout, worker 0 serves its robots (afresh)
+        t_gone = time.monotonic()
+        assert within(lambda: served_by(0, MINE_1 + MINE_0), 30.0)
+        assert time.monotonic() - t_gone >= 8.0
+        assert within(lambda: r1.answered_since(time.monotonic() - 1.0) >= 5, 30.0)
+    finally:
+        for r in robots:
+            r.close()
+        watch.close()
+        for sp in (w0, w1):
+            sp.stop()
