@@ -13,23 +13,116 @@ from pathlib import Path
 from typing import Annotated, Any, NoReturn
 
 import typer
+from typer.core import TyperCommand, TyperGroup, TyperOption
 
 from mrslam import __version__
 
+
+
+class _PlainFlags:
+    """``--help`` shows no ``<bool>`` after a flag (``--help``, ``--version``, ``--merge``)
+    and no ``<int>`` after ``-v``: they take no value."""
+
+    def get_params(self, ctx: Any) -> list[Any]:
+        params: list[Any] = super().get_params(ctx)  # type: ignore[misc]
+        for p in params:
+            if isinstance(p, TyperOption) and (p.is_flag or p.count) and p.metavar is None:
+                p.metavar = ""
+        return params
+
+
+class PlainFlagsCommand(_PlainFlags, TyperCommand):
+    pass
+
+
+class PlainFlagsGroup(_PlainFlags, TyperGroup):
+    pass
+
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
+                  cls=PlainFlagsGroup,
                   help="Multi-robot active SLAM: server, robot agent, simulator and tools.")
 log = logging.getLogger("mrslam")
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file")]
-VerboseOpt = Annotated[int, typer.Option("--verbose", "-v", count=True, help="more logging")]
+VerboseOpt = Annotated[int, typer.Option(
+    "--verbose", "-v", count=True,
+    help="more logging, repeatable: -v INFO, -vv DEBUG (server, agent and sim log INFO without it)")]
 
 
-def setup_logging(verbose: int) -> None:
-    from rich.logging import RichHandler
+#: the daemons log INFO without -v; the tools WARNING
+DAEMONS = ("server", "agent", "sim")
+PLAIN_FORMAT = "%(asctime)s.%(msecs)03d %(levelname)-7s %(name)s%(robot)s: %(message)s"
+PLAIN_DATE = "%Y-%m-%d %H:%M:%S"
 
-    level = logging.WARNING - 10 * min(verbose, 2)
-    logging.basicConfig(level=level, format="%(name)s: %(message)s", datefmt="[%X]",
-                        handlers=[RichHandler(show_path=False, rich_tracebacks=False)])
+
+class RobotTag(logging.Filter):
+    """Puts `` [ID]`` into each record's ``robot`` field: the robot a line is about (a record
+    logged with ``extra={"robot_id": ...}``), else the process's own robot (an agent's)."""
+
+    def __init__(self, robot_id: str | None = None) -> None:
+        super().__init__()
+        self.robot_id = robot_id
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        rid = getattr(record, "robot_id", None) or self.robot_id
+        record.robot = f" [{rid}]" if rid else ""
+        return True
+
+
+class PlainFormatter(logging.Formatter):
+    """One dated line per line of text: a message or traceback of several lines repeats the
+    date, level and logger on each, so a log file never has a line without a date."""
+
+    def __init__(self) -> None:
+        super().__init__(PLAIN_FORMAT, PLAIN_DATE)
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        if "\n" not in text:
+            return text
+        first, *rest = text.split("\n")
+        prefix = first[:len(first) - len(record.message.split("\n", 1)[0])]
+        return "\n".join([first, *(prefix + line for line in rest if line.strip())])
+
+
+def log_level(command: str, verbose: int) -> int:
+    """The daemons: INFO, -vv DEBUG (the demo starts the server with -v). Tools: WARNING,
+    -v INFO, -vv DEBUG."""
+    if command in DAEMONS:
+        return logging.DEBUG if verbose >= 2 else logging.INFO
+    return logging.WARNING - 10 * min(verbose, 2)
+
+
+def setup_logging(verbose: int, command: str = "", robot_id: str | None = None,
+                  terminal: bool | None = None) -> RobotTag:
+    """Configure the root logger once per process: Rich on a terminal, else plain dated lines
+    that never wrap (a daemon's log file). Returns the filter that tags the process's robot.
+
+    Log lines go to standard output, as they always have (Rich's console): standard error
+    carries only the one-line failure of a command (``_fail``)."""
+    import sys
+
+    if terminal is None:
+        terminal = sys.stdout.isatty()
+    handler: logging.Handler
+    if terminal:
+        from rich.logging import RichHandler
+
+        handler = RichHandler(show_path=False, rich_tracebacks=False)
+        handler.setFormatter(logging.Formatter("%(name)s%(robot)s: %(message)s", "[%X]"))
+    else:
+        handler = logging.StreamHandler(sys.stdout)
+        handler.setFormatter(PlainFormatter())
+    tag = RobotTag(robot_id)
+    handler.addFilter(tag)
+    handler.set_name("mrslam")
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if h.get_name() == "mrslam"]:
+        root.removeHandler(old)
+    root.addHandler(handler)
+    root.setLevel(log_level(command, verbose))
+    return tag
 
 
 def _fail(text: str, code: int = 2) -> NoReturn:
@@ -115,7 +208,7 @@ def server(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
-    setup_logging(verbose)
+    setup_logging(verbose, "server")
 
     def body() -> Any:
         from server.daemon import run
@@ -135,7 +228,7 @@ def agent(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the robot agent (hardware drivers or the simulator backend)."""
-    setup_logging(verbose)
+    tag = setup_logging(verbose, "agent", robot_id)
     overrides: dict[str, Any] = {}
     if robot_id is not None:
         overrides["robot_id"] = robot_id
@@ -143,8 +236,12 @@ def agent(
         overrides["bus"] = {"connect": list(connect)}
 
     def body() -> Any:
+        from robot_agent.config import AgentConfig
         from robot_agent.runtime import run
+        from schemas.config_loading import load_config
 
+        if tag.robot_id is None:   # every line of the agent's log names its robot
+            tag.robot_id = load_config(AgentConfig, config, overrides).robot_id
         return run(config, overrides)
 
     call("agent", body)
@@ -156,7 +253,8 @@ def sim(
     scenario: Annotated[str | None, typer.Option(help="scenario, e.g. thesis-case-2")] = None,
     world: Annotated[Path | None, typer.Option(help="world file (.world/.sdf/nav2 .yaml)")] = None,
     robot: Annotated[list[str] | None, typer.Option(
-        help="robot spawn ID:X,Y,YAW (repeatable); replaces the scenario's robots")] = None,
+        help="robot spawn ID:X,Y[,YAW]: metres, yaw in radians (repeatable); replaces the "
+        "scenario's robots")] = None,
     seed: Annotated[int | None, typer.Option(help="random seed")] = None,
     lockstep: Annotated[bool | None, typer.Option(
         "--lockstep/--real-time", help="wait for every agent each step, or run in real time")
@@ -173,7 +271,7 @@ def sim(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the 2D multi-robot simulator as its own process."""
-    setup_logging(verbose)
+    setup_logging(verbose, "sim")
     if out is not None:
         check_out("sim", out)
 
@@ -213,7 +311,7 @@ def demo(
         help="scenario of scenarios.yaml (default thesis-case-2 unless --world is given)")] = None,
     world: Annotated[Path | None, typer.Option(help="world file instead of a scenario")] = None,
     robot: Annotated[list[str] | None, typer.Option(
-        help="robot spawn ID:X,Y,YAW (repeatable)")] = None,
+        help="robot spawn ID:X,Y[,YAW]: metres, yaw in radians (repeatable)")] = None,
     area: Annotated[float | None, typer.Option(
         help="area to cover [m²]: free space plus the wall faces bounding it; default: the "
         "world's")] = None,
@@ -243,7 +341,7 @@ def demo(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Start server, simulator and agents on loopback and explore a scenario or world."""
-    setup_logging(verbose)
+    setup_logging(verbose, "demo")
     if out is not None:
         check_out("demo", out)
 
@@ -318,7 +416,7 @@ def record(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Record every message under mrslam/** into an MCAP file until interrupted."""
-    setup_logging(verbose)
+    setup_logging(verbose, "record")
     check_out("record", out, folder=False)
     if compression not in ("zstd", "lz4", "none"):
         _fail(f"record: unknown compression {compression!r} (zstd, lz4 or none)")
@@ -355,7 +453,7 @@ def replay(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Publish a recording onto the bus again with its timing (e.g. to run a new server on it)."""
-    setup_logging(verbose)
+    setup_logging(verbose, "replay")
 
     def body() -> Any:
         from recording.replay import run
@@ -375,12 +473,13 @@ def merge(
     second: Annotated[Path, typer.Argument(help="second session (MCAP)")],
     out: Annotated[Path, typer.Option(help="output folder")],
     marker: Annotated[str | None, typer.Option(
-        help="pose X,Y,YAW of the second session's marker as measured in the first")] = None,
+        help="pose X,Y,YAW of the second session's marker as measured in the first: "
+        "metres, yaw in radians")] = None,
     config: ConfigOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
     """Merge the maps of two recorded sessions offline."""
-    setup_logging(verbose)
+    setup_logging(verbose, "merge")
     check_out("merge", out)
 
     def body() -> Any:
@@ -405,7 +504,7 @@ def slam_log(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run per-robot graph SLAM offline on a CARMEN laser log."""
-    setup_logging(verbose)
+    setup_logging(verbose, "slam-log")
     check_out("slam-log", out)
 
     def body() -> Any:
@@ -446,7 +545,7 @@ def lidar_dump(
     verbose: VerboseOpt = 0,
 ) -> None:
     """Print sweeps of an RPLIDAR: `stamp_ns n angle_0 range_0 ...` (rad, m, no return = inf)."""
-    setup_logging(verbose)
+    setup_logging(verbose, "lidar-dump")
 
     def body() -> Any:
         from robot_agent.lidar_dump import run
@@ -503,6 +602,11 @@ def config_defaults(
         typer.echo(text, nl=False)
 
     call("config", body)
+
+
+for _info in app.registered_commands:   # every command, including those added above
+    if _info.cls in (None, TyperCommand):
+        _info.cls = PlainFlagsCommand
 
 
 def main() -> None:
