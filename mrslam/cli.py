@@ -18,7 +18,6 @@ from typer.core import TyperCommand, TyperGroup, TyperOption
 from mrslam import __version__
 
 
-
 class _PlainFlags:
     """``--help`` shows no ``<bool>`` after a flag (``--help``, ``--version``, ``--merge``)
     and no ``<int>`` after ``-v``: they take no value."""
@@ -47,7 +46,7 @@ log = logging.getLogger("mrslam")
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML config file")]
 VerboseOpt = Annotated[int, typer.Option(
     "--verbose", "-v", count=True,
-    help="more logging, repeatable: -v INFO, -vv DEBUG (server, agent and sim log INFO without it)")]
+    help="more logging, repeatable: -v INFO, -vv DEBUG (server, agent, sim: INFO without it)")]
 
 
 #: the daemons log INFO without -v; the tools WARNING
