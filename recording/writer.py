@@ -56,7 +56,7 @@ class McapRecorder:
     """Thread-safe: Zenoh calls ``add`` from several threads."""
 
     def __init__(self, path: str | Path, compression: Compression = "zstd",
-                 foxglove_channels: bool = True, chunk_size: int = 1 << 20,
+                 foxglove_channels: bool = False, chunk_size: int = 1 << 20,
                  metadata: dict[str, str] | None = None,
                  live: FoxgloveLive | None = None) -> None:
         self.path = Path(path)

@@ -36,7 +36,7 @@ def test_recorder_process_writes_what_was_published_and_finishes_on_sigterm(
         tmp_path: Path, endpoint: str, router: Bus) -> None:
     out = tmp_path / "run.mcap"
     proc = subprocess.Popen([sys.executable, "-m", "mrslam", "record", "--out", str(out),
-                             "--connect", endpoint, "--foxglove"], cwd=ROOT,
+                             "--connect", endpoint], cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 30
