@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Prepare .venv for `make demo` / `make test` on a fresh Debian/Ubuntu machine.
 # Idempotent: reinstalls only when pyproject.toml or the requested extras change.
-#   usage: deploy/bootstrap.sh [EXTRAS]     (default: all,dev)
+#   usage: deploy/bootstrap.sh [EXTRAS]     (default: all,dev; add bench for bench/icp_compare.py)
+# The versions come from deploy/constraints.txt (those the tests ran with).
 set -euo pipefail
 extras="${1:-all,dev}"
 cd "$(dirname "$0")/.."
@@ -43,8 +44,8 @@ if [ ! -x .venv/bin/python ]; then
   fi
 fi
 
-# 3. open3d's system library
-if [[ "$extras" == *all* || "$extras" == *server* ]]; then
+# 3. open3d's system library (only the bench extra installs open3d)
+if [[ "$extras" == *bench* ]]; then
   if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
     if as_root; then
       echo "installing libusb-1.0-0 (needed by open3d)" >&2
@@ -73,11 +74,13 @@ if [[ "$extras" == *dev* ]]; then
 fi
 
 # 5. the project and its extras
-stamp=".venv/.installed-$(cat pyproject.toml <(echo "$extras") | sha1sum | cut -c1-12)"
+stamp=".venv/.installed-$(cat pyproject.toml deploy/constraints.txt <(echo "$extras") |
+  sha1sum | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   echo "installing mrslam[$extras] into .venv (first run takes a minute)" >&2
   .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[$extras]"
+  .venv/bin/python -m pip install -q --disable-pip-version-check \
+    -c deploy/constraints.txt -e ".[$extras]"
   rm -f .venv/.installed-*
   touch "$stamp"
 fi
