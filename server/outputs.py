@@ -16,12 +16,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
+from schemas import nav2map
+from schemas.se2 import wrap_angle
 from server.core import ServerCore
 from server.planning import OccupancyGrid as PlanningGrid
-from server.slam.export import FREE_PIXEL, OCCUPIED_PIXEL, UNKNOWN_PIXEL, write_ply, write_png_gray
+from server.slam.export import write_ply
 
 
 @contextmanager
@@ -41,20 +42,9 @@ def replaced(path: Path) -> Iterator[Path]:
 
 
 def write_nav2_grid(grid: PlanningGrid, out_dir: Path, name: str = "map") -> Path:
-    """nav2 map_server files (trinary PNG, +y up, and YAML) of an int8 nav2 grid."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    img = np.full(grid.data.shape, UNKNOWN_PIXEL, dtype=np.uint8)
-    img[grid.free] = FREE_PIXEL
-    img[grid.occupied] = OCCUPIED_PIXEL
-    with replaced(out_dir / f"{name}.png") as tmp:
-        write_png_gray(tmp, img[::-1])
-    meta = {"image": f"{name}.png", "mode": "trinary", "resolution": grid.resolution_m,
-            "origin": [grid.origin_xy[0], grid.origin_xy[1], 0.0], "negate": 0,
-            "occupied_thresh": 0.65, "free_thresh": 0.196}
-    path = out_dir / f"{name}.yaml"
-    with replaced(path) as tmp:
-        tmp.write_text(yaml.safe_dump(meta, sort_keys=False))
-    return path
+    """nav2 map_server files (trinary PNG and YAML, ``schemas.nav2map``) of an int8 grid."""
+    return nav2map.write(out_dir, name, grid.free, grid.occupied, grid.resolution_m,
+                         grid.origin_xy)
 
 
 def write_trajectory(path: Path, stamps_ns: Any, poses: Any) -> None:
@@ -64,6 +54,23 @@ def write_trajectory(path: Path, stamps_ns: Any, poses: Any) -> None:
         f.write("stamp_ns,x_m,y_m,theta_rad\n")
         for s, x, y, t in rows:
             f.write(f"{int(s)},{x:.5f},{y:.5f},{t:.6f}\n")
+
+
+def tum_lines(stamps_ns: Any, poses: Any) -> str:
+    """Planar poses as TUM trajectory lines, ``timestamp x y z qx qy qz qw`` (the format evo
+    reads): the stamp in seconds, z = 0, the yaw as a rotation about z."""
+    stamps = np.asarray(stamps_ns, np.int64)
+    p = np.asarray(poses, np.float64).reshape(-1, 3)
+    half = np.asarray(wrap_angle(p[:, 2])) / 2.0
+    return "".join(f"{s // 10**9}.{s % 10**9:09d} {x:.5f} {y:.5f} 0 0 0 {qz:.7f} {qw:.7f}\n"
+                   for s, x, y, qz, qw in zip(stamps.tolist(), p[:, 0], p[:, 1],
+                                              np.sin(half), np.cos(half), strict=True))
+
+
+def write_tum(path: Path, stamps_ns: Any, poses: Any) -> None:
+    """A trajectory in TUM format (``tum_lines``), e.g. for ``evo_ape tum``."""
+    with replaced(path) as tmp:
+        tmp.write_text(tum_lines(stamps_ns, poses))
 
 
 @dataclass
@@ -87,6 +94,7 @@ class Outputs:
                 write_ply(tmp, self.clouds[team_id])
         for name, (stamps, poses) in self.trajectories.items():
             write_trajectory(out_dir / "trajectories" / f"{name}.csv", stamps, poses)
+            write_tum(out_dir / "trajectories" / f"{name}.tum", stamps, poses)
         path = out_dir / "summary.json"
         with replaced(path) as tmp:
             tmp.write_text(json.dumps(self.summary, indent=2))

@@ -15,15 +15,14 @@ import cv2
 import numpy as np
 import yaml
 
+from schemas import nav2map
 from schemas.occupancy import FREE, OCCUPIED, UNKNOWN
 from sim.errors import WorldError
 from sim.world import World
 
 _SHIFT = 8  # sub-pixel bits for cv2 drawing
-# Pixel values written for each class, and thresholds that read them back the same way:
-# occupancy p = (255 - v) / 255, so 0 -> 1.0 (occupied), 254 -> 0.004 (free), 205 -> 0.196.
-_PIX_OCC, _PIX_FREE, _PIX_UNKNOWN = 0, 254, 205
-OCCUPIED_THRESH, FREE_THRESH = 0.65, 0.15
+# the thresholds our maps are written with (schemas.nav2map), also the defaults when reading
+OCCUPIED_THRESH, FREE_THRESH = nav2map.OCCUPIED_THRESH, nav2map.FREE_THRESH
 
 
 @dataclass(frozen=True)
@@ -117,22 +116,12 @@ def wall_face_area_m2(grid: OccupancyGrid) -> float:
 
 # -- nav2 map files ----------------------------------------------------------------------------
 def write_nav2(grid: OccupancyGrid, out_dir: str | Path, name: str = "map") -> Path:
-    """Write ``name.pgm``, ``name.png`` and ``name.yaml`` (trinary) into ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    img = np.full(grid.cells.shape, _PIX_UNKNOWN, np.uint8)
-    img[(grid.cells != UNKNOWN) & (grid.cells / OCCUPIED < FREE_THRESH)] = _PIX_FREE
-    img[grid.cells / OCCUPIED > OCCUPIED_THRESH] = _PIX_OCC
-    img = np.flipud(img)
-    for ext in ("pgm", "png"):
-        if not cv2.imwrite(str(out / f"{name}.{ext}"), img):
-            raise OSError(f"cannot write {out / f'{name}.{ext}'}")
-    meta = {"image": f"{name}.pgm", "mode": "trinary", "resolution": grid.resolution_m,
-            "origin": [float(grid.origin[0]), float(grid.origin[1]), 0.0], "negate": 0,
-            "occupied_thresh": OCCUPIED_THRESH, "free_thresh": FREE_THRESH}
-    target = out / f"{name}.yaml"
-    target.write_text(yaml.safe_dump(meta, sort_keys=False))
-    return target
+    """Write ``name.pgm``, ``name.png`` and ``name.yaml`` (trinary, ``schemas.nav2map``)."""
+    p = grid.cells.astype(np.float64) / OCCUPIED
+    free = (grid.cells != UNKNOWN) & (p < FREE_THRESH)
+    occupied = p > OCCUPIED_THRESH
+    return nav2map.write(out_dir, name, free, occupied, grid.resolution_m, grid.origin[:2],
+                         formats=("pgm", "png"))
 
 
 def read_nav2(yaml_path: str | Path) -> OccupancyGrid:
