@@ -18,15 +18,22 @@ def write_figures(report: dict[str, Any], out: Path, gaps: Gaps) -> list[str]:
 
     written: list[str] = []
     fig, ax = plt.subplots(figsize=(7, 4))
+    capped = False
     for team_id, team in report["teams"].items():
         h = np.asarray(team["coverage_history"], dtype=np.float64).reshape(-1, 2)
-        ax.plot(h[:, 0], 100 * h[:, 1], label=f"{team_id} ({', '.join(team['robot_ids'])})")
-    for ev in report.get("events", []):
-        if ev["kind"] == "merge":
-            ax.axvline(ev["stamp_ns"] * 1e-9, color="grey", ls=":", lw=1)
+        # the area measured can outgrow the nominal one (wall faces, a bent map): the plot
+        # stops at 100 % and says so; report.json keeps the values as measured
+        capped |= bool((h[:, 1] > 1.0).any())
+        ax.plot(h[:, 0], 100 * np.minimum(h[:, 1], 1.0),
+                label=f"{team_id} ({', '.join(team['robot_ids'])})")
+    merge_times = [ev["stamp_ns"] * 1e-9 for ev in report.get("events", [])
+                   if ev["kind"] == "merge"]
+    for i, t in enumerate(merge_times):
+        ax.axvline(t, color="grey", ls=":", lw=1, label="merge" if i == 0 else None)
     ax.axhline(100 * report["threshold"], color="k", ls="--", lw=1, label="threshold")
+    ax.set_ylim(0, 105)
     ax.set_xlabel("simulated time [s]")
-    ax.set_ylabel("coverage [%]")
+    ax.set_ylabel("coverage [%]" + (" (capped at 100)" if capped else ""))
     ax.set_title(f"{report['scenario']}: coverage")
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
@@ -58,6 +65,18 @@ def write_figures(report: dict[str, Any], out: Path, gaps: Gaps) -> list[str]:
     return written
 
 
+def _map_key(plt: Any) -> list[Any]:
+    """Legend entries for the markers and the map's shades."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    return [Line2D([], [], marker="o", ls="", color="k", mfc="white", mew=2, label="start"),
+            Line2D([], [], marker="s", ls="", color="k", label="end"),
+            Line2D([], [], marker="*", ls="", color="w", mec="k", ms=12, label="merge (meeting)"),
+            Patch(fc="white", ec="k", label="free"), Patch(fc="black", label="occupied"),
+            Patch(fc=str(0.8), ec="k", label="unknown")]
+
+
 def _maps(report: dict[str, Any], out: Path, plt: Any, gaps: Gaps) -> list[str]:
     from schemas.occupancy import FREE_BELOW, OCCUPIED_ABOVE, UNKNOWN
     from sim.errors import WorldError
@@ -81,15 +100,27 @@ def _maps(report: dict[str, Any], out: Path, plt: Any, gaps: Gaps) -> list[str]:
         extent = (x0, x0 + w * g.resolution_m, y0, y0 + h * g.resolution_m)
         fig, ax = plt.subplots(figsize=(7, 7))
         ax.imshow(img, cmap="gray", origin="lower", extent=extent, vmin=0, vmax=1)
+        meetings = [m for m in report.get("merges", []) if m.get("team_id") == team_id]
         for rid in team["robot_ids"]:
             path = out / "server" / "trajectories" / f"{rid}_final.csv"
-            if path.exists():
-                _, poses = read_trajectory(path, gaps)
-                ax.plot(poses[:, 0], poses[:, 1], lw=1, label=rid)
+            if not path.exists():
+                continue
+            stamps, poses = read_trajectory(path, gaps)
+            if not len(poses):
+                continue
+            (line,) = ax.plot(poses[:, 0], poses[:, 1], lw=1, label=rid)
+            c = line.get_color()
+            ax.plot(*poses[0, :2], "o", color=c, ms=7, mfc="white", mew=2)
+            ax.plot(*poses[-1, :2], "s", color=c, ms=6)
+            for m in meetings:
+                if rid in m.get("robots", []):
+                    k = int(np.searchsorted(stamps, m["sim_time_s"] * 1e9).clip(0, len(stamps) - 1))
+                    ax.plot(*poses[k, :2], "*", color=c, ms=13, mec="k", mew=0.6)
+        ax.legend(handles=[*ax.get_legend_handles_labels()[0], *_map_key(plt)], fontsize=8,
+                  loc="best")
         ax.set_title(f"{team_id}: map and trajectories (map frame)")
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
-        ax.legend(fontsize=8)
         fig.tight_layout()
         name = f"map_{team_id}.png"
         fig.savefig(out / name, dpi=120)

@@ -69,7 +69,7 @@ def merge_errors(merges: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
                 et, er = _transform_error(m[key], T_true)
                 row[f"{name}_error_m"] = round(et, 4)
                 row[f"{name}_error_deg"] = round(math.degrees(er), 3)
-            row["false"] = (row["joint_error_m"] > FALSE_MERGE_M
+            row["false_merge"] = (row["joint_error_m"] > FALSE_MERGE_M
                             or math.radians(row["joint_error_deg"]) > FALSE_MERGE_RAD)
         both = {a, b}
         if final and first_online and final_team and both <= own_frames.keys() \
@@ -162,6 +162,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         gaps.note(server_dir / "summary.json", "written while the server ran (its last "
                   "periodic refresh): the server did not stop cleanly")
     truth = read_truth(out / "sim" / "truth.jsonl", gaps)
+    if truth:
+        write_truth_tum(truth, out / "sim" / "trajectories")
 
     def trajectory(rid: str, kind: str) -> tuple[np.ndarray, np.ndarray]:
         return read_trajectory(server_dir / "trajectories" / f"{rid}_{kind}.csv", gaps)
@@ -273,7 +275,7 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "wall_time_s": round(wall_time_s, 2), "end": watch.get("end"),
         "sim_time_s": round(watch.get("sim_time_s", 0.0), 2),
         "merges": merges,
-        "false_merges": sum(1 for m in merges if m.get("false")),
+        "false_merges": sum(1 for m in merges if is_false_merge(m)),
         "tag_counters": summary.get("tag_counters", {}),
         # without the server's summary, the events the bus carried
         "events": summary.get("events", watch.get("events", [])),
@@ -291,6 +293,26 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     for r in robots.values():
         r.pop("_errors", None)
     return report
+
+
+def is_false_merge(row: dict[str, Any]) -> bool:
+    """A merge row's verdict; reports written before the key was named ``false_merge`` called
+    it ``"false"``."""
+    return bool(row.get("false_merge", row.get("false", False)))
+
+
+def write_truth_tum(truth: dict[str, Any], out_dir: Path) -> list[Path]:
+    """Each robot's true trajectory in TUM format (``<id>_truth.tum``), to hold the server's
+    ``trajectories/*.tum`` against with evo (docs/evo.md)."""
+    from server.outputs import write_tum
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for rid, t in sorted(truth.items()):
+        path = out_dir / f"{rid}_truth.tum"
+        write_tum(path, t["stamps_ns"], t["poses"])
+        paths.append(path)
+    return paths
 
 
 #: what the report takes from the server's summary per robot as it is

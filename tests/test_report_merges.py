@@ -4,6 +4,7 @@ committed it and as the final joint map has it, against the simulator's truth.""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -109,3 +110,66 @@ def test_first_sight_is_when_the_teams_could_first_see_each_other() -> None:
     # from x = 8 on it clears, so at t = 8 s. The third merge (at 3 s) comes before that.
     assert first_sight(merges, truth, np.zeros((0, 4))) == [1.0, None, 1.0]
     assert first_sight(merges, truth, wall) == [8.0, None, None]
+
+
+def test_a_false_merge_has_a_named_key_and_old_reports_still_read() -> None:
+    from mrslam.report import is_false_merge
+
+    own = {"a": A0, "b": B0}
+    T_true = np.array([B0[0] - A0[0], B0[1] - A0[1], B0[2]])
+    (row,) = merge_errors([_merge(T_true + np.array([1.0, 0.0, 0.0]))], own)
+    assert row["false_merge"] is True and "false" not in row and is_false_merge(row)
+    (row,) = merge_errors([_merge(T_true)], own)
+    assert row["false_merge"] is False and not is_false_merge(row)
+    assert is_false_merge({"false": True}) and not is_false_merge({})
+
+
+def test_figures_cap_coverage_label_merges_and_key_the_maps(tmp_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mrslam.figures import write_figures
+    from mrslam.run_files import Gaps
+    from server.outputs import write_trajectory
+    from sim.grid import OccupancyGrid, write_nav2
+
+    cells = np.zeros((40, 60), np.int8)
+    cells[0, :] = 100
+    write_nav2(OccupancyGrid(cells, 0.1, (0.0, 0.0, 0.0)), tmp_path / "server/maps/t1")
+    stamps = np.arange(0, 30, dtype=np.int64) * 10**8
+    for rid, y in (("a", 1.0), ("b", 3.0)):
+        poses = np.column_stack([np.linspace(0.5, 5.0, 30), np.full(30, y), np.zeros(30)])
+        (tmp_path / "server/trajectories").mkdir(parents=True, exist_ok=True)
+        write_trajectory(tmp_path / f"server/trajectories/{rid}_final.csv", stamps, poses)
+    report = {"scenario": "s", "threshold": 0.9,
+              "teams": {"t1": {"robot_ids": ["a", "b"],
+                               "coverage_history": [[0.0, 0.2], [1.0, 0.95], [2.0, 1.3]]}},
+              "events": [{"kind": "merge", "stamp_ns": 10**9}, {"kind": "merge", "stamp_ns": 2e9}],
+              "merges": [{"team_id": "t1", "robots": ["a", "b"], "sim_time_s": 1.5}],
+              "robots": {}}
+    shown: dict[str, object] = {}
+    real_savefig = plt.Figure.savefig
+
+    def keep(fig: object, fname: object, *args: object, **kw: object) -> None:
+        shown[Path(str(fname)).name] = fig
+        real_savefig(fig, fname, *args, **kw)  # type: ignore[arg-type]
+
+    plt.Figure.savefig = keep  # type: ignore[method-assign]
+    try:
+        written = write_figures(report, tmp_path, Gaps(tmp_path))
+    finally:
+        plt.Figure.savefig = real_savefig  # type: ignore[method-assign]
+    assert written == ["coverage.png", "pose_error.png", "map_t1.png"]
+    cov = shown["coverage.png"].axes[0]  # type: ignore[attr-defined]
+    assert max(max(line.get_ydata()) for line in cov.lines[:1]) == 100.0
+    assert cov.get_ylim()[1] <= 105 and "capped" in cov.get_ylabel()
+    labels = [t.get_text() for t in cov.get_legend().get_texts()]
+    assert labels.count("merge") == 1 and "threshold" in labels
+    m = shown["map_t1.png"].axes[0]  # type: ignore[attr-defined]
+    keys = [t.get_text() for t in m.get_legend().get_texts()]
+    for k in ("a", "b", "start", "end", "merge (meeting)", "free", "occupied", "unknown"):
+        assert k in keys
+    stars = [ln for ln in m.lines if ln.get_marker() == "*"]
+    assert len(stars) == 2 and stars[0].get_xydata()[0][0] > 2.5   # at 1.5 s of 3 s
