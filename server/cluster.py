@@ -279,10 +279,16 @@ class Cluster:
     # -- the worker's periodic check -------------------------------------------------------
     def tick(self) -> list[str]:
         """Tokens of given robots go once their grace is over; returns the robots this worker
-        must drop: claimed by a lower-numbered worker too for longer than the timeout."""
+        must drop: claimed by a lower-numbered worker too for longer than the timeout, or
+        resumed from its state but served by another worker meanwhile."""
         now = time.monotonic()
         drop: list[str] = []
         with self._lock:
+            for rid in list(self.resumed):
+                if rid not in self.mine and self.owners.get(rid):
+                    self.resumed.discard(rid)
+                    drop.append(rid)
+                    self.counters["resumed_but_taken"] += 1
             for rid, until in list(self.released.items()):
                 if now >= until:
                     del self.released[rid]

@@ -349,12 +349,12 @@ class ServerNode:
                                     if it[2].stamp_ns > last])
 
     def _drop(self, rid: str) -> None:
-        """Another worker (a lower number) serves ``rid`` too: it keeps it, this one lets
-        the robot's team go."""
+        """Another worker serves ``rid`` (too): it keeps it, this one lets the robot's team
+        go."""
         parcel = handover.release(self.core, rid)
         if parcel is not None and self.journal is not None:
             self.journal.gave(parcel.robot_ids, self.clock.now_ns())
-        log.warning("robot %s left to a lower-numbered worker that serves it too", rid)
+        log.warning("robot %s left to the other worker that serves it", rid)
 
     def _planner_now(self) -> ProcessPoolExecutor | None:
         """The processes replanning runs in (started at the first need), or None: in lockstep
