@@ -56,6 +56,7 @@ class FrameTree:
     T_team_odom: dict[str, F64] = field(default_factory=dict)      # robot -> correction
     odom: dict[str, deque[tuple[int, F64]]] = field(default_factory=dict)  # robot -> history
     links: dict[str, tuple[str, F64]] = field(default_factory=dict)  # joined team -> (team, T)
+    link_stamp_ns: dict[str, int] = field(default_factory=dict)  # joined team -> merge stamp
     trajectories: dict[str, list[F64]] = field(default_factory=dict)  # robot -> poses
     trajectory_frame: dict[str, str] = field(default_factory=dict)   # robot -> their team
     last_stamp_ns: dict[str, int] = field(default_factory=dict)    # robot -> last scan stamp
@@ -89,6 +90,7 @@ class FrameTree:
             joined = self._joined_team(ev)
             if joined and joined != ev.team_id and not self._under(ev.team_id, joined):
                 self.links[joined] = (ev.team_id, np.asarray(ev.transform, dtype=np.float64))
+                self.link_stamp_ns[joined] = ev.stamp_ns
                 for rid, team in list(self.trajectory_frame.items()):
                     if team == joined:
                         self._move_trajectory(rid, ev.team_id)
@@ -98,9 +100,9 @@ class FrameTree:
 
     # -- what is drawn ------------------------------------------------------------------------
     def transforms(self, stamp_ns: int) -> list[Transform]:
-        """Every transform known now: team links and corrections at ``stamp_ns``, each robot's
-        odometry at its own latest scan."""
-        out = [Transform(parent, child, _pose(T), stamp_ns)
+        """Every transform known now: team links at their merge's stamp (they hold from then
+        on), corrections at ``stamp_ns``, each robot's odometry at its own latest scan."""
+        out = [Transform(parent, child, _pose(T), self.link_stamp_ns.get(child, stamp_ns))
                for child, (parent, T) in sorted(self.links.items())]
         for rid in sorted(self.odom):
             team, T = self.team_of.get(rid), self.T_team_odom.get(rid)

@@ -113,16 +113,28 @@ def check_foxglove(path: Path) -> dict[str, Any]:
         1 for rid, times in scan_times.items() for t in times
         if not any(tr.child_frame_id == rid for msg in tf_at.get(t, []) for tr in msg.transforms))
 
-    # roots of every frame drawn, per tree message after the last merge, and at the end
-    def roots_of(msg: Any) -> set[str]:
-        parent_of = {tr.child_frame_id: tr.parent_frame_id for tr in msg.transforms}
-        return _roots(parent_of, set(parent_of) | set(drawn_frames.values()))
+    # roots of every frame drawn after the last merge: Foxglove keeps each frame's latest
+    # transform across messages, so the tree at a message is all transforms up to it
+    parent_of: dict[str, str] = {}
+    after_merge: list[set[str]] = []
+    lagging = 0   # single tree messages without the link (made before the merge arrived)
+    for t, msg in tf_msgs:
+        own = {tr.child_frame_id: tr.parent_frame_id for tr in msg.transforms}
+        parent_of.update(own)
+        if merges and t > merges[-1]:
+            frames = set(parent_of) | set(drawn_frames.values())
+            after_merge.append(_roots(parent_of, frames))
+            lagging += len(_roots(own, set(own) | set(drawn_frames.values()))) > 1
 
-    after_merge = [roots_of(msg) for t, msg in tf_msgs if merges and t >= merges[-1]]
+    def roots_of(msg: Any) -> set[str]:
+        own = {tr.child_frame_id: tr.parent_frame_id for tr in msg.transforms}
+        return _roots(own, set(own) | set(drawn_frames.values()))
+
     return {"messages": dict(per_schema), "scans": len(fox_scans),
             "no_return_beams": no_return, "no_return_drawn_as_points": drawn_as_points,
             "scans_without_transform": scans_without_tf, "merges": len(merges),
             "tree_messages_after_last_merge": len(after_merge),
+            "single_tree_messages_without_the_link": lagging,
             "max_roots_after_last_merge": max((len(r) for r in after_merge), default=0),
             "roots_at_end": sorted(roots_of(tf_msgs[-1][1])) if tf_msgs else []}
 
