@@ -497,21 +497,57 @@ def merge(
 
 @app.command("slam-log")
 def slam_log(
-    log_file: Annotated[Path, typer.Argument(help="CARMEN log (.clf/.log, optionally .gz/.bz2)")],
+    log_file: Annotated[Path, typer.Argument(
+        help="CARMEN log (.clf/.log, optionally .gz/.bz2), ROS 1 bag (.bag) or ROS 2 bag "
+        "folder: a LaserScan topic with odometry (an Odometry topic or /tf)")],
     out: Annotated[Path, typer.Option(help="output folder")],
+    scan_topic: Annotated[str | None, typer.Option(
+        help="a bag's LaserScan topic (default: the only one, or the one with most messages)")
+    ] = None,
+    odom_topic: Annotated[str | None, typer.Option(
+        help="a bag's Odometry topic (default: the only one; without one, /tf)")] = None,
     config: ConfigOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
-    """Run per-robot graph SLAM offline on a CARMEN laser log."""
+    """Run per-robot graph SLAM offline on a CARMEN laser log or a ROS bag."""
     setup_logging(verbose, "slam-log")
     check_out("slam-log", out)
 
     def body() -> Any:
         from server.slam_log import run
 
-        return run(log_file, out, config)
+        return run(log_file, out, config, scan_topic, odom_topic)
 
     call("slam-log", body)
+
+
+@app.command("export")
+def export(
+    source: Annotated[Path, typer.Argument(
+        help="a recording (run.mcap) or a CARMEN log (.clf/.log, optionally .gz/.bz2)")],
+    ros2: Annotated[Path, typer.Option(
+        "--ros2", help="ROS 2 bag folder to write (rosbag2, MCAP storage; must not exist)")],
+    verbose: VerboseOpt = 0,
+) -> None:
+    """Write a recording or a CARMEN log as a ROS 2 bag: LaserScan, OccupancyGrid, TF, Path
+    (docs/ros2.md)."""
+    setup_logging(verbose, "export")
+    if ros2.exists():
+        _fail(f"export: --ros2 {ros2}: exists already; give a new folder")
+    check_out("export", ros2.parent)
+
+    def body() -> Any:
+        from mrslam import ros2 as bags
+
+        if source.suffix == ".mcap":
+            summary = bags.export_recording(source, ros2)
+        else:
+            summary = bags.export_carmen(source, ros2)
+        typer.echo(f"wrote {summary['messages']} messages on {len(summary['topics'])} topics "
+                   f"into {ros2}", err=True)
+        return summary
+
+    call("export", body)
 
 
 @app.command("eval-relations")

@@ -1,4 +1,5 @@
-"""``mrslam slam-log``: the robot SLAM of the server run offline on a CARMEN log.
+"""``mrslam slam-log``: the robot SLAM of the server run offline on a CARMEN log or a ROS bag
+(a ``sensor_msgs/LaserScan`` topic with odometry: ``server.logs.rosbag``).
 
 Writes into the output folder: ``poses.txt`` (``timestamp x y theta`` per laser scan: the
 log's ipc timestamp as written, and the laser pose in the map frame after the final
@@ -20,6 +21,7 @@ import numpy as np
 
 from schemas.config import ConfigModel
 from server.logs import (
+    CarmenError,
     CarmenLog,
     OdometryScan,
     attach_odometry,
@@ -42,7 +44,7 @@ class SlamLogConfig(ConfigModel):
     slam: SlamConfig = SlamConfig()
 
 
-def _laser_offset(clog: CarmenLog, laser: str) -> float:
+def laser_offset(clog: CarmenLog, laser: str) -> float:
     """Laser position ahead of the robot [m] (PARAM robot_<front|rear>laser_offset)."""
     raw = clog.params.get(f"robot_{laser}laser_offset", "0")
     try:
@@ -92,21 +94,38 @@ def _log_stamp_plan(plan: StampPlan, scans: list[OdometryScan]) -> None:
                     scans[i].record.line_no, shift)
 
 
-def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, object]:
-    """Run SLAM on ``log_file`` and write the results into ``out``; returns the summary."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+def _read(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None,
+          odom_topic: str | None) -> tuple[CarmenLog, list[OdometryScan], str, str]:
+    """The log's records, its scans with odometry, the laser and the odometry source."""
+    from server.logs.rosbag import is_bag, read_bag
 
-    from schemas.config_loading import load_config, write_resolved
-
-    t0 = time.perf_counter()
-    cfg = load_config(SlamLogConfig, config)
+    if is_bag(log_file):
+        blog, source = read_bag(log_file, scan_topic, odom_topic)
+        return blog, [OdometryScan(r, r.laser_pose) for r in blog.lasers
+                      if r.laser_pose is not None], "LaserScan", source
+    if scan_topic or odom_topic:
+        raise CarmenError(f"{log_file}: --scan-topic and --odom-topic are for ROS bags")
     clog = read_log(log_file)
     if clog.stats.skipped_total:
         log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
                     clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])
     lasers = select_stream(clog, cfg.laser)
     source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
-    scans = attach_odometry(lasers, clog.odometry, _laser_offset(clog, cfg.laser), source)
+    scans = attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser), source)
+    return clog, scans, lasers[0].kind, source
+
+
+def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str | None = None,
+        odom_topic: str | None = None) -> dict[str, object]:
+    """Run SLAM on ``log_file`` (a CARMEN log or a ROS bag) and write the results into
+    ``out``; returns the summary."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from schemas.config_loading import load_config, write_resolved
+
+    t0 = time.perf_counter()
+    cfg = load_config(SlamLogConfig, config)
+    clog, scans, laser, source = _read(Path(log_file), cfg, scan_topic, odom_topic)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)
@@ -128,7 +147,7 @@ def run(log_file: Path, out: Path, config: Path | None = None) -> dict[str, obje
     duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
     summary: dict[str, object] = {
         "log": str(log_file),
-        "laser": lasers[0].kind,
+        "laser": laser,
         "odometry_source": source,
         "scans": len(stamps),
         "scans_rejected": rejected,

@@ -36,7 +36,7 @@ def select_stream(log_: CarmenLog, laser: str = "front") -> list[LaserRecord]:
     raise CarmenError(f"no {laser} laser scans in the log (found: {dict(present)})")
 
 
-def _interpolate(stamps: F64, poses: F64, t: float) -> F64:
+def interpolate_pose(stamps: F64, poses: F64, t: float) -> F64:
     """Odometry pose at time t: linear in x, y and along the shortest arc in θ; clamped to the
     first/last pose outside the recorded span."""
     j = int(np.searchsorted(stamps, t))
@@ -108,7 +108,7 @@ def attach_odometry(scans: list[LaserRecord], odometry: list[OdometryRecord],
             continue
         if len(stamps) == 0:
             raise CarmenError("laser lines carry no pose and the log has no ODOM lines")
-        robot = _interpolate(stamps, poses, rec.stamp_s)
+        robot = interpolate_pose(stamps, poses, rec.stamp_s)
         c, s = math.cos(robot[2]), math.sin(robot[2])
         laser = np.array([robot[0] + c * laser_offset_x_m, robot[1] + s * laser_offset_x_m,
                           robot[2]])
