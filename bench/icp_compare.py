@@ -8,6 +8,8 @@ radius; it has no odometry prior, so along featureless corridors it slides where
 the odometry.
 
     .venv/bin/python bench/icp_compare.py [--logs aces fr079 mit-csail] [--scans N]
+
+Needs the ``bench`` extra (open3d): ``deploy/bootstrap.sh all,dev,bench``.
 """
 
 from __future__ import annotations
@@ -39,7 +41,11 @@ O3D_RADIUS_M = 0.3
 
 def make_open3d_icp() -> tuple[Any, float]:
     t0 = time.perf_counter()
-    import open3d as o3d
+    try:
+        import open3d as o3d
+    except ImportError:
+        sys.exit("icp_compare: open3d is not installed; it is the bench extra: "
+                 "pip install -e '.[bench]' (or deploy/bootstrap.sh all,dev,bench)")
 
     import_s = time.perf_counter() - t0
     reg = o3d.pipelines.registration
