@@ -2,7 +2,8 @@
 
 The wheel is built from a copy of the sources, installed with ``[all]`` into a new environment
 outside the repository, and the demo is run from an empty folder with no ``../shared`` beside
-it. This takes a few minutes (most of it installing open3d), so it carries its own timeout.
+it. This takes a few minutes (installing gtsam, OpenCV and their kin), so it carries its own
+timeout.
 """
 
 from __future__ import annotations
