@@ -54,6 +54,11 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         return write
 
     b = cfg.bus
+    if cfg.cluster.worker is not None and b.mode == "client" and b.connect_timeout_ms is None:
+        # a worker started before its router waits for it (as systemd may start them)
+        log.info("worker %d: waiting for the router at %s", cfg.cluster.worker,
+                 ", ".join(b.connect))
+        b = b.model_copy(update={"connect_timeout_ms": -1})
     with Bus.from_config(b) as bus:   # open first: robots reconnect while the state loads
         core, journal, resumed = _resume(cfg)
         node = ServerNode(bus, cfg, core, journal, outputs)

@@ -1,6 +1,7 @@
 """A server split over two worker processes (``server.cluster``), killed as a crash would:
-SIGKILL. Worker 1, restarted on its state folder within the timeout, takes its robots back
-with their maps; killed for good, worker 0 serves its robots after the timeout."""
+SIGKILL. Worker 1, started before its router, waits for it; restarted on its state folder
+within the timeout, it takes its robots back with their maps; stopped for good, worker 0
+serves its robots after the timeout."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import pytest
 
 from bench.support.fleet import RoomRobot, ServerProcess
 from schemas import keys
+from schemas.bus import free_local_endpoint
 from server.cluster import _rank
 from tests.waiting import within
 
@@ -26,10 +28,15 @@ def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path
     assert all(max((0, 1), key=lambda w: _rank(r, w)) == 0 for r in MINE_0)
     (tmp_path / "w0").mkdir()
     (tmp_path / "w1").mkdir()
-    w0 = ServerProcess(tmp_path / "w0", {"cluster": {"worker": 0}})
+    endpoint = free_local_endpoint()
     w1_config = {"cluster": {"worker": 1, "handover_timeout_s": 10.0},
-                 "bus": {"mode": "client", "listen": [], "connect": [w0.endpoint]}}
+                 "bus": {"mode": "client", "listen": [], "connect": [endpoint]}}
+    # worker 1 first: it waits for its router (worker 0) to come up
     w1 = ServerProcess(tmp_path / "w1", w1_config)
+    time.sleep(2.0)
+    assert w1.proc.poll() is None
+    w0 = ServerProcess(tmp_path / "w0", {"cluster": {"worker": 0}, "bus": {"listen": [endpoint]}})
+    w0.endpoint = endpoint
     watch = w0.client()
     robots: list[RoomRobot] = []
     owners: dict[str, set[int]] = {}
