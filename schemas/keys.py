@@ -68,6 +68,11 @@ def cluster_owner(robot_id: str, index: int) -> str:
     return f"{ROOT}/cluster/owner/{_rid(robot_id)}/{int(index)}"
 
 
+def cluster_leaving(index: int) -> str:
+    """Liveliness token: worker ``index`` is stopping and hands its teams on."""
+    return f"{ROOT}/cluster/leaving/{int(index)}"
+
+
 def cluster_give(index: int) -> str:
     """Worker ``index``'s queryable that hands a team over to the worker asking."""
     return f"{ROOT}/cluster/give/{int(index)}"
@@ -75,6 +80,7 @@ def cluster_give(index: int) -> str:
 
 ALL_CLUSTER_WORKERS = f"{ROOT}/cluster/worker/*"
 ALL_CLUSTER_OWNERS = f"{ROOT}/cluster/owner/*/*"
+ALL_CLUSTER_LEAVING = f"{ROOT}/cluster/leaving/*"
 
 
 def cluster_owner_of(key: str) -> tuple[str, int] | None:

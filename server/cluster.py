@@ -14,7 +14,8 @@ in one worker — its joint graph with it.
   ``handover_timeout_s`` for it (restarted on its state, it takes them back with their maps)
   before another worker serves them afresh. Two workers that claim the same robot for
   longer than ``handover_timeout_s`` (their views of the live workers differed) leave it to
-  the lower number.
+  the lower number. A worker stopping on purpose (SIGTERM) first hands its teams, maps and
+  all, to the lowest-numbered worker that stays, which asks for them one by one.
 - **Teams move.** When robots of two workers see each other's tags, the lower-numbered worker
   takes the other robot's whole team: it claims the robot in advance, holds its messages, and
   asks the owner through its queryable ``mrslam/cluster/give/<N>``. The owner takes the team
@@ -95,10 +96,13 @@ class Cluster:
         #: robots this worker served before it restarted (in the state it resumed)
         self.resumed: set[str] = set()
         self.counters: Counter[str] = Counter()
+        self.leaving: set[int] = set()            # workers stopping on purpose
+        self._leaving_token: Any = None
 
     def start(self) -> None:
         self.bus.watch_alive(keys.ALL_CLUSTER_WORKERS, self._on_worker)
         self.bus.watch_alive(keys.ALL_CLUSTER_OWNERS, self._on_owner)
+        self.bus.watch_alive(keys.ALL_CLUSTER_LEAVING, self._on_leaving)
         self.bus.serve_queries(keys.cluster_give(self.index), self._on_query)
         self.bus.declare_alive(keys.cluster_worker(self.index))
 
@@ -113,6 +117,27 @@ class Cluster:
             else:
                 self.workers.discard(w)
         log.info("server worker %d %s", w, "is up" if alive else "went away")
+
+    def _on_leaving(self, key: str, alive: bool) -> None:
+        w = keys.cluster_worker_of(key.replace("/cluster/leaving/", "/cluster/worker/"))
+        if w is None:
+            return
+        with self._lock:
+            if alive:
+                self.leaving.add(w)
+            else:
+                self.leaving.discard(w)
+
+    def leave(self) -> bool:
+        """This worker is stopping on purpose: the lowest-numbered other live worker takes
+        its teams, with their maps (it asks for them one by one, ``tick``). False: there is
+        no other worker to take them."""
+        with self._lock:
+            others = self.workers - {self.index} - self.leaving
+        if not others:
+            return False
+        self._leaving_token = self.bus.declare_token(keys.cluster_leaving(self.index))
+        return True
 
     def _on_owner(self, key: str, alive: bool) -> None:
         parsed = keys.cluster_owner_of(key)
@@ -306,7 +331,28 @@ class Cluster:
                     self.bus.undeclare(self.mine.pop(rid))
                     drop.append(rid)
                     self.counters["conflicts_lost"] += 1
+            take = self._from_leavers()
+        if take is not None:
+            self.pull(*take)
         return drop
+
+    def _from_leavers(self) -> tuple[str, int] | None:
+        """(holding the lock) The next robot to ask a leaving worker for, if this worker is
+        the one that takes its teams (the lowest-numbered that stays): one at a time, so a
+        team comes whole and once."""
+        if not self.leaving or self.index in self.leaving:
+            return None
+        staying = (self.workers | {self.index}) - self.leaving
+        if min(staying) != self.index:
+            return None
+        for rid, held in self.owners.items():
+            if rid in self.pulling and held & self.leaving:
+                return None          # a team from a leaver is on its way
+        for rid, held in sorted(self.owners.items()):
+            if held and held <= self.leaving and rid not in self.mine:
+                self.counters["taken_from_leaving"] += 1
+                return rid, min(held)
+        return None
 
     def summary(self) -> dict[str, Any]:
         with self._lock:

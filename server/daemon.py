@@ -70,6 +70,8 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
                 time.sleep(0.5)  # let the last commands and events go out
                 if node.core.finished:  # not when a merge was undone meanwhile
                     break
+        if stop.is_set():   # stopped on purpose: another worker takes the teams on
+            node.leave(cfg.cluster.handover_timeout_s)
         node.stop()
         if live is not None:
             live.close()

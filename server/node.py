@@ -400,6 +400,21 @@ class ServerNode:
             self._errlog.log(logging.ERROR, f"{what}:{type(e).__name__}", "%s failed: %s",
                              what, e)
 
+    def leave(self, timeout_s: float) -> list[str]:
+        """A worker stopping on purpose hands its teams on (``Cluster.leave``): waits until
+        it serves no robot, or ``timeout_s``; returns the robots it still served."""
+        if self.cluster is None or not self.cluster.leave():
+            return []
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = self.cluster.summary()["robots_served"]
+            if not left or time.monotonic() >= deadline:
+                break
+            time.sleep(0.1)
+        log.info("worker %d handed its teams on%s", self.cluster.index,
+                 f"; still served here: {', '.join(left)}" if left else "")
+        return list(left)
+
     def stop(self) -> None:
         self._stop.set()
         if self._worker.is_alive():

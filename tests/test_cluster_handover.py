@@ -325,3 +325,43 @@ def test_a_vanished_workers_robots_wait_for_it_then_go_to_another(tmp_path: Path
             for n in (w0, w1):
                 n.stop()
                 n.bus.close()
+
+
+@pytest.mark.e2e
+def test_a_worker_stopping_on_purpose_hands_its_teams_on_with_their_maps(
+        tmp_path: Path) -> None:
+    from bench.support.fleet import RoomRobot
+    endpoint = free_local_endpoint()
+
+    def node(w: int) -> ServerNode:
+        cfg = ServerConfig.model_validate({"cluster": {"worker": w},
+                                           "bus": {"connect": [endpoint]}})
+        n = ServerNode(Bus.open("client", connect=[endpoint]), cfg)
+        n.start()
+        return n
+
+    def served(n: ServerNode) -> list[str]:
+        assert n.cluster is not None
+        return n.cluster.summary()["robots_served"]
+
+    with Bus.open("router", listen=[endpoint]):
+        w0, w1 = node(0), node(1)
+        robots: list[RoomRobot] = []
+        try:
+            assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0, 1}, 10)
+            robots = [RoomRobot(endpoint, r).start() for r in ("r1", "r2")]   # worker 1's
+            assert within(lambda: served(w1) == ["r1", "r2"] and all(
+                r in w1.core.robots and w1.core.robots[r].scans > 30 for r in ("r1", "r2")), 20)
+            scans = w1.core.robots["r1"].scans
+            t0 = time.monotonic()
+            assert w1.leave(10.0) == []
+            assert time.monotonic() - t0 < 5.0
+            assert served(w0) == ["r1", "r2"]
+            assert within(lambda: w0.core.robots["r1"].scans > scans, 5.0)   # its map, on
+            assert w0.cluster is not None and w0.cluster.counters["adopted"] == 2
+        finally:
+            for r in robots:
+                r.close()
+            for n in (w0, w1):
+                n.stop()
+                n.bus.close()
