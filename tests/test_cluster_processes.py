@@ -1,7 +1,8 @@
-"""A server split over two worker processes (``server.cluster``), killed as a crash would:
-SIGKILL. Worker 1, started before its router, waits for it; restarted on its state folder
-within the timeout, it takes its robots back with their maps; stopped for good, worker 0
-serves its robots after the timeout."""
+"""A server split over two worker processes (``server.cluster``). Worker 1, started before
+its router, waits for it. Killed with SIGKILL and restarted on its state folder within the
+timeout, it takes its robots back with their maps (worker 0 waits for it); stopped on purpose,
+it hands its teams to worker 0, maps and all; killed for good, worker 0 serves its robots
+after the timeout, afresh."""
 
 from __future__ import annotations
 
@@ -21,10 +22,11 @@ from tests.waiting import within
 pytestmark = pytest.mark.e2e
 
 MINE_1, MINE_0 = ("r1", "r2"), ("r7",)     # how rendezvous hashing ranks them over {0, 1}
+# (r3 ranks for worker 1 too)
 
 
 def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path) -> None:
-    assert all(max((0, 1), key=lambda w: _rank(r, w)) == 1 for r in MINE_1)
+    assert all(max((0, 1), key=lambda w: _rank(r, w)) == 1 for r in (*MINE_1, "r3"))
     assert all(max((0, 1), key=lambda w: _rank(r, w)) == 0 for r in MINE_0)
     (tmp_path / "w0").mkdir()
     (tmp_path / "w1").mkdir()
@@ -60,7 +62,8 @@ def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path
     try:
         watch.watch_alive(keys.ALL_CLUSTER_OWNERS, on_owner)
         seen: set[str] = set()
-        watch.watch_alive(keys.ALL_CLUSTER_WORKERS, lambda k, alive: alive and seen.add(k))
+        watch.watch_alive(keys.ALL_CLUSTER_WORKERS,
+                          lambda k, alive: seen.add(k) if alive else seen.discard(k))
         assert within(lambda: len(seen) == 2, 60.0)
         time.sleep(1.0)
         robots = [RoomRobot(w0.endpoint, r).start() for r in (*MINE_1, *MINE_0)]
@@ -80,17 +83,33 @@ def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path
                            for t, rid, w, alive in history)   # worker 0 waited for it
         assert within(lambda: r1.answered_since(time.monotonic() - 1.0) >= 5, 30.0)
         time.sleep(2.0)
+        # stopped on purpose: it hands its teams to worker 0 at once, maps and all
+        t_stop = time.monotonic()
         assert w1.stop() == 0
+        assert served_by(0, MINE_1 + MINE_0) and time.monotonic() - t_stop < 10.0
         summary = json.loads((tmp_path / "w1" / "server" / "summary.json").read_text())
-        assert summary["resumed"]
-        scans = summary["robots"]["r1"]["scans"]
-        # the map went on from where it was: scans from before the kill are in it
-        assert scans > sent_before_kill - 20
-        # stopped for good: after the timeout, worker 0 serves its robots (afresh)
-        t_gone = time.monotonic()
-        assert within(lambda: served_by(0, MINE_1 + MINE_0), 30.0)
-        assert time.monotonic() - t_gone >= 8.0
+        assert summary["resumed"] and summary["cluster"]["given"] == len(MINE_1)
         assert within(lambda: r1.answered_since(time.monotonic() - 1.0) >= 5, 30.0)
+        # killed for good: a new worker 1 serves a new robot; killed, worker 0 serves that
+        # robot after the timeout (afresh)
+        (tmp_path / "w1b").mkdir()
+        assert within(lambda: len(seen) == 1, 10.0)
+        w1 = ServerProcess(tmp_path / "w1b", w1_config)
+        assert within(lambda: len(seen) == 2, 60.0)
+        time.sleep(2.0)
+        robots.append(RoomRobot(w0.endpoint, "r3").start())
+        assert within(lambda: served_by(1, ("r3",)), 30.0)
+        w1.proc.kill()
+        w1.proc.wait()
+        t_gone = time.monotonic()
+        assert within(lambda: served_by(0, ("r3",)), 30.0)
+        assert time.monotonic() - t_gone >= 8.0
+        assert within(lambda: robots[-1].answered_since(time.monotonic() - 1.0) >= 5, 30.0)
+        assert w0.stop() == 0
+        summary = json.loads((tmp_path / "w0" / "server" / "summary.json").read_text())
+        # r1's map went on from before the kill, through worker 1's restart, into worker 0
+        assert summary["robots"]["r1"]["scans"] > sent_before_kill - 20
+        assert summary["cluster"]["adopted"] == len(MINE_1)
     finally:
         for r in robots:
             r.close()
