@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.support.fleet import RoomRobot
 from robot_agent.aruco import TagDetector
 from schemas import Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
@@ -19,6 +20,7 @@ from schemas.messages import quantise_ranges_mm
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server import handover
+from server.cluster import _rank
 from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter, replay
@@ -35,6 +37,7 @@ def worker_config(index: int) -> ServerConfig:
 
 def step_messages(sim: Simulator, detector: TagDetector, obs) -> tuple[dict[str, Scan],  # type: ignore[no-untyped-def]
                                                                         list[TagDetections]]:
+    """A simulated step's scans (by robot) and tag messages, as agents would send them."""
     lidar = sim.p.lidar
     scans = {rid: Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
                        odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
@@ -43,7 +46,7 @@ def step_messages(sim: Simulator, detector: TagDetector, obs) -> tuple[dict[str,
                        range_max_mm=round(lidar.range_max_m * 1000),
                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
                                                     lidar.range_max_m))
-             for rid in SPAWN}
+             for rid in sim.robots}
     tags = []
     for rid, frame in obs.frames.items():
         found = detector.detect(frame.image, sim.p.camera.camera.K, rid)
@@ -183,7 +186,6 @@ class Robots:
 
 @pytest.mark.e2e
 def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
-    from server.cluster import _rank
     assert [max((0, 1), key=lambda w: _rank(r, w)) for r in BUS_SPAWN] == [1, 0]
     endpoint = free_local_endpoint()
     base = {**config(("r1", "r7")).model_dump(), "clock": {"source": "stamps"}}
@@ -202,19 +204,12 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
         assert within(lambda: all(n.cluster is not None and n.cluster.workers == {0, 1}
                                   for n in nodes.values()), 10.0)
         unanswered = 0
-        lidar = sim.p.lidar
         try:
             for _ in range(200):
                 obs = sim.sense()
-                for rid in BUS_SPAWN:
-                    robot_bus.publish(keys.robot_scan(rid), Scan(
-                        robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
-                        odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
-                        angle_increment_rad=lidar.angle_increment_rad,
-                        range_min_mm=round(lidar.range_min_m * 1000),
-                        range_max_mm=round(lidar.range_max_m * 1000),
-                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
-                                                     lidar.range_max_m)), block=True)
+                scans, tags = step_messages(sim, detector, obs)
+                for rid, scan in scans.items():
+                    robot_bus.publish(keys.robot_scan(rid), scan, block=True)
                 stamp = obs.stamp_ns
                 if not within(lambda s=stamp: all(s in robots.cmds[r] for r in BUS_SPAWN), 5.0):
                     unanswered += 1
@@ -222,17 +217,8 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
                     cmd = robots.cmds[rid].get(stamp)
                     if cmd is not None:
                         sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
-                for rid, frame in obs.frames.items():
-                    found = detector.detect(frame.image, sim.p.camera.camera.K, rid)
-                    dets = [TagDetection(
-                        tag_id=s.tag_id, observed_robot_id=s.robot_id, range_m=s.range_m,
-                        bearing_rad=s.bearing_rad, yaw_rad=s.yaw_rad,
-                        sigma_range_m=s.sigma_range_m, sigma_bearing_rad=s.sigma_bearing_rad,
-                        sigma_yaw_rad=s.sigma_yaw_rad) for s in found.sightings]
-                    if dets:
-                        robot_bus.publish(keys.robot_tags(rid), TagDetections(
-                            robot_id=rid, seq=obs.step + 1, stamp_ns=stamp, detections=dets),
-                            block=True)
+                for msg in tags:
+                    robot_bus.publish(keys.robot_tags(msg.robot_id), msg, block=True)
                 sim.advance()
             merged = within(lambda: len(nodes[0].core.merges) == 1, 10.0)
         finally:
@@ -265,37 +251,49 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
     assert len(again.merges) == 0
 
 
+def worker_node(endpoint: str, w: int, journal: Path | None = None,
+                core: ServerCore | None = None, first: int = 0, **cluster: float) -> ServerNode:
+    """Worker ``w`` as a started node on its own client session (journaled in ``journal``)."""
+    cfg = ServerConfig.model_validate({"cluster": {"worker": w, **cluster},
+                                       "bus": {"connect": [endpoint]}})
+    n = ServerNode(Bus.open("client", connect=[endpoint]), cfg, core=core,
+                   journal=None if journal is None else JournalWriter(journal,
+                                                                      first_sequence=first))
+    n.start()
+    return n
+
+
+def served(n: ServerNode) -> list[str]:
+    assert n.cluster is not None
+    return n.cluster.summary()["robots_served"]
+
+
+def two_workers_serving(endpoint: str, w0: ServerNode, w1: ServerNode, scans: int
+                        ) -> list[RoomRobot]:
+    """Robots r1 and r2 (both ranked for worker 1) streaming, once worker 1 serves them and
+    has mapped ``scans`` of each."""
+    assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0, 1}, 10)
+    robots = [RoomRobot(endpoint, r).start() for r in ("r1", "r2")]
+    assert within(lambda: served(w1) == ["r1", "r2"] and all(
+        r in w1.core.robots and w1.core.robots[r].scans > scans for r in ("r1", "r2")), 20.0)
+    return robots
+
+
 @pytest.mark.e2e
 def test_a_vanished_workers_robots_wait_for_it_then_go_to_another(tmp_path: Path) -> None:
     """Worker 1 dies: its robots are not taken at once; restarted on its journal within the
     timeout, it serves them again with their maps. Dead for longer, worker 0 takes them."""
-    from bench.support.fleet import RoomRobot
-    from server.cluster import _rank
     assert all(max((0, 1), key=lambda w: _rank(r, w)) == 1 for r in ("r1", "r2"))
     endpoint = free_local_endpoint()
 
     def node(w: int, core: ServerCore | None = None, first: int = 0) -> ServerNode:
-        cfg = ServerConfig.model_validate({
-            "cluster": {"worker": w, "handover_timeout_s": 3.0},
-            "bus": {"connect": [endpoint]}})
-        n = ServerNode(Bus.open("client", connect=[endpoint]), cfg, core=core,
-                       journal=JournalWriter(tmp_path / f"w{w}", first_sequence=first))
-        n.start()
-        return n
-
-    def served(n: ServerNode) -> list[str]:
-        assert n.cluster is not None
-        return n.cluster.summary()["robots_served"]
+        return worker_node(endpoint, w, tmp_path / f"w{w}", core, first, handover_timeout_s=3.0)
 
     with Bus.open("router", listen=[endpoint]):
         w0, w1 = node(0), node(1)
         robots: list[RoomRobot] = []
         try:
-            assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0, 1}, 10)
-            robots = [RoomRobot(endpoint, r).start() for r in ("r1", "r2")]
-            assert within(lambda: served(w1) == ["r1", "r2"] and all(
-                w1.core.robots.get(r) is not None and w1.core.robots[r].scans > 20
-                for r in ("r1", "r2")), 20.0)
+            robots = two_workers_serving(endpoint, w0, w1, 20)
             assert served(w0) == []
             # worker 1 is killed (its session gone at once, as a killed process's)
             w1.bus.close()
@@ -330,28 +328,12 @@ def test_a_vanished_workers_robots_wait_for_it_then_go_to_another(tmp_path: Path
 @pytest.mark.e2e
 def test_a_worker_stopping_on_purpose_hands_its_teams_on_with_their_maps(
         tmp_path: Path) -> None:
-    from bench.support.fleet import RoomRobot
     endpoint = free_local_endpoint()
-
-    def node(w: int) -> ServerNode:
-        cfg = ServerConfig.model_validate({"cluster": {"worker": w},
-                                           "bus": {"connect": [endpoint]}})
-        n = ServerNode(Bus.open("client", connect=[endpoint]), cfg)
-        n.start()
-        return n
-
-    def served(n: ServerNode) -> list[str]:
-        assert n.cluster is not None
-        return n.cluster.summary()["robots_served"]
-
     with Bus.open("router", listen=[endpoint]):
-        w0, w1 = node(0), node(1)
+        w0, w1 = worker_node(endpoint, 0), worker_node(endpoint, 1)
         robots: list[RoomRobot] = []
         try:
-            assert within(lambda: w0.cluster is not None and w0.cluster.workers == {0, 1}, 10)
-            robots = [RoomRobot(endpoint, r).start() for r in ("r1", "r2")]   # worker 1's
-            assert within(lambda: served(w1) == ["r1", "r2"] and all(
-                r in w1.core.robots and w1.core.robots[r].scans > 30 for r in ("r1", "r2")), 20)
+            robots = two_workers_serving(endpoint, w0, w1, 30)
             scans = w1.core.robots["r1"].scans
             t0 = time.monotonic()
             assert w1.leave(10.0) == []
