@@ -92,9 +92,11 @@ def cluster_owner_of(key: str) -> tuple[str, int] | None:
     return parts[3], int(parts[4])
 
 
-def cluster_worker_of(key: str) -> int | None:
+def cluster_worker_of(key: str, kind: str = "worker") -> int | None:
+    """The worker number of a ``mrslam/cluster/<kind>/<N>`` token's key (``worker`` or
+    ``leaving``), or None."""
     parts = key.split("/")
-    if len(parts) != 4 or parts[:3] != [ROOT, "cluster", "worker"] or not parts[3].isdigit():
+    if len(parts) != 4 or parts[:3] != [ROOT, "cluster", kind] or not parts[3].isdigit():
         return None
     return int(parts[3])
 

@@ -119,7 +119,7 @@ class Cluster:
         log.info("server worker %d %s", w, "is up" if alive else "went away")
 
     def _on_leaving(self, key: str, alive: bool) -> None:
-        w = keys.cluster_worker_of(key.replace("/cluster/leaving/", "/cluster/worker/"))
+        w = keys.cluster_worker_of(key, "leaving")
         if w is None:
             return
         with self._lock:
@@ -157,7 +157,9 @@ class Cluster:
                         self.orphans[rid] = (w, time.monotonic())
 
     def _winner(self, robot_id: str) -> int:
-        live = self.workers | {self.index}
+        """(holding the lock) The worker that takes a robot nobody serves: the highest
+        ranked of the live workers that are not leaving."""
+        live = (self.workers | {self.index}) - self.leaving or {self.index}
         return max(live, key=lambda w: _rank(robot_id, w))
 
     def owner_of(self, robot_id: str) -> int | None:
