@@ -311,11 +311,17 @@ class ServerNode:
                 handover.adopt(self.core, parcel)
                 self.cluster.answer(query, [], None, f"team of {rid} could not be packed: {e}")
                 raise
+            try:
+                self.cluster.answer(query, team, data)
+            except Exception:
+                handover.adopt(self.core, parcel)   # it did not leave: it stays here
+                raise
+            # (journaled once it has left: a crash before this line resumes the team here
+            # too, and the copy the other worker took wins; see Cluster.tick)
             if self.journal is not None:
                 self.journal.gave(team, self.clock.now_ns())
             for r in team:
                 self._own_stamps.pop(r, None)
-            self.cluster.answer(query, team, data)
             log.info("team of %s (%s) given to another worker (%d kB)", rid, ", ".join(team),
                      len(data) // 1024)
             return
