@@ -340,7 +340,9 @@ def test_a_worker_stopping_on_purpose_hands_its_teams_on_with_their_maps(
             assert time.monotonic() - t0 < 5.0
             assert served(w0) == ["r1", "r2"]
             assert within(lambda: w0.core.robots["r1"].scans > scans, 5.0)   # its map, on
-            assert w0.cluster is not None and w0.cluster.counters["adopted"] == 2
+            # (the last team may still be going into worker 0's core as the leaver stops)
+            assert within(lambda: w0.cluster is not None and
+                          w0.cluster.counters["adopted"] == 2, 5.0)
         finally:
             for r in robots:
                 r.close()

@@ -86,7 +86,9 @@ def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path
         # stopped on purpose: it hands its teams to worker 0 at once, maps and all
         t_stop = time.monotonic()
         assert w1.stop() == 0
-        assert served_by(0, MINE_1 + MINE_0) and time.monotonic() - t_stop < 10.0
+        # (its tokens go with the process: a moment later here)
+        assert within(lambda: served_by(0, MINE_1 + MINE_0), 5.0)
+        assert time.monotonic() - t_stop < 15.0
         summary = json.loads((tmp_path / "w1" / "server" / "summary.json").read_text())
         assert summary["resumed"] and summary["cluster"]["given"] == len(MINE_1)
         assert within(lambda: r1.answered_since(time.monotonic() - 1.0) >= 5, 30.0)
