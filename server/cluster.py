@@ -108,25 +108,19 @@ class Cluster:
 
     # -- who is there, who serves what (Zenoh threads) -------------------------------------
     def _on_worker(self, key: str, alive: bool) -> None:
-        w = keys.cluster_worker_of(key)
-        if w is None:
-            return
-        with self._lock:
-            if alive:
-                self.workers.add(w)
-            else:
-                self.workers.discard(w)
-        log.info("server worker %d %s", w, "is up" if alive else "went away")
+        w = self._track(self.workers, keys.cluster_worker_of(key), alive)
+        if w is not None:
+            log.info("server worker %d %s", w, "is up" if alive else "went away")
 
     def _on_leaving(self, key: str, alive: bool) -> None:
-        w = keys.cluster_worker_of(key, "leaving")
-        if w is None:
-            return
-        with self._lock:
-            if alive:
-                self.leaving.add(w)
-            else:
-                self.leaving.discard(w)
+        self._track(self.leaving, keys.cluster_worker_of(key, "leaving"), alive)
+
+    def _track(self, workers: set[int], w: int | None, alive: bool) -> int | None:
+        """Add or remove worker ``w`` (None: a key that names no worker) in ``workers``."""
+        if w is not None:
+            with self._lock:
+                (workers.add if alive else workers.discard)(w)
+        return w
 
     def leave(self) -> bool:
         """This worker is stopping on purpose: the lowest-numbered other live worker takes
