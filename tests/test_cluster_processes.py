@@ -76,6 +76,8 @@ def test_a_killed_worker_comes_back_for_its_robots_or_leaves_them(tmp_path: Path
         w1.proc.kill()                        # a crash: no goodbye, no outputs written
         w1.proc.wait()
         t_kill = time.monotonic()
+        # its tokens vanish a moment later here (read before that, "served by 1" is stale)
+        assert within(lambda: not any(owners.get(r) for r in MINE_1), 5.0)
         w1 = ServerProcess(tmp_path / "w1", w1_config)   # restarted on its state folder
         assert within(lambda: served_by(1, MINE_1), 60.0)
         with lock:
