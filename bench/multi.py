@@ -6,19 +6,41 @@ merge transform errors after joint optimisation against the direct method on the
 sightings, and — with ``--spurious`` — the team cases again with that share of false tag views.
 
     python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--thesis-rule]
-                          [--runs N] [--out DIR]
+                          [--seeds 0 1 2 ...] [--single-seed] [--jobs N] [--resume]
+                          [--scenarios ambiguous-2 ambiguous-3] [--runs N] [--out DIR]
 
 Runs with several robots are not exactly repeatable (the server's timing feeds back into the
-simulation), so ``--runs N`` runs each team case N times and adds every run's speed-up and
-their median; merge figures then cover all runs.
+simulation), so ``--seeds`` runs every requested case once per seed, the single-robot cases
+too, and each seed's speed-up divides that seed's single-robot time by its team time
+(``--single-seed``: the single robot runs at the first seed only and its time serves every
+seed). ``--runs N`` still repeats the team cases N times at each seed. ``--scenarios`` adds
+scenarios that ship with the package (``sim/worlds/scenarios.yaml``), such as the
+self-similar ``ambiguous-2`` and ``ambiguous-3``, with and without the false views.
+
+Every run's figures are written to ``<out>/runs/<run>.json`` as soon as it ends, so a bench
+that is stopped keeps what it did; ``--resume`` skips the runs whose file is there (runs that
+failed are tried again). A run that fails (a bad world, a missing report, a crash) is recorded
+with its error and the bench goes on. ``--jobs N`` runs up to N demos at once, each in its own
+process (each demo is itself several processes: mind the cores).
+
+From each team run's merges the JSON adds the time to the first merge, when each pair of
+robots first shared a team and when each pair of teams merged, and the time to one team (the
+merge after which one team holds all the run's robots; null if never), each as the median and
+the worst over the seeds; merges counted by kind; false merges per variant and in all; the
+server's map-matching hypotheses when its report has them; and ``goals_met`` against GOALS.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
+import traceback
+from collections.abc import Callable, Iterable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,109 +55,491 @@ sys.path.insert(0, str(_HERE.parent))
 #: measure the dissertation's)
 THESIS_SCENARIOS = _HERE.parent.parent / "shared" / "data" / "worlds" / "thesis" / "scenarios.yaml"
 
-GOALS = {"speedup_case2": 2.5, "speedup_case4": 3.5, "merge_error_m": 0.05,
-         "merge_error_deg": 1.0, "max_position_error_m": {"2": 0.15, "4": 0.40}}
+GOALS: dict[str, Any] = {
+    "speedup_case2": 2.5, "speedup_case4": 3.5, "merge_error_m": 0.05,
+    "merge_error_deg": 1.0, "max_position_error_m": {"2": 0.15, "4": 0.40},
+    "false_merges": 0}
+
+TEAM_CASES = ("2", "4")
+SINGLE_OF = {"2": "1", "4": "3"}
+HYPOTHESIS_STATUSES = ("accepted", "refuted", "pending", "expired")
 
 
-def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
-        known_starts: bool = False, coordination: str = "optimal") -> dict[str, Any]:
-    from mrslam.demo import run
+# ---------------------------------------------------------------------------------------------
+# what to run
 
-    r = run({"scenario": f"thesis-case-{case}", "scenarios_file": str(THESIS_SCENARIOS),
-             "seed": seed, "out": str(out),
-             "spurious_detections": spurious, "max_sim_time_s": max_sim_time_s,
-             "known_starts": known_starts, "coordination": coordination,
-             "wall_timeout_s": 5400}, progress=False)
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One demo run of the bench."""
+
+    key: str                 # file name in <out>/runs and the run folder's name
+    group: str               # what the run measures: "1", "2", "2-spurious", "ambiguous-2", ...
+    case: str                # "1".."4" or a packaged scenario's name
+    variant: str             # "plain", "spurious", "known-starts" or "thesis-rule"
+    seed: int
+    repeat: int = 1          # --runs: the how-many-th run of this group at this seed
+    spurious: float = 0.0
+    known_starts: bool = False
+    coordination: str = "optimal"
+    packaged: bool = False   # a scenario of the package's scenarios.yaml, not the dissertation's
+
+    def demo_config(self, out: Path, max_sim_time_s: float) -> dict[str, Any]:
+        cfg: dict[str, Any] = {
+            "seed": self.seed, "out": str(out), "spurious_detections": self.spurious,
+            "max_sim_time_s": max_sim_time_s, "known_starts": self.known_starts,
+            "coordination": self.coordination, "wall_timeout_s": 5400}
+        if self.packaged:
+            cfg["scenario"] = self.case
+        else:
+            cfg.update(scenario=f"thesis-case-{self.case}",
+                       scenarios_file=str(THESIS_SCENARIOS))
+        return cfg
+
+
+def plan_runs(cases: list[str], seeds: list[int], spurious: float = 0.0,
+              known_starts: bool = False, thesis_rule: bool = False, runs: int = 1,
+              single_seed: bool = False, scenarios: Iterable[str] = ()) -> list[RunSpec]:
+    """Every run the options ask for, in the order they are run."""
+    out: list[RunSpec] = []
+    for seed_i, seed in enumerate(seeds):
+        for case in cases:
+            team = case in TEAM_CASES
+            if not team and single_seed and seed_i > 0:
+                continue
+            for k in range(1, (runs if team else 1) + 1):
+                tail = f"-run{k}" if k > 1 else ""
+                out.append(RunSpec(f"case-{case}-seed{seed}{tail}", case, case, "plain",
+                                   seed, k))
+            if not team:
+                continue
+            if spurious > 0:
+                out.append(RunSpec(f"case-{case}-spurious-seed{seed}", f"{case}-spurious",
+                                   case, "spurious", seed, spurious=spurious))
+            if known_starts:
+                out.append(RunSpec(f"case-{case}-known-starts-seed{seed}",
+                                   f"{case}-known-starts", case, "known-starts", seed,
+                                   known_starts=True))
+            if thesis_rule:
+                out.append(RunSpec(f"case-{case}-thesis-rule-seed{seed}",
+                                   f"{case}-thesis-rule", case, "thesis-rule", seed,
+                                   coordination="thesis"))
+        for name in scenarios:
+            out.append(RunSpec(f"{name}-seed{seed}", name, name, "plain", seed, packaged=True))
+            if spurious > 0:
+                out.append(RunSpec(f"{name}-spurious-seed{seed}", f"{name}-spurious", name,
+                                   "spurious", seed, spurious=spurious, packaged=True))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# one run
+
+
+def figures(r: dict[str, Any]) -> dict[str, Any]:
+    """The figures the bench keeps of one demo report (``report.json``)."""
     robots = r["robots"]
     merges = r.get("merges", [])
-    return {
+    row: dict[str, Any] = {
         "reached": r["reached"], "threshold": r["threshold"],
         "sim_time_to_threshold_s": r["sim_time_to_threshold_s"],
         "first_team_time_to_threshold_s": r.get("first_team_time_to_threshold_s"),
+        "robot_ids": sorted(r.get("robots_spawn") or robots),
         "teams": {k: {"robots": v["robot_ids"], "coverage": v.get("coverage"),
                       "merged_into": v.get("merged_into"),
                       "sim_time_to_threshold_s": v.get("sim_time_to_threshold_s")}
                   for k, v in r["teams"].items()},
         "true_coverage": r["true_coverage"], "phantom_area_m2": r["phantom_area_m2"],
-        "max_position_error_m": max(x["max_position_error_m"] or 0.0 for x in robots.values()),
-        "max_yaw_error_rad": max(x["max_yaw_error_rad"] or 0.0 for x in robots.values()),
+        "max_position_error_m": max((x["max_position_error_m"] or 0.0
+                                     for x in robots.values()), default=0.0),
+        "max_yaw_error_rad": max((x["max_yaw_error_rad"] or 0.0 for x in robots.values()),
+                                 default=0.0),
         "collisions": sum(x["collisions"] for x in robots.values()),
         "merges": merges, "false_merges": r.get("false_merges", 0),
         "tag_counters": r.get("tag_counters", {}),
-        "wall_time_s": r["wall_time_s"], "end": r["end"], "run": str(out),
+        "wall_time_s": r["wall_time_s"], "end": r["end"],
     }
+    if "hypotheses" in r:
+        row["hypotheses"] = r["hypotheses"]
+    return row
+
+
+def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
+        known_starts: bool = False, coordination: str = "optimal") -> dict[str, Any]:
+    """One dissertation case as a demo run (raises on failure)."""
+    spec = RunSpec(out.name, case, case, "plain", seed, spurious=spurious,
+                   known_starts=known_starts, coordination=coordination)
+    return _demo(spec, out, max_sim_time_s)
+
+
+def _demo(spec: RunSpec, out: Path, max_sim_time_s: float) -> dict[str, Any]:
+    from mrslam.demo import run
+
+    report = run(spec.demo_config(out, max_sim_time_s), progress=False)
+    # the report as written to the run folder is what counts; fall back on the one returned
+    path = out / "report.json"
+    if path.exists():
+        try:
+            report = json.loads(path.read_text())
+        except ValueError as e:
+            raise RuntimeError(f"{path}: not valid JSON ({e})") from None
+    try:
+        return {**figures(report), "run": str(out)}
+    except (KeyError, TypeError, AttributeError) as e:
+        raise RuntimeError(f"{path}: the report lacks or mangles {e}") from None
+
+
+def execute(spec: RunSpec, base: Path, max_sim_time_s: float) -> dict[str, Any]:
+    """Run one spec; never raises: a failure comes back as ``status: failed`` with its error.
+    Importable by a worker process."""
+    head = {"key": spec.key, "group": spec.group, "case": spec.case, "variant": spec.variant,
+            "seed": spec.seed, "repeat": spec.repeat, "spurious": spec.spurious}
+    out = base / spec.key
+    try:
+        if not spec.packaged and not THESIS_SCENARIOS.is_file():
+            raise FileNotFoundError(f"{THESIS_SCENARIOS}: the dissertation's scenarios are "
+                                    "missing (../shared/data)")
+        return {**head, "status": "ok", **_demo(spec, out, max_sim_time_s)}
+    except Exception as e:  # any failure of one run is that run's result
+        return {**head, "status": "failed", "run": str(out),
+                "error": f"{type(e).__name__}: {e}",
+                "traceback": traceback.format_exc(limit=8)}
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+def load_done(path: Path) -> dict[str, Any] | None:
+    """A run's file from an earlier bench, if it holds a finished run (else None)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or data.get("status") != "ok":
+        return None
+    return data
+
+
+def run_all(specs: list[RunSpec], base: Path, max_sim_time_s: float, jobs: int = 1,
+            resume: bool = False,
+            runner: Callable[[RunSpec, Path, float], dict[str, Any]] = execute,
+            log: Callable[[str], None] = lambda s: print(s, file=sys.stderr)
+            ) -> dict[str, dict[str, Any]]:
+    """Every spec's result by key, each written to ``<base>/runs/<key>.json`` as it ends."""
+    results: dict[str, dict[str, Any]] = {}
+    todo: list[RunSpec] = []
+    for spec in specs:
+        done = load_done(base / "runs" / f"{spec.key}.json") if resume else None
+        if done is not None:
+            log(f"{spec.key}: done before, kept")
+            results[spec.key] = done
+        else:
+            todo.append(spec)
+
+    def finish(spec: RunSpec, res: dict[str, Any]) -> None:
+        results[spec.key] = res
+        _write_json(base / "runs" / f"{spec.key}.json", res)
+        what = (f"failed: {res.get('error')}" if res.get("status") != "ok" else
+                f"reached={res.get('reached')} t={res.get('sim_time_to_threshold_s')} "
+                f"false_merges={res.get('false_merges')}")
+        log(f"{spec.key}: {what}")
+
+    if jobs <= 1:
+        for spec in todo:
+            log(f"running {spec.key}...")
+            finish(spec, runner(spec, base, max_sim_time_s))
+    else:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            running: dict[Future[dict[str, Any]], RunSpec] = {}
+            for spec in todo:
+                log(f"queued {spec.key}")
+                running[pool.submit(runner, spec, base, max_sim_time_s)] = spec
+            while running:
+                done_f, _ = wait(running, return_when=FIRST_COMPLETED)
+                for f in done_f:
+                    spec = running.pop(f)
+                    try:
+                        res = f.result()
+                    except Exception as e:  # e.g. a worker that died
+                        res = {"key": spec.key, "group": spec.group, "case": spec.case,
+                               "variant": spec.variant, "seed": spec.seed,
+                               "repeat": spec.repeat, "status": "failed",
+                               "error": f"{type(e).__name__}: {e}"}
+                    finish(spec, res)
+    return {s.key: results[s.key] for s in specs}
+
+
+# ---------------------------------------------------------------------------------------------
+# aggregation: pure functions of the per-run dicts
 
 
 def ratio(a: float | None, b: float | None) -> float | None:
     return round(a / b, 3) if a and b else None
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", nargs="+", default=["1", "2", "3", "4"])
-    ap.add_argument("--spurious", type=float, default=0.2,
-                    help="also run the team cases with this share of false views (0: skip)")
-    ap.add_argument("--known-starts", action="store_true",
-                    help="also run the team cases with the start poses given to the server "
-                    "(one team from the start: what coordination alone gains)")
-    ap.add_argument("--thesis-rule", action="store_true",
-                    help="also run the team cases with the dissertation's target rule "
-                    "(--coordination thesis) instead of the optimal assignment")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--runs", type=int, default=1,
-                    help="run each team case (2, 4) this many times (single robots repeat "
-                    "exactly and run once)")
-    ap.add_argument("--max-sim-time", type=float, default=7200.0)
-    ap.add_argument("--out", type=Path, default=None)
-    a = ap.parse_args()
-    base = a.out or Path(tempfile.mkdtemp(prefix="mrslam-multi-"))
-    res: dict[str, Any] = {"cases": {}, "goals": GOALS}
-    for case in a.cases:
-        print(f"running case {case}...", file=sys.stderr)
-        res["cases"][case] = one(case, base / f"case-{case}", a.seed, 0.0, a.max_sim_time)
-        for k in range(2, a.runs + 1 if case in ("2", "4") else 1):
-            print(f"running case {case} again ({k} of {a.runs})...", file=sys.stderr)
-            res["cases"][f"{case}#{k}"] = one(case, base / f"case-{case}-run{k}", a.seed, 0.0,
-                                              a.max_sim_time)
-        if a.spurious > 0 and case in ("2", "4"):
-            print(f"running case {case} with {a.spurious:.0%} false views...", file=sys.stderr)
-            res["cases"][f"{case}-spurious"] = one(case, base / f"case-{case}-spurious",
-                                                   a.seed, a.spurious, a.max_sim_time)
-        if a.known_starts and case in ("2", "4"):
-            print(f"running case {case} with known start poses...", file=sys.stderr)
-            res["cases"][f"{case}-known-starts"] = one(case, base / f"case-{case}-known-starts",
-                                                       a.seed, 0.0, a.max_sim_time, True)
-        if a.thesis_rule and case in ("2", "4"):
-            print(f"running case {case} with the dissertation's target rule...", file=sys.stderr)
-            res["cases"][f"{case}-thesis-rule"] = one(case, base / f"case-{case}-thesis-rule",
-                                                      a.seed, 0.0, a.max_sim_time,
-                                                      coordination="thesis")
-    c = res["cases"]
+def stats(values: dict[Any, float | None]) -> dict[str, Any]:
+    """Median, min, max (= worst for times) of the measured values; ``missing`` the keys
+    without one (a run that failed, or never got there)."""
+    got = [float(v) for v in values.values() if v is not None]
+    arr = np.asarray(got, dtype=float)
+    return {"per_seed": {str(k): v for k, v in values.items()},
+            "median": round(float(np.median(arr)), 3) if got else None,
+            "min": round(float(arr.min()), 3) if got else None,
+            "max": round(float(arr.max()), 3) if got else None,
+            "missing": [str(k) for k, v in values.items() if v is None]}
+
+
+def _live(merges: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The merges that stood (not undone), in time order."""
+    return sorted((m for m in merges if not m.get("undone")),
+                  key=lambda m: float(m.get("sim_time_s") or 0.0))
+
+
+def is_false(m: dict[str, Any]) -> bool:
+    return bool(m.get("false_merge", m.get("false", False)))
+
+
+def one_team_time(merges: list[dict[str, Any]], robot_ids: Iterable[str]) -> float | None:
+    """Sim time of the merge after which one team holds every robot of the run (a merge's
+    ``robots`` are the joined team's); None if that never happened. A single robot is one
+    team from the start (0)."""
+    everyone = set(robot_ids)
+    if len(everyone) <= 1:
+        return 0.0
+    for m in _live(merges):
+        if everyone <= set(m.get("robots", ())):
+            return float(m["sim_time_s"])
+    return None
+
+
+def merge_timeline(run: dict[str, Any]) -> dict[str, Any]:
+    """One run's merges: time to the first, when each pair of robots first shared a team, when
+    each pair of teams merged, the time to one team, counts by kind and the false ones."""
+    merges = run.get("merges") or []
+    live = _live(merges)
+    robots = sorted(run.get("robot_ids") or {r for m in merges for r in m.get("robots", ())})
+    together: dict[str, float | None] = {}
+    for i, a in enumerate(robots):
+        for b in robots[i + 1:]:
+            together[f"{a}+{b}"] = next((float(m["sim_time_s"]) for m in live
+                                         if {a, b} <= set(m.get("robots", ()))), None)
+    teams: dict[str, float] = {}
+    for m in live:
+        pair = "+".join(sorted((str(m.get("team_id")), str(m.get("joined_team_id")))))
+        teams.setdefault(pair, float(m["sim_time_s"]))
+    kinds: dict[str, int] = {}
+    for m in merges:
+        kinds[str(m.get("kind", "tags"))] = kinds.get(str(m.get("kind", "tags")), 0) + 1
+    return {"first_merge_s": float(live[0]["sim_time_s"]) if live else None,
+            "robots_together_s": together, "team_pairs_s": teams,
+            "one_team_s": one_team_time(merges, robots), "merges": len(merges),
+            "undone": sum(1 for m in merges if m.get("undone")),
+            "kinds": kinds,
+            "false_merges": int(run.get("false_merges", sum(is_false(m) for m in merges)))}
+
+
+def hypotheses_summary(runs: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
+    """Counts of the map-matching hypotheses per status over the runs and the largest error of
+    the accepted ones; None when no run's report has hypotheses."""
+    seen = False
+    counts = dict.fromkeys(HYPOTHESIS_STATUSES, 0)
+    err_m: list[float] = []
+    err_deg: list[float] = []
+    unscored = 0
+    for run in runs:
+        hyps = run.get("hypotheses")
+        if not isinstance(hyps, list):
+            continue
+        seen = True
+        for h in hyps:
+            if not isinstance(h, dict):
+                continue
+            status = str(h.get("status"))
+            counts[status] = counts.get(status, 0) + 1
+            if status == "accepted":
+                if h.get("error_m") is None and h.get("error_deg") is None:
+                    unscored += 1
+                if h.get("error_m") is not None:
+                    err_m.append(float(h["error_m"]))
+                if h.get("error_deg") is not None:
+                    err_deg.append(float(h["error_deg"]))
+    if not seen:
+        return None
+    return {"counts": counts, "accepted_max_error_m": max(err_m, default=None),
+            "accepted_max_error_deg": max(err_deg, default=None),
+            "accepted_unscored": unscored}
+
+
+def _t(run: dict[str, Any] | None) -> float | None:
+    if not run or run.get("status", "ok") != "ok":
+        return None
+    v = run.get("sim_time_to_threshold_s")
+    return float(v) if v is not None else None
+
+
+def speedups(runs: dict[str, dict[str, Any]], team_case: str, variant: str = "plain"
+             ) -> dict[str, Any] | None:
+    """Each seed's speed-up of a team case over the single robot (the same seed's single run,
+    else the first seed's: --single-seed), with their median, min and max; None when the team
+    case did not run. Repeats at one seed (--runs) are listed as ``seed#k``."""
+    single = SINGLE_OF[team_case]
+    singles = {r["seed"]: r for r in runs.values()
+               if r.get("case") == single and r.get("variant") == "plain"
+               and r.get("repeat", 1) == 1}
+    fallback = singles[min(singles)] if singles else None
+    per: dict[str, float | None] = {}
+    for r in sorted((r for r in runs.values()
+                     if r.get("case") == team_case and r.get("variant") == variant),
+                    key=lambda r: (r["seed"], r.get("repeat", 1))):
+        label = str(r["seed"]) + (f"#{r['repeat']}" if r.get("repeat", 1) > 1 else "")
+        per[label] = ratio(_t(singles.get(r["seed"], fallback)), _t(r))
+    return stats(per) if per else None
+
+
+def _time_stats(values: dict[str, float | None]) -> dict[str, Any]:
+    """Median and worst of times over seeds; ``never`` the seeds where it did not happen."""
+    s = stats(values)
+    return {"median_s": s["median"], "worst_s": s["max"], "per_seed": s["per_seed"],
+            "never": s["missing"]}
+
+
+def _seed_label(r: dict[str, Any]) -> str:
+    return str(r["seed"]) + (f"#{r['repeat']}" if r.get("repeat", 1) > 1 else "")
+
+
+def merge_report(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per group (case and variant) of multi-robot runs: merge times over the seeds (median,
+    worst), merges by kind, false merges, hypotheses; and the false merges per variant and
+    in all."""
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in runs.values():
+        if r.get("status", "ok") == "ok" and len(r.get("robot_ids") or ()) > 1:
+            groups.setdefault(str(r["group"]), []).append(r)
+    out: dict[str, Any] = {}
+    by_variant: dict[str, int] = {}
+    for group, rs in sorted(groups.items()):
+        rs.sort(key=lambda r: (r["seed"], r.get("repeat", 1)))
+        lines = {_seed_label(r): merge_timeline(r) for r in rs}
+        pairs = sorted({p for ln in lines.values() for p in ln["robots_together_s"]})
+        team_pairs = sorted({p for ln in lines.values() for p in ln["team_pairs_s"]})
+        kinds: dict[str, int] = {}
+        for ln in lines.values():
+            for k, n in ln["kinds"].items():
+                kinds[k] = kinds.get(k, 0) + n
+        false = sum(ln["false_merges"] for ln in lines.values())
+        variant = str(rs[0].get("variant", "plain"))
+        by_variant[variant] = by_variant.get(variant, 0) + false
+        out[group] = {
+            "runs": len(rs),
+            "reached": sum(bool(r.get("reached")) for r in rs),
+            "time_to_threshold": _time_stats({s: _t(r) for s, r in
+                                              zip(lines, rs, strict=True)}),
+            "first_merge": _time_stats({s: ln["first_merge_s"] for s, ln in lines.items()}),
+            "one_team": _time_stats({s: ln["one_team_s"] for s, ln in lines.items()}),
+            "robots_together": {p: _time_stats({s: ln["robots_together_s"].get(p)
+                                                for s, ln in lines.items()}) for p in pairs},
+            "team_pairs": {p: _time_stats({s: ln["team_pairs_s"].get(p)
+                                           for s, ln in lines.items()}) for p in team_pairs},
+            "merges": sum(ln["merges"] for ln in lines.values()),
+            "undone": sum(ln["undone"] for ln in lines.values()),
+            "merge_kinds": kinds, "false_merges": false,
+            "false_merges_per_seed": {s: ln["false_merges"] for s, ln in lines.items()},
+            "hypotheses": hypotheses_summary(rs),
+        }
+    return {"groups": out, "false_merges_by_variant": by_variant,
+            "false_merges_total": sum(by_variant.values())}
+
+
+def goals_met(res: dict[str, Any], goals: dict[str, Any] = GOALS) -> dict[str, Any]:
+    """Each goal: the measured value, the goal, and whether it is met (None: not measured).
+    A speed-up goal counts the median over the seeds and is not met while a seed lacks its
+    figure (a run failed or did not reach the threshold)."""
+    out: dict[str, Any] = {}
+    for case in TEAM_CASES:
+        sp = (res.get("speedup") or {}).get(case)
+        key = f"speedup_case{case}"
+        if not sp or sp["median"] is None:
+            out[key] = {"value": None, "goal": goals[key], "met": None}
+            continue
+        out[key] = {"value": sp["median"], "goal": goals[key], "per_seed": sp["per_seed"],
+                    "met": sp["median"] >= goals[key] and not sp["missing"]}
+        if sp["missing"]:
+            out[key]["note"] = f"no figure for seed(s) {', '.join(sp['missing'])}"
+    mr = res.get("merge_report") or {}
+    n_false = mr.get("false_merges_total")
+    out["false_merges"] = {"value": n_false, "goal": goals["false_merges"],
+                           "by_variant": mr.get("false_merges_by_variant", {}),
+                           "met": None if n_false is None or not mr.get("groups")
+                           else n_false <= goals["false_merges"]}
+    for name, goal in (("merge_error_joint_max_m", goals["merge_error_m"]),
+                       ("merge_error_joint_max_deg", goals["merge_error_deg"])):
+        v = res.get(name)
+        out[name] = {"value": v, "goal": goal, "met": None if v is None else v <= goal}
+    for case, goal in goals["max_position_error_m"].items():
+        errs = [r["max_position_error_m"] for r in (res.get("runs") or {}).values()
+                if r.get("case") == case and r.get("variant") == "plain"
+                and r.get("status", "ok") == "ok"]
+        v = max(errs) if errs else None
+        out[f"max_position_error_case{case}_m"] = {
+            "value": v, "goal": goal, "met": None if v is None else v <= goal}
+    return out
+
+
+def legacy_cases(runs: dict[str, dict[str, Any]], first_seed: int) -> dict[str, Any]:
+    """The first seed's runs under the names the bench always used ("1", "2", "2#2",
+    "2-spurious", "2-known-starts", ...); a failed run is listed with its error."""
+    out: dict[str, Any] = {}
+    for r in runs.values():
+        if r.get("seed") != first_seed or r.get("case") not in ("1", "2", "3", "4"):
+            continue
+        name = str(r["group"]) + (f"#{r['repeat']}" if r.get("repeat", 1) > 1 else "")
+        out[name] = r
+    return out
+
+
+def summarise(runs: dict[str, dict[str, Any]], seeds: list[int],
+              scenarios: Iterable[str] = ()) -> dict[str, Any]:
+    """The bench's JSON document from the runs' dicts."""
+    c = legacy_cases(runs, seeds[0])
+    res: dict[str, Any] = {"cases": c, "goals": GOALS, "seeds": seeds}
 
     def t(k: str) -> float | None:
-        return c[k]["sim_time_to_threshold_s"] if k in c else None
+        return _t(c.get(k))
 
     def first(k: str) -> float | None:
-        return c[k]["first_team_time_to_threshold_s"] if k in c else None
+        r = c.get(k)
+        return r.get("first_team_time_to_threshold_s") if r and r.get("status") == "ok" \
+            else None
 
     # all final teams at the threshold (the goal's measure), and the first team alone
     res["speedup_case2"] = ratio(t("1"), t("2"))
     res["speedup_case4"] = ratio(t("3"), t("4"))
     res["speedup_case2_first_team"] = ratio(t("1"), first("2"))
     res["speedup_case4_first_team"] = ratio(t("3"), first("4"))
-    for k, single in (("2", "1"), ("4", "3")):
-        runs = [ratio(t(single), t(key)) for key in c if key.split("#")[0] == k]
-        if len(runs) > 1 and None not in runs:
-            res[f"speedup_case{k}_runs"] = runs
-            res[f"speedup_case{k}_median"] = float(np.median(np.asarray(runs, dtype=float)))
-    for k in ("2", "4"):
+    for k, single in SINGLE_OF.items():
+        rs = [ratio(t(single), t(key)) for key in c if key.split("#")[0] == k]
+        if len(rs) > 1 and None not in rs:
+            res[f"speedup_case{k}_runs"] = rs
+            res[f"speedup_case{k}_median"] = float(np.median(np.asarray(rs, dtype=float)))
+    for k, single in SINGLE_OF.items():
         if f"{k}-known-starts" in c:
-            res[f"speedup_case{k}_known_starts"] = ratio(t(str(int(k) - 1)),
-                                                         t(f"{k}-known-starts"))
+            res[f"speedup_case{k}_known_starts"] = ratio(t(single), t(f"{k}-known-starts"))
         if f"{k}-thesis-rule" in c:
-            res[f"speedup_case{k}_thesis_rule"] = ratio(t(str(int(k) - 1)),
-                                                        t(f"{k}-thesis-rule"))
-    merges = [m for k in c if k.split("#")[0] in ("2", "4") for m in c[k]["merges"]
+            res[f"speedup_case{k}_thesis_rule"] = ratio(t(single), t(f"{k}-thesis-rule"))
+    # every seed's speed-up, per variant
+    res["speedup"] = {}
+    for k in TEAM_CASES:
+        for variant in ("plain", "spurious", "known-starts", "thesis-rule"):
+            sp = speedups(runs, k, variant)
+            if sp is not None:
+                res["speedup"][k if variant == "plain" else f"{k}-{variant}"] = sp
+    ok = [r for r in runs.values() if r.get("status", "ok") == "ok"]
+    merges = [m for r in ok if r.get("case") in TEAM_CASES and r.get("variant") == "plain"
+              for m in r.get("merges", [])
               if "joint_error_m" in m and m.get("kind", "tags") == "tags"]
     if merges:
         res["merge_error_joint_max_m"] = max(m["joint_error_m"] for m in merges)
@@ -154,7 +558,83 @@ def main() -> None:
             res["merge_error_final_max_deg"] = max(m["final_error_deg"] for m in fin)
             res["final_better_than_direct"] = sum(
                 m["final_error_m"] <= m["direct_error_m"] for m in fin) / len(fin)
-    res["false_merges"] = {k: v["false_merges"] for k, v in c.items()}
+    res["false_merges"] = {k: v.get("false_merges") for k, v in c.items()}
+    res["merge_report"] = merge_report(runs)
+    res["scenarios"] = {}
+    for name in scenarios:
+        for r in sorted((r for r in runs.values() if r.get("case") == name),
+                        key=lambda r: (r["group"], r["seed"])):
+            res["scenarios"].setdefault(str(r["group"]), {})[str(r["seed"])] = (
+                {"status": "failed", "error": r.get("error")} if r.get("status") != "ok" else
+                {"reached": r.get("reached"),
+                 "sim_time_to_threshold_s": r.get("sim_time_to_threshold_s"),
+                 "false_merges": r.get("false_merges"),
+                 "merges": merge_timeline(r)["merges"],
+                 "merge_kinds": merge_timeline(r)["kinds"],
+                 "one_team_s": merge_timeline(r)["one_team_s"]})
+    res["hypotheses"] = hypotheses_summary(ok)
+    res["failed_runs"] = {k: r.get("error") for k, r in runs.items()
+                          if r.get("status", "ok") != "ok"}
+    res["runs"] = {k: {x: r.get(x) for x in ("group", "seed", "repeat", "status", "reached",
+                                              "sim_time_to_threshold_s", "false_merges",
+                                              "error", "run")}
+                   for k, r in runs.items()}
+    res["goals_met"] = goals_met({**res, "runs": runs})
+    return res
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", nargs="*", default=["1", "2", "3", "4"],
+                    choices=["1", "2", "3", "4"])
+    ap.add_argument("--spurious", type=float, default=0.2,
+                    help="also run the team cases and scenarios with this share of false "
+                    "views (0: skip)")
+    ap.add_argument("--known-starts", action="store_true",
+                    help="also run the team cases with the start poses given to the server "
+                    "(one team from the start: what coordination alone gains)")
+    ap.add_argument("--thesis-rule", action="store_true",
+                    help="also run the team cases with the dissertation's target rule "
+                    "(--coordination thesis) instead of the optimal assignment")
+    ap.add_argument("--seed", type=int, default=0, help="the one seed, without --seeds")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="run every case once per seed (the single-robot cases too)")
+    ap.add_argument("--single-seed", action="store_true",
+                    help="run the single-robot cases (1, 3) at the first seed only and use "
+                    "their time for every seed's speed-up")
+    ap.add_argument("--scenarios", nargs="+", default=[],
+                    help="also run these scenarios of the package's sim/worlds/scenarios.yaml "
+                    "(e.g. ambiguous-2 ambiguous-3), with and without --spurious")
+    ap.add_argument("--runs", type=int, default=1,
+                    help="run each team case (2, 4) this many times per seed")
+    ap.add_argument("--jobs", type=int, default=1, help="demo runs at once (processes)")
+    ap.add_argument("--resume", action="store_true",
+                    help="skip the runs whose JSON is already in <out>/runs")
+    ap.add_argument("--max-sim-time", type=float, default=7200.0)
+    ap.add_argument("--out", type=Path, default=None)
+    a = ap.parse_args(argv)
+    if a.runs < 1 or a.jobs < 1:
+        ap.error("--runs and --jobs must be at least 1")
+    seeds = list(dict.fromkeys(a.seeds if a.seeds else [a.seed]))
+    if any(s < 0 for s in seeds):
+        ap.error("seeds must be ≥ 0")
+    if a.scenarios:
+        from sim.config import DEFAULT_SCENARIOS, load_scenario
+        from sim.errors import SimError
+
+        for name in a.scenarios:
+            try:
+                load_scenario(DEFAULT_SCENARIOS, name)
+            except SimError as e:
+                ap.error(str(e))
+    base = a.out or Path(tempfile.mkdtemp(prefix="mrslam-multi-"))
+    specs = plan_runs(a.cases, seeds, a.spurious, a.known_starts, a.thesis_rule, a.runs,
+                      a.single_seed, a.scenarios)
+    print(f"{len(specs)} run(s) into {base}", file=sys.stderr)
+    runs = run_all(specs, base, a.max_sim_time, a.jobs, a.resume)
+    res = summarise(runs, seeds, a.scenarios)
+    res["out"] = str(base)
+    _write_json(base / "summary.json", res)
     print(json.dumps(res, indent=2))
 
 
