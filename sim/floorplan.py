@@ -3,6 +3,8 @@
 The dissertation's figures are kept as facts: a small house of 20 × 20 m and a large one of
 50 × 50 m, both centred on the origin, walls 0.15 m thick and 2.5 m high, and the spawn poses of
 its four cases (``sim/worlds/scenarios.yaml``). The rooms, doors and corridors are our own.
+A third world, ``ambiguous_wings`` (30 × 30 m), is ours alone: a self-similar building for
+testing that maps are not merged on a look-alike (see docs/ambiguous-world.md).
 
 A plan is a list of straight walls along their centre lines, each with its door openings, and a
 few square pillars. ``python -m sim.floorplan`` rewrites ``sim/worlds/*.world`` from this
@@ -11,6 +13,7 @@ module; a test checks that the files there are what it writes.
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 from dataclasses import dataclass
@@ -132,7 +135,85 @@ def large_house() -> Plan:
     ), pillars=((8.0, 5.75, 0.5), (17.0, 5.75, 0.5)))
 
 
-PLANS = {"small_house": small_house, "large_house": large_house}
+#: the self-similar building: its half size, the spine's half width, the corridors' centre
+#: lines (y) and half width, the x of the room partitions and where the rooms' doors are (x)
+WINGS_HALF_M = 15.0
+WINGS_SPINE_M = 1.5
+WINGS_CORRIDORS_Y = (-10.0, 0.0, 10.0)
+WINGS_CORRIDOR_HALF_M = 1.0
+WINGS_PARTITIONS_X = (6.0, 10.5)
+WINGS_DOORS_X = (3.75, 8.25, 12.75)
+WINGS_DOOR_M = 1.2
+WINGS_SCREEN_HALF_M = 1.5
+
+
+def mirror_x(wall: Wall) -> Wall:
+    """The wall mirrored in the plane x = 0 (its doors stay where they were along it)."""
+    return Wall((-wall.a[0], wall.a[1]), (-wall.b[0], wall.b[1]), wall.doors)
+
+
+def _east_wing() -> tuple[Wall, ...]:
+    """One wing of the ambiguous building, east of the spine: three identical corridors
+    running east from the spine, each with three identical rooms on either side (doors
+    centred), the wing itself symmetric about y = 0."""
+    c = WINGS_HALF_M - WALL_THICKNESS_M / 2
+    s, h, d = WINGS_SPINE_M, WINGS_CORRIDOR_HALF_M, WINGS_DOOR_M
+    walls: list[Wall] = []
+    for yc in WINGS_CORRIDORS_Y:
+        # the corridor's two sides, a door into each room on either side
+        walls += [hwall(yc - h, s, c, doors=WINGS_DOORS_X, width_m=d),
+                  hwall(yc + h, s, c, doors=WINGS_DOORS_X, width_m=d)]
+    # the rooms between two corridors stand back to back: a wall halfway between them
+    for lo, hi in itertools.pairwise(WINGS_CORRIDORS_Y):
+        walls.append(hwall((lo + hi) / 2, s, c))
+    # the partitions between the rooms of each band, corridor side to corridor side (or to
+    # the outline)
+    bands = ([(-c, WINGS_CORRIDORS_Y[0] - h)]
+             + [(lo + h, hi - h) for lo, hi in itertools.pairwise(WINGS_CORRIDORS_Y)]
+             + [(WINGS_CORRIDORS_Y[-1] + h, c)])
+    for x in WINGS_PARTITIONS_X:
+        walls += [vwall(x, y0, y1) for y0, y1 in bands]
+    return tuple(walls)
+
+
+def ambiguous_wings() -> Plan:
+    """30 × 30 m, built to fool map matching: a north-south spine 3 m wide splits the building
+    into a west and an east wing, each the mirror image of the other. Each wing has three
+    identical corridors 10 m apart, each with three identical rooms at regular spacing on
+    either side, and is symmetric about y = 0 itself, so the building looks the same turned
+    by half a turn and much the same shifted 10 m north or south. Screens in the spine keep
+    robots in one wing from seeing into the other's corridors. Three places break the
+    symmetry: a slanted partition with a free end in the east wing's north-east corner room,
+    a short wall making a nook in the west wing's middle room north of its south corridor,
+    and a pillar off the spine's centre line north of the middle corridors. None of them can
+    be seen from the middle or south corridors' middles, where the scenarios start robots."""
+    c = WINGS_HALF_M - WALL_THICKNESS_M / 2
+    s = WINGS_SPINE_M
+    corridor_m = 2 * WINGS_CORRIDOR_HALF_M
+    east = _east_wing()
+    return Plan("ambiguous_wings", (
+        # outline
+        hwall(-c, -c, c), vwall(c, -c, c), hwall(c, c, -c), vwall(-c, c, -c),
+        # the spine's sides, open where the corridors meet it
+        vwall(-s, -c, c, doors=WINGS_CORRIDORS_Y, width_m=corridor_m),
+        vwall(s, -c, c, doors=WINGS_CORRIDORS_Y, width_m=corridor_m),
+        # a screen on the spine's centre line before each pair of corridor mouths: the wings
+        # do not see into each other's corridors (robots meet only in the spine)
+        *(vwall(0.0, yc - WINGS_SCREEN_HALF_M, yc + WINGS_SCREEN_HALF_M)
+          for yc in WINGS_CORRIDORS_Y),
+        *east, *(mirror_x(w) for w in east),
+        # what breaks the symmetry
+        Wall((11.0, 14.8), (13.5, 12.8)),       # east wing, north-east room: slanted, free end
+        hwall(-7.0, -10.5, -8.5),               # west wing, south corridor's middle north room
+    ), pillars=((0.7, 5.0, 0.5),))             # the spine, east of its centre line
+
+
+#: the symmetry-breaking features of ``ambiguous_wings``: (what, x, y) of a point on each
+AMBIGUOUS_BREAKS = (("slanted partition", 12.25, 13.8), ("nook wall", -9.5, -7.0),
+                    ("spine pillar", 0.7, 5.0))
+
+PLANS = {"small_house": small_house, "large_house": large_house,
+         "ambiguous_wings": ambiguous_wings}
 
 
 def _box(name: str, x: float, y: float, yaw: float, length: float, width: float,
