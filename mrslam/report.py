@@ -258,6 +258,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                                "sim_time_to_threshold_s": _finite(t_old) if t_old else None,
                                "coverage_history": [[s * 1e-9, c] for s, c in hist]})
     reached, best, first = threshold_times(teams)
+    hypotheses = hypothesis_errors(summary.get("map_hypotheses", []), own_frames)
+    qms = summary.get("map_query_ms", [])
     report = {
         "scenario": plan["title"], "world": plan["world"], "seed": cfg.seed,
         "explorer": cfg.explorer, "lockstep": cfg.lockstep,
@@ -276,6 +278,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "sim_time_s": round(watch.get("sim_time_s", 0.0), 2),
         "merges": merges,
         "false_merges": sum(1 for m in merges if is_false_merge(m)),
+        "hypotheses": hypotheses,
+        "map_query_ms_median": round(float(np.median(qms)), 1) if qms else None,
         "tag_counters": summary.get("tag_counters", {}),
         # without the server's summary, the events the bus carried
         "events": summary.get("events", watch.get("events", [])),
@@ -293,6 +297,29 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     for r in robots.values():
         r.pop("_errors", None)
     return report
+
+
+def hypothesis_errors(hyps: list[dict[str, Any]], own_frames: dict[str, np.ndarray]
+                      ) -> list[dict[str, Any]]:
+    """Each transform the maps suggested between two teams (see
+    ``server.rendezvous.matchdesk``), its support, what became of it, and its error against
+    the truth (team frames are their anchors' first poses); ``wrong``: beyond the false-merge
+    bounds."""
+    out = []
+    for h in hyps:
+        row: dict[str, Any] = {
+            "sim_time_s": round(h["first_ns"] * 1e-9, 2), "last_s": round(h["last_ns"] * 1e-9, 2),
+            "teams": [h["team_a"], h["team_b"]], "status": h["status"], "reason": h["reason"],
+            "support": h["support"], "sides": [h["side_a"], h["side_b"]], "rival": h["rival"],
+            "acceptance": h["acceptance"], "seen": h["seen"], "error_m": None,
+            "error_deg": None, "wrong": None}
+        a, b = h["anchor_a"], h["anchor_b"]
+        if a in own_frames and b in own_frames:
+            et, er = _transform_error(h["T_ab"], compose(inverse(own_frames[a]), own_frames[b]))
+            row["error_m"], row["error_deg"] = round(et, 3), round(math.degrees(er), 2)
+            row["wrong"] = et > FALSE_MERGE_M or er > FALSE_MERGE_RAD
+        out.append(row)
+    return out
 
 
 def is_false_merge(row: dict[str, Any]) -> bool:

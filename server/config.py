@@ -96,6 +96,29 @@ class TeamsConfig(ConfigModel):
                                         "bend both maps against it (0: keep them)")
     min_map_match_tries: int = Field(3, ge=1, description="where the aligned maps overlap at "
                                      "this many keyframes, at least one must match")
+    map_match: bool = Field(True, description="merge two teams on their maps alone, "
+                            "without a meeting, when submaps cut at several places of both "
+                            "maps fit the other map under one transform and clearly more "
+                            "than under any other (docs/rendezvous-and-merging.md)")
+    map_match_period_s: float = Field(5.0, gt=0.0, description="one pair of teams has its "
+                                      "maps matched this often (the pair waiting longest)")
+    map_match_min_support: int = Field(3, ge=2, description="distinct places that must agree "
+                                       "on a map-matched transform, at least two cut from "
+                                       "each team's map")
+    map_match_meet: bool = Field(True, description="a map-matched transform with some "
+                                 "support but not enough sends a robot to where it predicts "
+                                 "the other team's robot, which waits: the tags then settle "
+                                 "it")
+    meet_min_support: int = Field(3, ge=1, description="places that must agree on a "
+                                  "transform before a meeting is planned on it (it must also "
+                                  "be seen from both maps and dominate its rivals)")
+    meet_max_detour_m: float = Field(25.0, gt=0.0, description="a meeting is planned only "
+                                     "when the robot sent is at most this far (straight "
+                                     "line) from where it predicts the other")
+    meet_timeout_s: float = Field(120.0, gt=0.0, description="a planned meeting that has "
+                                  "not merged the two teams after its robots' travel time "
+                                  "and half a minute, or this long at most, refutes its "
+                                  "transform")
     look_at_movers: bool = Field(True, description="while robots outside the team remain, "
                                  "turn toward moving things the LIDAR sees (a robot whose tag "
                                  "the forward camera would otherwise miss)")

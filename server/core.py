@@ -5,6 +5,7 @@ One call per scan does the robot's whole loop (see ``ServerCore.on_scan``):
 
     pose  = slam.add_scan(...)            # predict → match → keyframe → optimise → loop closure
     desk.process(...)                     # sightings whose scans are in → merges
+    matcher.tick(...)                     # one pair of teams' maps matched → merges, meetings
     progress.tick(...)                    # coverage, termination, λ
     cmd   = steering.command(...)         # lookout, or explore → plan → pursue → avoid
 
@@ -45,6 +46,7 @@ from server.planning import OccupancyGrid as PlanningGrid
 from server.progress import Progress
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.desk import SightingDesk
+from server.rendezvous.matchdesk import MapMatchDesk
 from server.rendezvous.merger import Merger
 from server.rendezvous.surgery import GraphSurgery
 from server.stages import Stages
@@ -69,11 +71,18 @@ class ServerCore:
                              self.counters)
         self.desk = SightingDesk(cfg, self.fleet, self.merger, self.counters,
                                  self.stages.pose_sigmas)
+        self.matcher = MapMatchDesk(cfg, self.fleet, self.merger, self.events, self.counters)
         self.progress = Progress(cfg, self.fleet, self.events)
         self.steering = Steering(cfg, self.fleet)
         #: robots whose agent came back (after a reboot, say), until a scan match places them
         #: again in their map: their scans since
         self.returning: dict[str, int] = {}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        if "matcher" not in state:   # saved before maps were matched between teams
+            self.matcher = MapMatchDesk(self.cfg, self.fleet, self.merger, self.events,
+                                        self.counters)
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
@@ -90,6 +99,8 @@ class ServerCore:
         # 3. sightings waiting for this scan: placed, and perhaps merged
         if self.desk.pending:
             self.desk.process(scan.stamp_ns)
+        # 3b. one pair of teams' maps matched, every period: merges, planned meetings
+        self.matcher.tick(scan.stamp_ns if now_ns is None else now_ns, self.steering.planner)
         # 4. coverage, termination and λ, every map period
         team = self.fleet.team_of(r)
         self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)

@@ -37,6 +37,20 @@ F64 = NDArray[np.float64]
 
 
 @dataclass
+class Meeting:
+    """A meeting planned on a map-matched transform (``server.rendezvous.matchdesk``): the
+    robot that goes drives to where the transform puts the other, which waits."""
+
+    role: str                      # "go" or "wait"
+    other: str                     # the robot of the other team
+    hypothesis: int                # its index in the desk's log
+    until_s: float                 # given up (and the transform refuted) after this
+    target_xy: F64 | None = None   # where to go (team frame), for "go"
+    path_xy: F64 | None = None     # planned on the team's map
+    team_id: str = ""              # the robot's team when planned (whose frame these are in)
+
+
+@dataclass
 class RobotContext:
     robot_id: str
     slam: RobotSlam
@@ -54,6 +68,7 @@ class RobotContext:
     #: the pose the server believed at each scan (stamps; values x, y, θ), in the robot's own
     #: map frame (its first pose is the origin; a merge does not move it)
     online: StampedRows = field(default_factory=lambda: StampedRows(3))
+    meeting: Meeting | None = None
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first
@@ -88,7 +103,9 @@ class MergeRecord:
     T_joint: F64                  # after the joint optimisation
     agreement: dict[str, float]
     undone_stamp_ns: int | None = None
-    kind: str = "tags"            # tags | start (known start poses) | marker (given by hand)
+    #: tags | start (known start poses) | marker (given by hand) | map (the maps alone) |
+    #: meeting (tags, at a meeting planned on the maps)
+    kind: str = "tags"
 
 
 @dataclass

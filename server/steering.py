@@ -39,6 +39,8 @@ class Steering:
             look = self.look(r, stamp_ns * 1e-9, pts)
             if look is not None:
                 twist = look
+            elif r.meeting is not None:
+                twist = self.meet(r, pts)
             else:
                 team = self.fleet.team_of(r)
                 twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,
@@ -50,6 +52,23 @@ class Steering:
         return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=stamp_ns,
                                v_mps=twist.v_mps, omega_rps=twist.omega_rps,
                                ttl_s=self.cfg.control.command_ttl_s)
+
+    def meet(self, r: RobotContext, points_robot: F64) -> Twist:
+        """Drive to a planned meeting's place, then wait there (the lookout turns toward the
+        other robot when it comes; see ``server.rendezvous.matchdesk``)."""
+        m = r.meeting
+        assert m is not None
+        if m.path_xy is None or len(m.path_xy) == 0:
+            return Twist(0.0, 0.0)
+        follow = r.nav.pursuit.step(r.pose, m.path_xy)
+        if follow.reached:
+            m.path_xy = None
+            return Twist(0.0, 0.0)
+        twist = follow.twist
+        if r.nav.vfh is not None:
+            twist = r.nav.vfh.adjust(twist, follow.heading_error_rad, points_robot,
+                                     self.fleet.mates_in_robot_frame(r))
+        return twist
 
     def look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
         """Turn toward something that moves while robots outside the team remain. A robot

@@ -26,6 +26,11 @@ class RendezvousCounters:
     merges_deferred: int = 0    # far sightings waiting for a map match
     misread: int = 0            # placed a robot on a teammate: a misread tag
     sightings_retired: int = 0  # taken out of the graph once the maps tie the pair
+    map_queries: int = 0        # pairs of teams whose maps were matched
+    map_hypotheses: int = 0     # distinct transforms the maps suggested
+    map_merges: int = 0         # merges on the maps alone
+    meetings: int = 0           # planned to settle a transform the maps left open
+    meetings_refuted: int = 0   # ... whose robots did not meet
 
     def as_dict(self) -> dict[str, int]:
         """The counters by their names in the run's outputs."""

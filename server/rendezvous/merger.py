@@ -94,6 +94,10 @@ class Merger:
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
             raise MergeRefused(f"no part of the maps matches within 0.5 m ({tried[0]} tried)")
+        if kind == "map" and found < 2:
+            # on the maps alone, the robots' own keyframes must confirm the fit too
+            raise MergeRefused(f"{found} keyframe matches where the maps overlap "
+                               f"({tried[0]} tried): too few for a merge on the maps alone")
         if matches:
             # where the maps do match, they say how the transform turns: far better than the
             # sightings (a small error across the line of sight turns it by degrees)

@@ -1,0 +1,361 @@
+"""Merges found on the maps, and the meetings planned to settle what the maps leave open.
+
+Every ``teams.map_match_period_s`` one pair of teams (the one waiting longest) has its maps
+matched (``server.rendezvous.mapmatch``). Its best hypothesis — a transform on which submaps
+from several places of both maps agree — goes one of three ways:
+
+- **accepted** (``teams.map_match_min_support`` places, both maps among them, clearly more
+  than any contradicting set): proposed to the merger as a merge of kind ``map``, which checks
+  it on the maps like any other (agreement, keyframe matches, their turn) and commits it;
+- **some support** (``teams.meet_min_support`` places): a meeting. One robot of each team
+  drives to one place of the overlap, the place as each team's map has it. If the transform is
+  right they arrive at the same spot, see each other, and the tags merge them (the merge is
+  then of kind ``meeting``); if they have not merged within ``teams.meet_timeout_s`` the
+  transform is refuted and never tried again;
+- otherwise it is logged and nothing happens.
+
+Every hypothesis is kept in ``log`` with its support and what became of it, for the run's
+report. A query runs on the planner processes when the server has them (it takes a second or
+more for large maps), else right here (lockstep: the run must not depend on its timing).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.se2 import compose, inverse, transform_points, wrap_angle
+from server.config import ServerConfig
+from server.events import EventLog
+from server.fleet import Fleet, Meeting, MergeRecord, RobotContext
+from server.planning.astar import plan
+from server.planning.costmap import build_cost_layer
+from server.planning.errors import PlanningError
+from server.rendezvous.counters import RendezvousCounters
+from server.rendezvous.evidence import MergeProposal
+from server.rendezvous.mapmatch import Hypothesis, MatchParams, PairResult, match_pair
+from server.rendezvous.merger import Merger
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+#: σ of a map-matched transform as the merger weighs it (the keyframe matches then refine it)
+MAP_SIGMA_M, MAP_SIGMA_DEG = 0.3, 2.0
+#: how far two hypotheses of a pair may differ and still be the same one
+SAME_M, SAME_DEG = 1.0, 3.0
+
+
+@dataclass
+class HypothesisEntry:
+    """One transform a pair of teams' maps suggested, and what became of it."""
+
+    first_ns: int
+    last_ns: int
+    team_a: str
+    team_b: str
+    anchor_a: str             # the robots whose first poses are the teams' frames
+    anchor_b: str
+    T_ab: F64                 # team b's frame -> team a's
+    support: int
+    side_a: int
+    side_b: int
+    rival: int
+    acceptance: float
+    status: str = "pending"   # pending, meeting, accepted, refused, confirmed, refuted
+    reason: str = ""
+    seen: int = 1             # queries that found it
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"first_ns": self.first_ns, "last_ns": self.last_ns, "team_a": self.team_a,
+                "team_b": self.team_b, "anchor_a": self.anchor_a, "anchor_b": self.anchor_b,
+                "T_ab": [float(v) for v in self.T_ab], "support": self.support,
+                "side_a": self.side_a, "side_b": self.side_b, "rival": self.rival,
+                "acceptance": self.acceptance, "status": self.status, "reason": self.reason,
+                "seen": self.seen}
+
+
+@dataclass
+class _Job:
+    team_a: str
+    team_b: str
+    members: tuple[tuple[str, ...], tuple[str, ...]]   # the teams as they were asked
+    future: Future[PairResult] | None = None
+
+
+def same_transform(T1: F64, T2: F64, at_b: F64) -> bool:
+    """Two transforms (b -> a) place the point ``at_b`` (b's frame) within SAME_M and turn
+    within SAME_DEG of each other."""
+    if abs(wrap_angle(T1[2] - T2[2])) > math.radians(SAME_DEG):
+        return False
+    p1 = transform_points(T1, at_b[None, :])[0]
+    p2 = transform_points(T2, at_b[None, :])[0]
+    return math.hypot(*(p1 - p2)) <= SAME_M
+
+
+class MapMatchDesk:
+    """Map-matched merges and planned meetings between teams (see the module docstring)."""
+
+    def __init__(self, cfg: ServerConfig, fleet: Fleet, merger: Merger, events: EventLog,
+                 counters: RendezvousCounters) -> None:
+        self.cfg, self.fleet, self.merger = cfg, fleet, merger
+        self.events, self.counters = events, counters
+        self.log: list[HypothesisEntry] = []
+        self.asked_ns: dict[tuple[str, str], int] = {}
+        self.next_ns = 0
+        self.query_ms: list[float] = []          # the latest queries' times (one per submap)
+        self.pair_ms: list[float] = []           # ... and of whole pairs
+        self._job: _Job | None = None
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "_job": None}   # a query in flight is asked again
+
+    @property
+    def params(self) -> MatchParams:
+        t = self.cfg.teams
+        return MatchParams(min_support=t.map_match_min_support)
+
+    # -- the period's work -------------------------------------------------------------------
+    def tick(self, now_ns: int, planner: Executor | None = None) -> None:
+        t = self.cfg.teams
+        if not t.enabled or not t.map_match:
+            return
+        self._follow_meetings(now_ns)
+        job = self._job
+        if job is not None and job.future is not None and job.future.done():
+            self._job = None
+            try:
+                self._take(job, job.future.result(), now_ns)
+            except Exception as e:      # a pool process died: ask again later
+                log.warning("a map matching job failed: %s", e)
+        if now_ns < self.next_ns or self._job is not None:
+            return
+        self.next_ns = now_ns + int(t.map_match_period_s * 1e9)
+        pair = self._next_pair()
+        if pair is None:
+            return
+        a, b = pair
+        self.asked_ns[pair] = now_ns
+        teams = self.fleet.teams
+        job = _Job(a, b, (tuple(teams[a].robot_ids), tuple(teams[b].robot_ids)))
+        args = (self.fleet.team_grid(a), self.fleet.team_grid(b), self._keyframes_xy(a),
+                self._keyframes_xy(b), self.params)
+        if planner is not None:
+            try:
+                job.future = planner.submit(match_pair, *args)
+                self._job = job
+                return
+            except RuntimeError as e:   # the pool is shutting down or broken: match here
+                log.warning("matching maps here: the planner pool is gone (%s)", e)
+        self._take(job, match_pair(*args), now_ns)
+
+    def _next_pair(self) -> tuple[str, str] | None:
+        """The pair of live teams with maps that waited longest; the larger team first (it
+        absorbs the other, as its frame holds more robots)."""
+        fleet = self.fleet
+        live = [tm for tm in fleet.teams.values()
+                if any(fleet.robots[r].alive for r in tm.robot_ids)
+                and sum(len(fleet.robots[r].slam.keyframes) for r in tm.robot_ids) >= 5]
+        live.sort(key=lambda tm: (-len(tm.robot_ids), tm.team_id))
+        pairs = [(x.team_id, y.team_id) for i, x in enumerate(live) for y in live[i + 1:]]
+        if not pairs:
+            return None
+        return min(pairs, key=lambda p: self.asked_ns.get(p, -1))
+
+    def _keyframes_xy(self, team_id: str) -> F64:
+        fleet = self.fleet
+        rows = [fleet.robots[r].slam.keyframe_poses()[:, :2]
+                for r in fleet.teams[team_id].robot_ids if fleet.robots[r].slam.keyframes]
+        return np.concatenate(rows) if rows else np.zeros((0, 2))
+
+    # -- a query's answer --------------------------------------------------------------------
+    def _take(self, job: _Job, res: PairResult, now_ns: int) -> None:
+        fleet = self.fleet
+        ta, tb = fleet.teams.get(job.team_a), fleet.teams.get(job.team_b)
+        if ta is None or tb is None or (tuple(ta.robot_ids), tuple(tb.robot_ids)) != job.members:
+            return   # a merge or split meanwhile: the frames moved
+        self.counters.map_queries += 1
+        self.query_ms = (self.query_ms + res.query_ms)[-2000:]
+        h = res.best
+        if h is None or h.support < min(self.cfg.teams.meet_min_support,
+                                        self.params.min_support):
+            return
+        entry = self._entry(ta.team_id, tb.team_id, ta.anchor, tb.anchor, h, now_ns)
+        if entry.status in ("refuted", "refused"):
+            return
+        if h.accepted(self.params):
+            self._merge(entry, now_ns)
+        elif entry.status == "pending" and self.cfg.teams.map_match_meet and \
+                h.support >= self.cfg.teams.meet_min_support and \
+                min(h.side_support("a"), h.side_support("b")) >= 1 and \
+                h.support >= self.params.dominance * max(h.rival_support, 1):
+            # all but accepted (seen from one map only, or too few places): a meeting
+            self._plan_meeting(entry, h, now_ns)
+
+    def _entry(self, a: str, b: str, anchor_a: str, anchor_b: str, h: Hypothesis,
+               now_ns: int) -> HypothesisEntry:
+        """The pair's entry for this transform: an earlier one that agrees, or a new one."""
+        at_b = np.mean([transform_points(inverse(c.T_ab), c.centre_a[None, :])[0]
+                        for c in h.members], axis=0)
+        for e in reversed(self.log):
+            if (e.team_a, e.team_b) == (a, b) and same_transform(e.T_ab, h.T_ab, at_b):
+                if e.status in ("pending", "meeting"):
+                    e.T_ab, e.support, e.rival = h.T_ab, h.support, h.rival_support
+                    e.side_a, e.side_b = h.side_support("a"), h.side_support("b")
+                    e.acceptance = round(h.acceptance, 4)
+                e.last_ns, e.seen = now_ns, e.seen + 1
+                return e
+        e = HypothesisEntry(now_ns, now_ns, a, b, anchor_a, anchor_b, h.T_ab, h.support,
+                            h.side_support("a"), h.side_support("b"), h.rival_support,
+                            round(h.acceptance, 4))
+        self.log.append(e)
+        self.counters.map_hypotheses += 1
+        log.info("maps of %s and %s fit under T %s at %d places (rival %d)", b, a,
+                 h.T_ab.round(2), h.support, h.rival_support)
+        return e
+
+    def _merge(self, e: HypothesisEntry, now_ns: int) -> None:
+        t_ab = e.T_ab
+        sig = np.array([MAP_SIGMA_M, MAP_SIGMA_M, math.radians(MAP_SIGMA_DEG)])
+        ra, rb = self.fleet.robots[e.anchor_a], self.fleet.robots[e.anchor_b]
+        T_own = compose(compose(inverse(ra.own_frame_in_team()), t_ab), rb.own_frame_in_team())
+        T_team, link = self.merger.surgery.own_frames_link(e.anchor_a, e.anchor_b, T_own, sig,
+                                                           "map", now_ns)
+        self._end_meetings(e)
+        rec = self.merger.try_merge(MergeProposal(e.team_a, e.team_b, (), T_team,
+                                                  np.diag(sig ** 2), T_team), now_ns, (link,),
+                                    kind="map")
+        if rec is None:
+            e.status, e.reason = "refused", "the merger's map checks"
+            return
+        e.status = "accepted"
+        self.counters.map_merges += 1
+
+    # -- meetings ----------------------------------------------------------------------------
+    def _plan_meeting(self, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
+        """One robot of each team to one place of the overlap, if some pair of them can get
+        there within ``teams.meet_max_detour_m`` (the farther of the two paths)."""
+        fleet, t = self.fleet, self.cfg.teams
+        busy = any(fleet.robots[r].meeting is not None
+                   for tm in (e.team_a, e.team_b) for r in fleet.teams[tm].robot_ids)
+        if busy:
+            return
+        side_a = [fleet.robots[r] for r in fleet.teams[e.team_a].robot_ids
+                  if fleet.robots[r].alive]
+        side_b = [fleet.robots[r] for r in fleet.teams[e.team_b].robot_ids
+                  if fleet.robots[r].alive]
+        places = [c.centre_a for c in h.members]
+        best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
+        tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
+                             math.hypot(*(transform_points(e.T_ab, rb.pose[None, :2])[0] - p))),
+                         i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
+                        for k, p in enumerate(places)), key=lambda x: x[0])
+        for straight, i, j, k in tries[:6]:
+            if straight > t.meet_max_detour_m:
+                break
+            ra, rb, p = side_a[i], side_b[j], places[k]
+            p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
+            path_a, path_b = self._path(ra, p), self._path(rb, p_b)
+            if path_a is None or path_b is None:
+                continue
+            cost = max(_length(path_a), _length(path_b))
+            if cost <= 1.5 * t.meet_max_detour_m and (best is None or cost < best[0]):
+                best = (cost, ra, rb, p, p_b, path_a, path_b)
+        if best is None:
+            return
+        _, ra, rb, p, p_b, path_a, path_b = best
+        cost, v = best[0], ra.nav.pursuit.params.v_mps
+        until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
+        idx = self.log.index(e)
+        ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
+        rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
+        e.status = "meeting"
+        self.counters.meetings += 1
+        msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to one place "
+               f"({e.support} places of the maps agree on where it is)")
+        log.info("%s; %s at %s, %s at %s", msg, ra.robot_id, p.round(2), rb.robot_id,
+                 p_b.round(2))
+        self.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
+
+    def _path(self, r: RobotContext, goal: F64) -> F64 | None:
+        grid = self.fleet.planning_grid(r.team_id)
+        try:
+            layer = build_cost_layer(grid, r.nav.own_explorer.params.analysis.cost)
+            return plan(layer, r.pose[:2], goal, timeout_s=0.5).xy_m
+        except PlanningError:
+            return None
+
+    def _follow_meetings(self, now_ns: int) -> None:
+        """Settle meetings: merged (confirmed), out of time (refuted), a robot gone."""
+        fleet = self.fleet
+        for r in fleet.robots.values():
+            m = r.meeting
+            if m is None:
+                continue
+            e = self.log[m.hypothesis] if 0 <= m.hypothesis < len(self.log) else None
+            other = fleet.robots.get(m.other)
+            if e is None or other is None:
+                self._stop(r)
+                continue
+            if other.team_id == r.team_id:
+                rec = fleet.merges[-1] if fleet.merges else None
+                if rec is not None and self._agrees(e, rec):
+                    if rec.kind == "tags":
+                        rec.kind = "meeting"
+                    self._settle(e, "confirmed", "the tags merged the teams at the meeting",
+                                 now_ns)
+                else:
+                    self._settle(e, "refuted", "the teams merged under another transform",
+                                 now_ns)
+            elif not (r.alive and other.alive):
+                self._settle(e, "pending", "a robot of the meeting went silent", now_ns)
+            elif r.team_id != m.team_id:
+                self._settle(e, "pending", "another merge moved the meeting's frame", now_ns)
+            elif now_ns * 1e-9 > m.until_s:
+                self._settle(e, "refuted", "the robots did not meet where the maps said",
+                             now_ns)
+
+    def _agrees(self, e: HypothesisEntry, rec: MergeRecord) -> bool:
+        """The merge joined the hypothesis' two teams under (about) its transform."""
+        if (rec.team_id, rec.joined_team_id) == (e.team_a, e.team_b):
+            T = rec.T_joint
+        elif (rec.team_id, rec.joined_team_id) == (e.team_b, e.team_a):
+            T = inverse(rec.T_joint)
+        else:
+            return False
+        at_b = transform_points(inverse(e.T_ab), np.zeros((1, 2)))[0]
+        return same_transform(T, e.T_ab, at_b)
+
+    def _settle(self, e: HypothesisEntry, status: str, why: str, now_ns: int) -> None:
+        robots = [r.robot_id for r in self._end_meetings(e)]
+        e.status, e.reason = status, why
+        if status == "refuted":
+            self.counters.meetings_refuted += 1
+        log.info("meeting of %s: %s", robots, why)
+        self.events.emit("meeting", robots, e.team_a, f"meeting of {', '.join(robots)}: {why}",
+                         now_ns)
+
+    def _end_meetings(self, e: HypothesisEntry) -> list[RobotContext]:
+        idx = self.log.index(e)
+        ended = [r for r in self.fleet.robots.values()
+                 if r.meeting is not None and r.meeting.hypothesis == idx]
+        for r in ended:
+            self._stop(r)
+        return ended
+
+    @staticmethod
+    def _stop(r: RobotContext) -> None:
+        r.meeting = None
+        r.nav.drop_target()      # decide afresh: the map and the team may have changed
+
+    def hypotheses(self) -> list[dict[str, Any]]:
+        return [e.as_dict() for e in self.log]
+
+
+def _length(path: F64) -> float:
+    return float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(path) > 1 else 0.0

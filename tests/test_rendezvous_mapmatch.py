@@ -1,0 +1,125 @@
+"""Map matching between teams (server.rendezvous.mapmatch) on maps built from the packaged
+large house: scans ray-cast at poses inside a region, inserted into a real occupancy grid in
+each robot's own frame."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import sim
+from schemas.se2 import compose, inverse
+from server.rendezvous.mapmatch import (
+    Candidate,
+    MatchParams,
+    best_hypothesis,
+    hough_spectrum,
+    match_pair,
+    rotation_peaks,
+    transform_error,
+)
+from server.slam.grid import GridParams, OccupancyGrid
+from sim.loader import load_world
+from sim.raycast import RayCaster
+
+WORLD = Path(sim.__file__).parent / "worlds" / "large_house.world"
+
+
+@pytest.fixture(scope="module")
+def caster() -> RayCaster:
+    w = load_world(WORLD)
+    return RayCaster(w.segments, w.circles)
+
+
+def region_map(caster: RayCaster, lo: tuple[float, float], hi: tuple[float, float],
+               start: np.ndarray, seed: int) -> tuple[OccupancyGrid, np.ndarray]:
+    """The map a robot starting at ``start`` (world) would have after scanning from free
+    places of the box [lo, hi], in its own frame; and those places (its keyframes)."""
+    rng = np.random.default_rng(seed)
+    grid = OccupancyGrid(GridParams(resolution_m=0.125, max_ray_m=12.0))
+    inc = 2 * math.pi / 360
+    kf = []
+    for x in np.arange(lo[0], hi[0], 1.5):
+        for y in np.arange(lo[1], hi[1], 1.5):
+            pose = (x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), rng.uniform(-3, 3))
+            r = caster.cast(pose, 360, -math.pi, inc, 12.0)
+            if not np.isfinite(r).any() or np.nanmin(r) < 0.5:
+                continue   # inside a wall or too close to one: no robot stands there
+            a = -math.pi + inc * np.arange(360)
+            ok = np.isfinite(r)
+            hits = np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=1)
+            own = compose(inverse(start), np.array(pose))
+            lo_xy, hi_xy = own[:2] - 12.5, own[:2] + 12.5
+            grid.ensure_contains(lo_xy, hi_xy)
+            grid.insert_scan(own, hits)
+            kf.append(own[:2])
+    return grid, np.array(kf)
+
+
+S_A = np.array([-20.0, -20.0, 0.0])
+S_B = np.array([-8.0, -12.0, 2.2])      # turned by a non-right angle
+
+
+def test_overlapping_maps_merge_under_the_true_transform(caster: RayCaster) -> None:
+    ga, ka = region_map(caster, (-24, -24), (-6, -6), S_A, 1)
+    gb, kb = region_map(caster, (-14, -24), (4, -6), S_B, 2)
+    p = MatchParams()
+    res = match_pair(ga, gb, ka, kb, p)
+    T_true = compose(inverse(S_A), S_B)
+    assert res.best is not None
+    et, er = transform_error(res.best.T_ab, T_true)
+    assert et < 0.3 and math.degrees(er) < 1.0, (et, math.degrees(er))
+    assert res.best.accepted(p), res.best
+    assert min(res.best.side_support("a"), res.best.side_support("b")) >= 2
+    # every accepted member is itself close to the truth
+    for c in res.best.members:
+        assert transform_error(c.T_ab, T_true)[0] < 0.6
+
+
+def test_maps_that_do_not_overlap_are_not_merged(caster: RayCaster) -> None:
+    ga, ka = region_map(caster, (-24, -24), (-6, -6), S_A, 3)
+    gb, kb = region_map(caster, (6, 6), (24, 24), np.array([10.0, 10.0, 1.0]), 4)
+    p = MatchParams()
+    res = match_pair(ga, gb, ka, kb, p)
+    assert res.submaps >= 6      # there was plenty to match
+    assert res.best is None or not res.best.accepted(p)
+
+
+def test_rotation_peaks_find_the_turn_between_two_maps(caster: RayCaster) -> None:
+    ga, _ = region_map(caster, (-24, -24), (-6, -6), S_A, 5)
+    gb, _ = region_map(caster, (-24, -24), (-6, -6), S_B, 6)
+    peaks = rotation_peaks(hough_spectrum(ga.occupied_mask()), hough_spectrum(gb.occupied_mask()))
+    true = S_B[2] - S_A[2]
+    # the true turn is within 1.5° of one of the peaks (walls are 90° apart: four peaks)
+    off = min(abs(math.remainder(true - q, 2 * math.pi)) for q in peaks)
+    assert math.degrees(off) < 1.5, [round(math.degrees(q), 1) for q in peaks]
+    assert len(peaks) == 4
+
+
+def _cand(side: str, k: int, T: np.ndarray, centre: tuple[float, float]) -> Candidate:
+    return Candidate(np.asarray(T, dtype=float), side, k, np.asarray(centre, dtype=float), 100.0,
+                     100, 0, 0.99, 1000)
+
+
+def test_consistency_needs_both_maps_and_dominance() -> None:
+    p = MatchParams()
+    T1, T2 = np.array([3.0, 1.0, 0.5]), np.array([-7.0, 4.0, 0.5 + math.pi / 2])
+    good = [_cand("a", 0, T1, (0, 0)), _cand("a", 1, T1, (8, 0)), _cand("b", 0, T1, (0, 8))]
+    # three places agreeing, but only one of them cut from b's map: not accepted
+    h = best_hypothesis(good, p)
+    assert h is not None and h.support == 3 and not h.accepted(p)
+    # a second b submap agreeing: accepted
+    h = best_hypothesis([*good, _cand("b", 1, T1 + np.array([0.1, -0.1, 0.005]), (8, 8))], p)
+    assert h is not None and h.accepted(p) and h.rival_support == 0
+    # ... unless a rival transform is about as well supported
+    rivals = [_cand(s, k + 5, T2, (20 + 8 * k, 20 + 8 * (s == "b"))) for s in "ab"
+              for k in range(2)]
+    h = best_hypothesis([*good, _cand("b", 1, T1, (8, 8)), *rivals], p)
+    assert h is not None and h.rival_support == 4 and not h.accepted(p)
+    # one submap's candidates never support each other
+    same = [_cand("a", 0, T1 + np.array([0.05 * i, 0, 0]), (0, 0)) for i in range(4)]
+    h = best_hypothesis(same, p)
+    assert h is not None and h.support == 1
