@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import sim
+from bench.support.scanned import scanned_map
 from schemas.se2 import compose, inverse
 from server.rendezvous.mapmatch import (
     Candidate,
@@ -21,7 +22,7 @@ from server.rendezvous.mapmatch import (
     rotation_peaks,
     transform_error,
 )
-from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.grid import OccupancyGrid
 from sim.loader import load_world
 from sim.raycast import RayCaster
 
@@ -36,27 +37,7 @@ def caster() -> RayCaster:
 
 def region_map(caster: RayCaster, lo: tuple[float, float], hi: tuple[float, float],
                start: np.ndarray, seed: int) -> tuple[OccupancyGrid, np.ndarray]:
-    """The map a robot starting at ``start`` (world) would have after scanning from free
-    places of the box [lo, hi], in its own frame; and those places (its keyframes)."""
-    rng = np.random.default_rng(seed)
-    grid = OccupancyGrid(GridParams(resolution_m=0.125, max_ray_m=12.0))
-    inc = 2 * math.pi / 360
-    kf = []
-    for x in np.arange(lo[0], hi[0], 1.5):
-        for y in np.arange(lo[1], hi[1], 1.5):
-            pose = (x + rng.uniform(-0.3, 0.3), y + rng.uniform(-0.3, 0.3), rng.uniform(-3, 3))
-            r = caster.cast(pose, 360, -math.pi, inc, 12.0)
-            if not np.isfinite(r).any() or np.nanmin(r) < 0.5:
-                continue   # inside a wall or too close to one: no robot stands there
-            a = -math.pi + inc * np.arange(360)
-            ok = np.isfinite(r)
-            hits = np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=1)
-            own = compose(inverse(start), np.array(pose))
-            lo_xy, hi_xy = own[:2] - 12.5, own[:2] + 12.5
-            grid.ensure_contains(lo_xy, hi_xy)
-            grid.insert_scan(own, hits)
-            kf.append(own[:2])
-    return grid, np.array(kf)
+    return scanned_map(caster, lo, hi, start, seed)
 
 
 S_A = np.array([-20.0, -20.0, 0.0])

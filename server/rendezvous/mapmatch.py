@@ -128,9 +128,14 @@ class Layers:
     fine_clear: B   # free with no occupied cell within two
     code: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((0, 0), np.uint8))
 
+    occ_xy: F64 = field(default_factory=lambda: np.zeros((0, 2)))     # fine cell centres
+    clear_xy: F64 = field(default_factory=lambda: np.zeros((0, 2)))   # (every other one)
+
     def __post_init__(self) -> None:
         self.code = (self.fine_near * 1 + self.fine_clear * 2 + self.fine_free * 4
                      + self.fine_occ * 8).astype(np.uint8)
+        self.occ_xy = _fine_xy(self, self.fine_occ)
+        self.clear_xy = _fine_xy(self, self.fine_clear)[::2]
 
 
 def layers(grid: OccupancyGrid, cell_m: float) -> Layers:
@@ -315,7 +320,7 @@ def match_submap(src: Layers, centre: F64, dst: Target, rotations: list[float],
         cand = _refine(src, centre, dst.lay, T, p, side, index, to_ab, score)
         if cand is not None:
             out.append(cand)
-        if len(out) >= p.top_k or tried >= 2 * p.top_k:
+        if len(out) >= p.top_k or tried >= p.top_k + 2:
             break
     return out
 
@@ -325,14 +330,14 @@ def _refine(src: Layers, centre: F64, dst: Layers, T: F64, p: MatchParams, side:
     """A small search on the fine grid around a coarse placement (±0.5°, ±1 cell), scored by
     the acceptance index; None when the overlap is too small or disagrees."""
     half = p.submap_m / 2
-    po, pf = _fine_xy(src, src.fine_occ), _fine_xy(src, src.fine_clear)
+    po, pf = src.occ_xy, src.clear_xy
     po = po[(np.abs(po - centre) <= half).all(axis=1)]
     pf = pf[(np.abs(pf - centre) <= half).all(axis=1)]
     code = dst.code
     h, w = code.shape
     best: tuple[float, F64, int, int, float, int] | None = None
     step = dst.fine_m
-    for dth in np.radians(np.arange(-0.5, 0.51, 0.25)):
+    for dth in np.radians((-0.5, 0.0, 0.5)):
         th = T[2] + dth
         c, s = math.cos(th), math.sin(th)
         R = np.array([[c, -s], [s, c]])
