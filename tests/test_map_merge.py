@@ -1,0 +1,64 @@
+"""Two robots that never read a tag merge on their maps alone: the simulator drives them
+through the small house, the server core explores with them, and no tag message is given."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from schemas.se2 import compose, inverse, pose_distance
+from server.core import ServerCore
+from sim.loader import load_world
+from sim.simulator import SimParams, Simulator
+from tests.test_cluster_handover import step_messages
+from tests.test_team_merge import WORLD, config
+
+#: case 2's first two robots: 5 m apart, facing away from each other
+SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-3.0, 9.0, 3 * math.pi / 2)}
+
+
+@pytest.fixture(scope="module")
+def run() -> tuple[ServerCore, int]:
+    sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=5)
+    core = ServerCore(config(map_match_meet=False))
+    for step in range(1500):
+        obs = sim.sense()
+        scans, _tags = step_messages(sim, _NoTags(), obs)   # tags never reach the server
+        for rid, scan in scans.items():
+            cmd = core.on_scan(scan)
+            sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
+        sim.advance()
+        if core.merges:
+            return core, step
+    return core, -1
+
+
+class _NoTags:
+    def detect(self, *_args: object) -> object:
+        return type("Found", (), {"sightings": []})()
+
+
+def test_the_maps_alone_merge_the_two_robots(run: tuple[ServerCore, int]) -> None:
+    core, step = run
+    assert step > 0, [h for h in core.matcher.hypotheses()]
+    m = core.merges[0]
+    assert m.kind == "map" and not m.sightings
+    assert core.tag_counters["map_merges"] == 1
+    # the transform from r2's start frame to r1's, against the truth
+    a, b = m.robots_a[0], m.robots_b[0]
+    T_true = compose(inverse(np.array(SPAWN[a])), np.array(SPAWN[b]))
+    et, er = pose_distance(compose(inverse(T_true), m.T_joint))
+    assert et < 0.15 and math.degrees(er) < 1.0, (et, math.degrees(er))
+
+
+def test_the_accepted_hypothesis_is_logged_with_its_support(run: tuple[ServerCore, int]
+                                                            ) -> None:
+    core, _ = run
+    accepted = [h for h in core.matcher.hypotheses() if h["status"] == "accepted"]
+    assert len(accepted) == 1
+    h = accepted[0]
+    assert h["support"] >= 3 and min(h["side_a"], h["side_b"]) >= 2
+    assert h["support"] >= 2 * max(h["rival"], 1)
+    assert core.tag_counters["map_queries"] >= 1
