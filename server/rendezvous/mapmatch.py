@@ -235,13 +235,12 @@ def _points(mask: B, corner: F64, cell_m: float) -> F64:
     return np.stack([corner[0] + (j + 0.5) * cell_m, corner[1] + (i + 0.5) * cell_m], axis=1)
 
 
-def _raster(pts: F64, lo: F64, shape: tuple[int, int], cell_m: float) -> F64:
-    out = np.zeros(shape)
+def _raster(pts: F64, lo: F64, out: NDArray[np.float32], cell_m: float) -> None:
+    """Mark the cells of ``out`` (corner ``lo``) that hold a point."""
     j = np.floor((pts[:, 0] - lo[0]) / cell_m).astype(np.int64)
     i = np.floor((pts[:, 1] - lo[1]) / cell_m).astype(np.int64)
-    ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+    ok = (i >= 0) & (i < out.shape[0]) & (j >= 0) & (j < out.shape[1])
     out[i[ok], j[ok]] = 1.0
-    return out
 
 
 class Target:
@@ -259,18 +258,21 @@ class Target:
         self.shape = (next_fast_len(H + self.m, real=True), next_fast_len(W + self.m, real=True))
         near = binary_dilation(lay.occ, iterations=1) if lay.occ.size else lay.occ
         clear = lay.free & ~near
-        for_walls = near.astype(np.float64) - weight * clear
+        for_walls = (near.astype(np.float32) - np.float32(weight) * clear).astype(np.float32)
         self.F_walls = sfft.rfft2(for_walls, self.shape)
-        self.F_occ = sfft.rfft2(lay.occ.astype(np.float64), self.shape)
+        self.F_occ = np.float32(weight) * sfft.rfft2(lay.occ.astype(np.float32), self.shape)
         self.weight = weight
 
-    def scores(self, occ_r: F64, free_r: F64) -> F64:
-        """For every shift (di, dj) of the rasterised submap's corner onto the map's cell
-        (di − m + 1 ... ), hits − weight · conflicts, by correlation through the FFT."""
-        Fo = sfft.rfft2(occ_r, self.shape)
-        Ff = sfft.rfft2(free_r, self.shape)
-        prod = self.F_walls * np.conj(Fo) - self.weight * self.F_occ * np.conj(Ff)
-        return np.asarray(sfft.irfft2(prod, self.shape))
+    def scores(self, occ_r: NDArray[np.float32], free_r: NDArray[np.float32]
+               ) -> NDArray[np.float32]:
+        """For every shift (di, dj) of each rasterised submap's corner (a stack, one per
+        rotation) onto the map's cell (di, dj), negative shifts wrapped around: hits −
+        weight · conflicts, by correlation through the FFT (single precision: the scores
+        are counts of a few thousand at most)."""
+        Fo = sfft.rfft2(occ_r, self.shape, axes=(-2, -1))
+        Ff = sfft.rfft2(free_r, self.shape, axes=(-2, -1))
+        prod = self.F_walls * np.conj(Fo) - self.F_occ * np.conj(Ff)
+        return np.asarray(sfft.irfft2(prod, self.shape, axes=(-2, -1)))
 
 
 def match_submap(src: Layers, centre: F64, dst: Target, rotations: list[float],
@@ -284,27 +286,30 @@ def match_submap(src: Layers, centre: F64, dst: Target, rotations: list[float],
     lay, m, cell = dst.lay, dst.m, dst.lay.cell_m
     found: list[tuple[float, float, F64]] = []     # (score, angle, translation)
     steps = np.arange(-p.window_deg, p.window_deg + 1e-9, p.step_deg)
-    for base in rotations:
-        for d in steps:
-            th = wrap_angle(base + math.radians(d))
-            c, s = math.cos(th), math.sin(th)
-            R = np.array([[c, -s], [s, c]])
-            ro, rf = (pts_o - centre) @ R.T, (pts_f - centre) @ R.T
-            lo = np.minimum(ro.min(axis=0), rf.min(axis=0) if len(rf) else ro.min(axis=0))
-            shape = (m, m)
-            So = _raster(ro, lo, shape, cell)
-            Sf = _raster(rf, lo, shape, cell)
-            sc = dst.scores(So, Sf)
-            # strongest few shifts of this rotation
-            flat = np.argpartition(sc.ravel(), -4)[-4:]
-            for f in flat:
-                i, j = divmod(int(f), sc.shape[1])
-                di = i if i < sc.shape[0] - m else i - sc.shape[0]
-                dj = j if j < sc.shape[1] - m else j - sc.shape[1]
-                # the raster's corner lands on map cell (di, dj): centre -> where
-                where = lay.origin + np.array([dj, di]) * cell - lo
-                t = where - R @ centre
-                found.append((float(sc.ravel()[f]), th, t))
+    angles = [wrap_angle(base + math.radians(d)) for base in rotations for d in steps]
+    So = np.zeros((len(angles), m, m), dtype=np.float32)
+    Sf = np.zeros((len(angles), m, m), dtype=np.float32)
+    turns, corners = [], []
+    for k, th in enumerate(angles):
+        c, s = math.cos(th), math.sin(th)
+        R = np.array([[c, -s], [s, c]])
+        ro, rf = (pts_o - centre) @ R.T, (pts_f - centre) @ R.T
+        lo = np.minimum(ro.min(axis=0), rf.min(axis=0) if len(rf) else ro.min(axis=0))
+        _raster(ro, lo, So[k], cell)
+        _raster(rf, lo, Sf[k], cell)
+        turns.append(R)
+        corners.append(lo)
+    sc = dst.scores(So, Sf)
+    H, W = sc.shape[1:]
+    for k, th in enumerate(angles):
+        flat_k = sc[k].ravel()
+        for f in np.argpartition(flat_k, -8)[-8:]:   # the strongest shifts of this rotation
+            i, j = divmod(int(f), W)
+            di = i if i < H - m else i - H
+            dj = j if j < W - m else j - W
+            # the raster's corner lands on map cell (di, dj): centre -> where
+            where = lay.origin + np.array([dj, di]) * cell - corners[k]
+            found.append((float(flat_k[f]), th, where - turns[k] @ centre))
     found.sort(key=lambda x: -x[0])
     out: list[Candidate] = []
     placed: list[tuple[F64, float]] = []     # kept placements: centre in dst, angle
