@@ -98,4 +98,4 @@ def test_the_cases_keep_the_dissertations_poses_areas_and_settings(case: str) ->
         assert ours[key] == theirs[key], key
     assert "reported" not in ours   # its figures were measured in its worlds, not ours
     cases = yaml.safe_load(DEFAULT_SCENARIOS.read_text())["cases"]
-    assert sorted(cases) == CASES
+    assert set(CASES) <= set(cases)   # (the package also ships worlds of its own)
