@@ -466,10 +466,11 @@ def _mean_transform(Ts: list[F64]) -> F64:
 
 
 # -- a query of one pair -----------------------------------------------------------------------
-def match_pair(grid_a: OccupancyGrid, grid_b: OccupancyGrid, kf_a: F64, kf_b: F64,
-               p: MatchParams | None = None) -> PairResult:
-    """Submaps of each team's map (around its keyframes ``kf_*``, positions in its own team
-    frame) matched against the other's map, and the best hypothesis over all of them."""
+def submap_candidates(grid_a: OccupancyGrid, grid_b: OccupancyGrid,
+                      centres_a: list[tuple[int, F64]], centres_b: list[tuple[int, F64]],
+                      p: MatchParams | None = None) -> PairResult:
+    """The candidates of the given submaps (ids and centres, each in its own team's frame):
+    b's placed on a's map, a's on b's. No hypothesis (``best`` stays None)."""
     p = p or MatchParams()
     la, lb = layers(grid_a, p.cell_m), layers(grid_b, p.cell_m)
     res = PairResult()
@@ -480,13 +481,26 @@ def match_pair(grid_a: OccupancyGrid, grid_b: OccupancyGrid, kf_a: F64, kf_b: F6
     ta, tb = Target(la, p.submap_m, p.conflict_weight), Target(lb, p.submap_m,
                                                                  p.conflict_weight)
     back = [wrap_angle(-r) for r in rot]
-    for side, src, centres, dst, rots in (("b", lb, submap_centres(kf_b, lb, p), ta, rot),
-                                          ("a", la, submap_centres(kf_a, la, p), tb, back)):
-        for k, c in enumerate(centres):
+    for side, src, centres, dst, rots in (("b", lb, centres_b, ta, rot),
+                                          ("a", la, centres_a, tb, back)):
+        for k, c in centres:
+            if int(_window(src, c, p.submap_m)[0].sum()) < p.min_submap_walls:
+                continue
             t0 = time.perf_counter()
             res.candidates += match_submap(src, c, dst, rots, p, side, k, to_ab=side == "b")
             res.query_ms.append((time.perf_counter() - t0) * 1e3)
             res.submaps += 1
+    return res
+
+
+def match_pair(grid_a: OccupancyGrid, grid_b: OccupancyGrid, kf_a: F64, kf_b: F64,
+               p: MatchParams | None = None) -> PairResult:
+    """Submaps of each team's map (around its keyframes ``kf_*``, positions in its own team
+    frame) matched against the other's map, and the best hypothesis over all of them."""
+    p = p or MatchParams()
+    la, lb = layers(grid_a, p.cell_m), layers(grid_b, p.cell_m)
+    res = submap_candidates(grid_a, grid_b, list(enumerate(submap_centres(kf_a, la, p))),
+                            list(enumerate(submap_centres(kf_b, lb, p))), p)
     res.best = best_hypothesis(res.candidates, p)
     return res
 

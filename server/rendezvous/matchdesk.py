@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 from concurrent.futures import Executor, Future
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -39,7 +39,14 @@ from server.planning.costmap import build_cost_layer
 from server.planning.errors import PlanningError
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal
-from server.rendezvous.mapmatch import Hypothesis, MatchParams, PairResult, match_pair
+from server.rendezvous.mapmatch import (
+    Candidate,
+    Hypothesis,
+    MatchParams,
+    PairResult,
+    best_hypothesis,
+    submap_candidates,
+)
 from server.rendezvous.merger import Merger
 
 F64 = NDArray[np.float64]
@@ -85,7 +92,35 @@ class _Job:
     team_a: str
     team_b: str
     members: tuple[tuple[str, ...], tuple[str, ...]]   # the teams as they were asked
+    picked: list[tuple[str, int]]                      # the submaps asked for
     future: Future[PairResult] | None = None
+
+
+@dataclass
+class PairMemory:
+    """What the queries of one pair of teams found, while neither team changes: submap
+    centres (each team's frame), when each was last matched, and its candidates. Each query
+    matches the submaps never matched yet (newest first), then those matched longest ago, so
+    that over a few queries every part of both maps has been tried, at a bounded cost each."""
+
+    members: tuple[tuple[str, ...], tuple[str, ...]]
+    centres: dict[str, list[F64]] = field(default_factory=lambda: {"a": [], "b": []})
+    matched_ns: dict[tuple[str, int], int] = field(default_factory=dict)
+    cands: dict[tuple[str, int], list[Candidate]] = field(default_factory=dict)
+
+    def register(self, side: str, positions: F64, spacing_m: float) -> None:
+        have = self.centres[side]
+        for xy in positions[::-1]:
+            if all(math.hypot(*(xy - q)) >= spacing_m for q in have):
+                have.append(np.asarray(xy, dtype=np.float64).copy())
+
+    def pick(self, side: str, n: int) -> list[tuple[int, F64]]:
+        ids = sorted(range(len(self.centres[side])),
+                     key=lambda i: (self.matched_ns.get((side, i), -1), -i))
+        return [(i, self.centres[side][i]) for i in ids[:n]]
+
+    def candidates(self) -> list[Candidate]:
+        return [c for cs in self.cands.values() for c in cs]
 
 
 def same_transform(T1: F64, T2: F64, at_b: F64) -> bool:
@@ -109,7 +144,7 @@ class MapMatchDesk:
         self.asked_ns: dict[tuple[str, str], int] = {}
         self.next_ns = 0
         self.query_ms: list[float] = []          # the latest queries' times (one per submap)
-        self.pair_ms: list[float] = []           # ... and of whole pairs
+        self.memory: dict[tuple[str, str], PairMemory] = {}
         self._job: _Job | None = None
 
     def __getstate__(self) -> dict[str, object]:
@@ -141,18 +176,24 @@ class MapMatchDesk:
             return
         a, b = pair
         self.asked_ns[pair] = now_ns
-        teams = self.fleet.teams
-        job = _Job(a, b, (tuple(teams[a].robot_ids), tuple(teams[b].robot_ids)))
-        args = (self.fleet.team_grid(a), self.fleet.team_grid(b), self._keyframes_xy(a),
-                self._keyframes_xy(b), self.params)
+        teams, p = self.fleet.teams, self.params
+        members = (tuple(teams[a].robot_ids), tuple(teams[b].robot_ids))
+        mem = self.memory.get(pair)
+        if mem is None or mem.members != members:   # a merge or split: frames moved
+            mem = self.memory[pair] = PairMemory(members)
+        mem.register("a", self._keyframes_xy(a), p.spacing_m)
+        mem.register("b", self._keyframes_xy(b), p.spacing_m)
+        pick_a, pick_b = mem.pick("a", p.max_submaps), mem.pick("b", p.max_submaps)
+        job = _Job(a, b, members, [("a", i) for i, _ in pick_a] + [("b", i) for i, _ in pick_b])
+        args = (self.fleet.team_grid(a), self.fleet.team_grid(b), pick_a, pick_b, p)
         if planner is not None:
             try:
-                job.future = planner.submit(match_pair, *args)
+                job.future = planner.submit(submap_candidates, *args)
                 self._job = job
                 return
             except RuntimeError as e:   # the pool is shutting down or broken: match here
                 log.warning("matching maps here: the planner pool is gone (%s)", e)
-        self._take(job, match_pair(*args), now_ns)
+        self._take(job, submap_candidates(*args), now_ns)
 
     def _next_pair(self) -> tuple[str, str] | None:
         """The pair of live teams with maps that waited longest; the larger team first (it
@@ -163,6 +204,8 @@ class MapMatchDesk:
                 and sum(len(fleet.robots[r].slam.keyframes) for r in tm.robot_ids) >= 5]
         live.sort(key=lambda tm: (-len(tm.robot_ids), tm.team_id))
         pairs = [(x.team_id, y.team_id) for i, x in enumerate(live) for y in live[i + 1:]]
+        for gone in set(self.memory) - set(pairs):
+            del self.memory[gone]
         if not pairs:
             return None
         return min(pairs, key=lambda p: self.asked_ns.get(p, -1))
@@ -181,7 +224,13 @@ class MapMatchDesk:
             return   # a merge or split meanwhile: the frames moved
         self.counters.map_queries += 1
         self.query_ms = (self.query_ms + res.query_ms)[-2000:]
-        h = res.best
+        mem = self.memory.get((job.team_a, job.team_b))
+        if mem is None or mem.members != job.members:
+            return
+        for key in job.picked:
+            mem.matched_ns[key] = now_ns
+            mem.cands[key] = [c for c in res.candidates if (c.side, c.submap) == key]
+        h = best_hypothesis(mem.candidates(), self.params)
         if h is None or h.support < min(self.cfg.teams.meet_min_support,
                                         self.params.min_support):
             return
