@@ -34,9 +34,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import tempfile
+import time
 import traceback
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -224,6 +226,10 @@ def load_done(path: Path) -> dict[str, Any] | None:
     return data
 
 
+#: seconds between the starts of demos run at once (``--jobs``)
+STAGGER_S = 20.0
+
+
 def run_all(specs: list[RunSpec], base: Path, max_sim_time_s: float, jobs: int = 1,
             resume: bool = False,
             runner: Callable[[RunSpec, Path, float], dict[str, Any]] = execute,
@@ -255,11 +261,22 @@ def run_all(specs: list[RunSpec], base: Path, max_sim_time_s: float, jobs: int =
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             running: dict[Future[dict[str, Any]], RunSpec] = {}
-            for spec in todo:
-                log(f"queued {spec.key}")
-                running[pool.submit(runner, spec, base, max_sim_time_s)] = spec
-            while running:
-                done_f, _ = wait(running, return_when=FIRST_COMPLETED)
+            queue, last = list(todo), -math.inf
+            while running or queue:
+                # demos started together race for their ports and their agents' first
+                # sessions: start them STAGGER_S apart
+                if queue and len(running) < jobs and time.monotonic() - last >= STAGGER_S:
+                    spec = queue.pop(0)
+                    log(f"started {spec.key}")
+                    running[pool.submit(runner, spec, base, max_sim_time_s)] = spec
+                    last = time.monotonic()
+                    continue
+                pause = max(0.0, STAGGER_S - (time.monotonic() - last)) \
+                    if queue and len(running) < jobs else None
+                if not running:
+                    time.sleep(pause or 0.0)
+                    continue
+                done_f, _ = wait(running, timeout=pause, return_when=FIRST_COMPLETED)
                 for f in done_f:
                     spec = running.pop(f)
                     try:
