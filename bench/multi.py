@@ -64,7 +64,7 @@ GOALS: dict[str, Any] = {
 
 TEAM_CASES = ("2", "4")
 SINGLE_OF = {"2": "1", "4": "3"}
-HYPOTHESIS_STATUSES = ("accepted", "refuted", "pending", "expired")
+HYPOTHESIS_STATUSES = ("accepted", "refused", "meeting", "confirmed", "refuted", "pending")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -163,6 +163,7 @@ def figures(r: dict[str, Any]) -> dict[str, Any]:
     }
     if "hypotheses" in r:
         row["hypotheses"] = r["hypotheses"]
+        row["map_query_ms_median"] = r.get("map_query_ms_median")
     return row
 
 
@@ -363,11 +364,13 @@ def hypotheses_summary(runs: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
     """Counts of the map-matching hypotheses per status over the runs and the largest error of
     the accepted ones; None when no run's report has hypotheses."""
     seen = False
+    runs_list = list(runs)
     counts = dict.fromkeys(HYPOTHESIS_STATUSES, 0)
+    wrong: dict[str, int] = {}     # hypotheses off the truth (beyond a false merge's bounds)
     err_m: list[float] = []
     err_deg: list[float] = []
     unscored = 0
-    for run in runs:
+    for run in runs_list:
         hyps = run.get("hypotheses")
         if not isinstance(hyps, list):
             continue
@@ -377,6 +380,8 @@ def hypotheses_summary(runs: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
                 continue
             status = str(h.get("status"))
             counts[status] = counts.get(status, 0) + 1
+            if h.get("wrong"):
+                wrong[status] = wrong.get(status, 0) + 1
             if status == "accepted":
                 if h.get("error_m") is None and h.get("error_deg") is None:
                     unscored += 1
@@ -386,9 +391,14 @@ def hypotheses_summary(runs: Iterable[dict[str, Any]]) -> dict[str, Any] | None:
                     err_deg.append(float(h["error_deg"]))
     if not seen:
         return None
-    return {"counts": counts, "accepted_max_error_m": max(err_m, default=None),
+    qms = [float(r["map_query_ms_median"]) for r in runs_list
+           if isinstance(r.get("map_query_ms_median"), (int, float))]
+    return {"counts": counts, "wrong_by_status": wrong,
+            "accepted_max_error_m": max(err_m, default=None),
             "accepted_max_error_deg": max(err_deg, default=None),
-            "accepted_unscored": unscored}
+            "accepted_unscored": unscored,
+            # each run's median query time (one submap against the other map), their median
+            "query_ms_median": float(np.median(qms)) if qms else None}
 
 
 def _t(run: dict[str, Any] | None) -> float | None:
