@@ -151,7 +151,8 @@ def test_hypotheses_are_counted_when_the_report_has_them_and_absent_ones_are_fin
              "teams": ["b", "c"]}]
     s = multi.hypotheses_summary([run("2", 0, 1.0, hypotheses=hyps), run("2", 1, 1.0),
                                   run("2", 2, 1.0, hypotheses=[])])
-    assert s["counts"] == {"accepted": 2, "refuted": 1, "pending": 1, "expired": 0}
+    assert s["counts"] == {"accepted": 2, "refused": 0, "meeting": 0, "confirmed": 0,
+                           "refuted": 1, "pending": 1}
     assert s["accepted_max_error_m"] == 0.2 and s["accepted_max_error_deg"] == 0.5
 
 
