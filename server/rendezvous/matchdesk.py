@@ -158,9 +158,9 @@ class MapMatchDesk:
     # -- the period's work -------------------------------------------------------------------
     def tick(self, now_ns: int, planner: Executor | None = None) -> None:
         t = self.cfg.teams
+        self._follow_meetings(now_ns)
         if not t.enabled or not t.map_match:
             return
-        self._follow_meetings(now_ns)
         job = self._job
         if job is not None and job.future is not None and job.future.done():
             self._job = None
@@ -290,6 +290,8 @@ class MapMatchDesk:
         """One robot of each team to one place of the overlap, if some pair of them can get
         there within ``teams.meet_max_detour_m`` (the farther of the two paths)."""
         fleet, t = self.fleet, self.cfg.teams
+        if e.status != "pending":
+            return      # refuted, refused, merged, or already being met
         busy = any(fleet.robots[r].meeting is not None
                    for tm in (e.team_a, e.team_b) for r in fleet.teams[tm].robot_ids)
         if busy:

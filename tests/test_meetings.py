@@ -1,0 +1,129 @@
+"""Meetings planned on a map-matched transform (server.rendezvous.matchdesk): how the robots
+are steered, and how a meeting is settled — confirmed by a tag merge under the transform,
+refuted by a merge under another one or by the time running out. A real core, fed the
+simulator's scans of two robots in the small house."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from schemas.se2 import compose, inverse
+from server.core import ServerCore
+from server.fleet import MergeRecord
+from server.rendezvous.mapmatch import Candidate, Hypothesis
+from server.rendezvous.matchdesk import HypothesisEntry
+from sim.loader import load_world
+from sim.simulator import SimParams, Simulator
+from tests.test_cluster_handover import step_messages
+from tests.test_team_merge import WORLD, config
+
+#: two robots 2.2 m apart in one room, facing each other
+SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.0, 8.0, math.pi)}
+T_TRUE = compose(inverse(np.array(SPAWN["r1"])), np.array(SPAWN["r2"]))
+
+
+class _NoTags:
+    def detect(self, *_args: object) -> object:
+        return type("Found", (), {"sightings": []})()
+
+
+@pytest.fixture
+def core() -> ServerCore:
+    """Both robots scanned for 3 s where they stand (no merge, no map matching)."""
+    sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=1)
+    c = ServerCore(config(map_match=False))
+    for _ in range(30):
+        obs = sim.sense()
+        scans, _ = step_messages(sim, _NoTags(), obs)
+        for scan in scans.values():
+            c.on_scan(scan)
+        sim.advance()
+    return c
+
+
+def _hypothesis(T: np.ndarray, places: list[tuple[float, float]]) -> Hypothesis:
+    members = tuple(Candidate(T, "ab"[k % 2], k, np.asarray(xy, dtype=float), 100.0, 100, 0,
+                              0.99, 1000) for k, xy in enumerate(places))
+    return Hypothesis(T, len(members), members, 0, 0.99)
+
+
+def _plan(core: ServerCore, T: np.ndarray) -> HypothesisEntry:
+    desk = core.matcher
+    e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", T, 3, 2, 1, 0, 0.99)
+    desk.log.append(e)
+    # the place: between the two robots, in free space of both maps
+    desk._plan_meeting(e, _hypothesis(T, [(1.0, -0.5), (0.8, -0.3), (1.2, -0.6)]),
+                       core.robots["r1"].last_stamp_ns)
+    return e
+
+
+def test_a_meeting_sends_both_robots_to_one_place(core: ServerCore) -> None:
+    e = _plan(core, T_TRUE)
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert e.status == "meeting" and r1.meeting is not None and r2.meeting is not None
+    assert (r1.meeting.other, r2.meeting.other) == ("r2", "r1")
+    # each goes to the place as its own map has it: the same spot in the world
+    assert r1.meeting.target_xy is not None and r2.meeting.target_xy is not None
+    w1 = compose(np.array(SPAWN["r1"]), np.array([*r1.meeting.target_xy, 0.0]))
+    w2 = compose(np.array(SPAWN["r2"]), np.array([*r2.meeting.target_xy, 0.0]))
+    assert math.hypot(*(w1[:2] - w2[:2])) < 0.05
+    assert r2.meeting.path_xy is not None and len(r2.meeting.path_xy) >= 2
+    # r2 is steered along its path (the navigator's own target is not used meanwhile)
+    cmd = core.steering.meet(r2, np.zeros((0, 2)))
+    assert cmd.v_mps > 0 or abs(cmd.omega_rps) > 0
+    assert core.tag_counters["meetings"] == 1
+    assert [ev.kind for ev in core.event_log][-1] == "meeting"
+
+
+def test_a_merge_under_the_transform_confirms_it(core: ServerCore) -> None:
+    e = _plan(core, T_TRUE)
+    _merge(core, T_TRUE)
+    core.matcher.tick(core.robots["r1"].last_stamp_ns)
+    assert e.status == "confirmed"
+    assert core.merges[-1].kind == "meeting"
+    assert core.robots["r1"].meeting is None and core.robots["r2"].meeting is None
+
+
+def test_a_merge_under_another_transform_refutes_it(core: ServerCore) -> None:
+    e = _plan(core, T_TRUE)
+    _merge(core, T_TRUE + np.array([3.0, 0.0, 0.0]))
+    core.matcher.tick(core.robots["r1"].last_stamp_ns)
+    assert e.status == "refuted"
+    assert core.merges[-1].kind == "tags"
+
+
+def test_a_meeting_that_does_not_happen_in_time_refutes_it(core: ServerCore) -> None:
+    e = _plan(core, T_TRUE)
+    r1 = core.robots["r1"]
+    assert r1.meeting is not None
+    late = int((r1.meeting.until_s + 1.0) * 1e9)
+    core.matcher.tick(late)
+    assert e.status == "refuted" and "did not meet" in e.reason
+    assert r1.meeting is None and core.robots["r2"].meeting is None
+    assert core.tag_counters["meetings_refuted"] == 1
+    # a refuted transform is never used again: the same hypothesis plans no meeting
+    core.matcher._plan_meeting(e, _hypothesis(T_TRUE, [(1.0, -0.5)]), late)
+    assert e.status == "refuted" and r1.meeting is None
+
+
+def test_a_meeting_too_far_away_is_not_planned(core: ServerCore) -> None:
+    far = T_TRUE + np.array([0.0, 0.0, 0.0])
+    e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", far, 3, 2, 1, 0, 0.99)
+    core.matcher.log.append(e)
+    core.matcher._plan_meeting(e, _hypothesis(far, [(60.0, 60.0)]),
+                               core.robots["r1"].last_stamp_ns)
+    assert e.status == "pending" and core.robots["r1"].meeting is None
+
+
+def _merge(core: ServerCore, T: np.ndarray) -> None:
+    """The two teams joined as a tag merge would (r2's team into r1's under ``T``)."""
+    fleet = core.fleet
+    r2 = fleet.robots["r2"]
+    r2.team_id = "team-r1"
+    fleet.teams["team-r1"].robot_ids.append("r2")
+    fleet.retired_teams["team-r2"] = fleet.teams.pop("team-r2")
+    fleet.merges.append(MergeRecord(r2.last_stamp_ns, "team-r1", "team-r2", ["r1"], ["r2"],
+                                    [], T, np.eye(3), T, T, {}))
