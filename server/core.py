@@ -100,7 +100,7 @@ class ServerCore:
         if self.desk.pending:
             self.desk.process(scan.stamp_ns)
         # 3b. one pair of teams' maps matched, every period: merges, planned meetings
-        self.matcher.tick(scan.stamp_ns if now_ns is None else now_ns, self.steering.planner)
+        self.matcher.tick(scan.stamp_ns if now_ns is None else now_ns)
         # 4. coverage, termination and λ, every map period
         team = self.fleet.team_of(r)
         self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)

@@ -75,6 +75,7 @@ class ServerNode:
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
         self._planner: ProcessPoolExecutor | None = None
+        self._matcher: ProcessPoolExecutor | None = None
         self._cpu_mark = (time.process_time(), time.monotonic())
         self._writer = BackgroundWriter(lambda kind, e: self._count_error())
         #: one worker of several (``server.cluster``), or None: the only server
@@ -228,6 +229,7 @@ class ServerNode:
                         if self.journal is not None:
                             self.journal.scan(scan, now)
                         self.core.steering.planner = self._planner_now()
+                        self.core.matcher.pool = self._matcher_now()
                         cmd = self.core.on_scan(scan, now)
                         self._own_stamps[rid] = own_stamp_ns
                         self.bus.publish(keys.robot_cmd_vel(rid),
@@ -371,6 +373,16 @@ class ServerNode:
             self._planner = planner_pool.start(self.cfg.planner_processes)
         return self._planner
 
+    def _matcher_now(self) -> ProcessPoolExecutor | None:
+        """The process map matching between teams runs in: its own, so that a query of a
+        second or two never holds up the robots' decisions; started once there are two teams
+        to match. None in lockstep or with ``planner_processes: 0`` (it runs here)."""
+        if self._lockstep or self.cfg.planner_processes == 0 or not self.cfg.teams.map_match:
+            return None
+        if self._matcher is None and len(self.core.teams) >= 2:
+            self._matcher = planner_pool.start(1)
+        return self._matcher
+
     def snapshot(self, wait: bool = True) -> None:
         """Snapshot the core as of the journal's next entry (worker thread, or after stop).
         Pickled here; compressed and written here (``wait``) or by the writer thread."""
@@ -425,9 +437,10 @@ class ServerNode:
         self._stop.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10)
-        if self._planner is not None:
-            self._planner.shutdown(wait=False, cancel_futures=True)
-            self._planner = None
+        for pool in (self._planner, self._matcher):
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
+        self._planner = self._matcher = None
         self._writer.close()
         if self.journal is not None:
             self.guarded("closing the journal", self.journal.close)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from schemas.se2 import compose, inverse, pose_distance
+from server import planner_pool
 from server.core import ServerCore
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
@@ -21,8 +22,12 @@ SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-3.0, 9.0, 3 * math.pi / 2)}
 
 @pytest.fixture(scope="module")
 def run() -> tuple[ServerCore, int]:
+    return explore(ServerCore(config(map_match_meet=False)))
+
+
+def explore(core: ServerCore) -> tuple[ServerCore, int]:
+    """Up to 150 s of the two robots exploring, until the first merge."""
     sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=5)
-    core = ServerCore(config(map_match_meet=False))
     for step in range(1500):
         obs = sim.sense()
         scans, _tags = step_messages(sim, _NoTags(), obs)   # tags never reach the server
@@ -62,3 +67,19 @@ def test_the_accepted_hypothesis_is_logged_with_its_support(run: tuple[ServerCor
     assert h["support"] >= 3 and min(h["side_a"], h["side_b"]) >= 2
     assert h["support"] >= 2 * max(h["rival"], 1)
     assert core.tag_counters["map_queries"] >= 1
+
+
+def test_queries_in_a_process_of_their_own_merge_too() -> None:
+    """As the live server runs them (the answer taken at a later scan), not in lockstep."""
+    pool = planner_pool.start(1)
+    try:
+        core = ServerCore(config(map_match_meet=False))
+        core.matcher.pool = pool
+        core, step = explore(core)
+    finally:
+        pool.shutdown(cancel_futures=True)
+    assert step > 0 and core.merges[0].kind == "map"
+    m = core.merges[0]
+    T_true = compose(inverse(np.array(SPAWN[m.robots_a[0]])), np.array(SPAWN[m.robots_b[0]]))
+    et, er = pose_distance(compose(inverse(T_true), m.T_joint))
+    assert et < 0.15 and math.degrees(er) < 1.0, (et, math.degrees(er))

@@ -15,8 +15,9 @@ from several places of both maps agree — goes one of three ways:
 - otherwise it is logged and nothing happens.
 
 Every hypothesis is kept in ``log`` with its support and what became of it, for the run's
-report. A query runs on the planner processes when the server has them (it takes a second or
-more for large maps), else right here (lockstep: the run must not depend on its timing).
+report. A query runs in a process of its own when the server has one (``pool``: it takes a
+second or more for large maps), else right here (lockstep: the run must not depend on its
+timing).
 """
 
 from __future__ import annotations
@@ -146,9 +147,15 @@ class MapMatchDesk:
         self.query_ms: list[float] = []          # the latest queries' times (one per submap)
         self.memory: dict[tuple[str, str], PairMemory] = {}
         self._job: _Job | None = None
+        #: where queries run (the server's matcher process), None: here
+        self.pool: Executor | None = None
 
     def __getstate__(self) -> dict[str, object]:
-        return {**self.__dict__, "_job": None}   # a query in flight is asked again
+        # a query in flight is asked again; processes are not state
+        return {**self.__dict__, "_job": None, "pool": None}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update({"memory": {}, **state, "_job": None, "pool": None})
 
     @property
     def params(self) -> MatchParams:
@@ -156,8 +163,9 @@ class MapMatchDesk:
         return MatchParams(min_support=t.map_match_min_support)
 
     # -- the period's work -------------------------------------------------------------------
-    def tick(self, now_ns: int, planner: Executor | None = None) -> None:
+    def tick(self, now_ns: int) -> None:
         t = self.cfg.teams
+        planner = self.pool
         self._follow_meetings(now_ns)
         if not t.enabled or not t.map_match:
             return
