@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 
 
+#: the share of a keyframe's points that must find a partner in the other team's map for the
+#: keyframe to confirm a map-matched merge (0.5 for merges on tag sightings)
+MAP_KIND_MIN_INLIERS = 0.3
+
+
 class MergeRefused(Exception):
     """The maps say no: the proposal's evidence is dropped."""
 
@@ -87,9 +92,13 @@ class Merger:
                                "wall cells)")
         tried = [0]
         robots = self.fleet.robots
+        # a map-matched transform comes from places where the maps overlap, and it is at their
+        # edge that the teams' keyframes are matched: a keyframe's scan also sees what the
+        # other team has not mapped, so fewer of its points have a partner there
+        inliers = MAP_KIND_MIN_INLIERS if kind == "map" else 0.5
         matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
                    for m in cross_matches(robots[ra].slam, robots[rb].slam, T_ab=p.T_ab,
-                                          tried=tried)]
+                                          tried=tried, min_inlier_fraction=inliers)]
         found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
