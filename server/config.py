@@ -109,9 +109,9 @@ class TeamsConfig(ConfigModel):
                                  "support but not enough sends a robot to where it predicts "
                                  "the other team's robot, which waits: the tags then settle "
                                  "it")
-    meet_min_support: int = Field(3, ge=1, description="places that must agree on a "
-                                  "transform before a meeting is planned on it (it must also "
-                                  "be seen from both maps and dominate its rivals)")
+    meet_min_support: int = Field(4, ge=1, description="places that must agree on a "
+                                  "transform before a meeting is planned on it (some of them "
+                                  "cut from each map, and more than any rival transform has)")
     meet_max_detour_m: float = Field(25.0, gt=0.0, description="a meeting is planned only "
                                      "when the robot sent is at most this far (straight "
                                      "line) from where it predicts the other")

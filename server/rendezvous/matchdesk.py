@@ -250,8 +250,8 @@ class MapMatchDesk:
         elif entry.status == "pending" and self.cfg.teams.map_match_meet and \
                 h.support >= self.cfg.teams.meet_min_support and \
                 min(h.side_support("a"), h.side_support("b")) >= 1 and \
-                h.support >= self.params.dominance * max(h.rival_support, 1):
-            # all but accepted (seen from one map only, or too few places): a meeting
+                h.support > h.rival_support:
+            # more places than any rival, seen from both maps, but not clearly enough: meet
             self._plan_meeting(entry, h, now_ns)
 
     def _entry(self, a: str, b: str, anchor_a: str, anchor_b: str, h: Hypothesis,
