@@ -24,7 +24,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
-from bench.support.scanned import scanned_map  # noqa: E402
+from bench.support.scanned import box_pairs, scanned_map  # noqa: E402
 from schemas.se2 import compose, inverse  # noqa: E402
 from server.rendezvous.mapmatch import MatchParams, match_pair, transform_error  # noqa: E402
 from sim.loader import load_world  # noqa: E402
@@ -43,24 +43,9 @@ def main() -> None:
     w = load_world(a.world)
     caster = RayCaster(w.segments, w.circles)
     lo, hi = w.segments[:, :2].min(axis=0), w.segments[:, :2].max(axis=0)
-    rng = np.random.default_rng(a.seed)
     p = MatchParams()
     rows, query_ms, pair_ms = [], [], []
-    for k in range(a.pairs):
-        overlap = k % 2 == 0
-        ca = rng.uniform(lo + a.box / 2, hi - a.box / 2)
-        if overlap:   # b's box shifted by half a box: they share a strip
-            d = rng.uniform(0.35, 0.6) * a.box
-            ang = rng.uniform(0, 2 * math.pi)
-            cb = np.clip(ca + d * np.array([math.cos(ang), math.sin(ang)]),
-                         lo + a.box / 2, hi - a.box / 2)
-        else:         # b's box clear of a's
-            for _ in range(100):
-                cb = rng.uniform(lo + a.box / 2, hi - a.box / 2)
-                if np.abs(cb - ca).max() > a.box + 1.0:
-                    break
-        Sa = np.array([*rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)])
-        Sb = np.array([*rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)])
+    for k, (ca, cb, Sa, Sb) in enumerate(box_pairs(lo, hi, a.box, a.pairs, a.seed)):
         ga, ka = scanned_map(caster, tuple(ca - a.box / 2), tuple(ca + a.box / 2), Sa, 2 * k)
         gb, kb = scanned_map(caster, tuple(cb - a.box / 2), tuple(cb + a.box / 2), Sb, 2 * k + 1)
         t0 = time.perf_counter()

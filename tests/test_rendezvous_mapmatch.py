@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import sim
-from bench.support.scanned import scanned_map
+from bench.support.scanned import box_pairs, scanned_map
 from schemas.se2 import compose, inverse
 from server.rendezvous.mapmatch import (
     Candidate,
@@ -104,3 +104,24 @@ def test_consistency_needs_both_maps_and_dominance() -> None:
     same = [_cand("a", 0, T1 + np.array([0.05 * i, 0, 0]), (0, 0)) for i in range(4)]
     h = best_hypothesis(same, p)
     assert h is not None and h.support == 1
+
+
+AMBIGUOUS = Path(sim.__file__).parent / "worlds" / "ambiguous_wings.world"
+
+
+@pytest.mark.parametrize("k", [5, 9])
+def test_look_alike_maps_of_a_self_similar_building_are_not_merged(k: int) -> None:
+    """Boxes apart in the building of mirror-image wings and repeated corridors: their maps
+    fit each other at many places under a wrong transform (before places had to be distinct,
+    these two pairs were accepted, 10 m and 22 m off)."""
+    w = load_world(AMBIGUOUS)
+    caster = RayCaster(w.segments, w.circles)
+    lo, hi = w.segments[:, :2].min(axis=0), w.segments[:, :2].max(axis=0)
+    ca, cb, Sa, Sb = box_pairs(lo, hi, 12.0, 12, 0)[k]
+    ga, ka = scanned_map(caster, tuple(ca - 6.0), tuple(ca + 6.0), Sa, 2 * k)
+    gb, kb = scanned_map(caster, tuple(cb - 6.0), tuple(cb + 6.0), Sb, 2 * k + 1)
+    p = MatchParams()
+    res = match_pair(ga, gb, ka, kb, p)
+    assert res.best is not None and res.best.support >= p.min_support   # it is tempting
+    assert transform_error(res.best.T_ab, compose(inverse(Sa), Sb))[0] > 5.0
+    assert not res.best.accepted(p), res.best

@@ -41,3 +41,28 @@ def scanned_map(caster: RayCaster, lo: tuple[float, float], hi: tuple[float, flo
             grid.insert_scan(own, hits)
             kf.append(own[:2])
     return grid, np.array(kf).reshape(-1, 2)
+
+
+def box_pairs(lo: F64, hi: F64, box_m: float, n: int, seed: int
+              ) -> list[tuple[F64, F64, F64, F64]]:
+    """``n`` pairs of boxes in the world's extent [lo, hi], with each robot's start pose:
+    (centre a, centre b, start a, start b). Even pairs overlap (b's box shifted by 0.35 to
+    0.6 of a box), odd ones lie apart; starts anywhere, turned anyhow."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        ca = rng.uniform(lo + box_m / 2, hi - box_m / 2)
+        if k % 2 == 0:
+            d = rng.uniform(0.35, 0.6) * box_m
+            ang = rng.uniform(0, 2 * math.pi)
+            cb = np.clip(ca + d * np.array([math.cos(ang), math.sin(ang)]),
+                         lo + box_m / 2, hi - box_m / 2)
+        else:
+            for _ in range(100):
+                cb = rng.uniform(lo + box_m / 2, hi - box_m / 2)
+                if np.abs(cb - ca).max() > box_m + 1.0:
+                    break
+        Sa = np.array([*rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)])
+        Sb = np.array([*rng.uniform(lo, hi), rng.uniform(-math.pi, math.pi)])
+        out.append((ca, cb, Sa, Sb))
+    return out

@@ -21,9 +21,11 @@ they agree well enough to merge without a meeting. Three steps:
    the best single score is often wrong.
 3. **Consistency.** Candidates from different submaps that imply the same transform support
    each other (pairwise consistency, as in Mangelson et al. 2018). The largest set of
-   mutually consistent candidates, counted in distinct places, is the hypothesis; it is
-   accepted only when it has ``min_support`` places and clearly dominates the best set that
-   contradicts it (``dominance``). A hypothesis short of that can be settled by meeting.
+   mutually consistent candidates, counted in distinct places, is the hypothesis. It is
+   accepted only when it has ``min_support`` places, ``min_distinct`` of them distinct (the
+   submap fits there clearly better than at its next best place: in a building of repeated
+   rooms a submap fits several places about equally), and clearly dominates the best set
+   that contradicts it (``dominance``). A hypothesis short of that can be settled by meeting.
 
 No I/O and no server state here: ``match_pair`` takes two grids and keyframe positions.
 """
@@ -65,6 +67,8 @@ class MatchParams:
     min_support: int = 3            # distinct places for a hypothesis to be accepted ...
     min_side_support: int = 2       # ... with this many submaps of each map among them
     dominance: float = 2.0          # its support over that of the best contradicting set
+    distinct_ratio: float = 0.8     # a submap's next best placement scores at most this much
+    min_distinct: int = 2           # ... at this many of the places
 
 
 @dataclass(frozen=True)
@@ -89,6 +93,7 @@ class Hypothesis:
     members: tuple[Candidate, ...]
     rival_support: int        # of the best set contradicting it
     acceptance: float         # mean over members
+    distinct: int = 0         # places whose submap fits there clearly better than elsewhere
 
     def side_support(self, side: str) -> int:
         return sum(1 for c in self.members if c.side == side)
@@ -97,7 +102,7 @@ class Hypothesis:
         """Enough places, seen from both maps (a true overlap is found whichever map the
         submap is cut from; a wrong fit of one map's walls seldom works the other way too),
         and clearly more than any contradicting set."""
-        return self.support >= p.min_support and \
+        return self.support >= p.min_support and self.distinct >= p.min_distinct and \
             min(self.side_support("a"), self.side_support("b")) >= p.min_side_support and \
             self.support >= p.dominance * max(self.rival_support, 1)
 
@@ -455,8 +460,20 @@ def best_hypothesis(cands: list[Candidate], p: MatchParams) -> Hypothesis | None
     rivals = {i for i in range(n) if i not in clique and not any(i in adj[k] for k in clique)}
     rival = [cands[i] for i in _max_clique(adj, rivals)] if rivals else []
     T = _mean_transform([c.T_ab for c in members])
+    clear = [c for c in members if _distinct(c, cands, p)]
     return Hypothesis(T, places(members, p), tuple(members), places(rival, p) if rival else 0,
-                      float(np.mean([c.acceptance for c in members])))
+                      float(np.mean([c.acceptance for c in members])), places(clear, p))
+
+
+def _distinct(c: Candidate, cands: list[Candidate], p: MatchParams) -> bool:
+    """``c`` is its submap's best placement, and the submap's next best scores at most
+    ``p.distinct_ratio`` of it. In a building of repeated rooms a submap fits several places
+    about equally well; a place only counts toward a merge where it fits one clearly best."""
+    own = sorted((o for o in cands if (o.side, o.submap) == (c.side, c.submap)),
+                 key=lambda o: -o.score)
+    if own[0] is not c or c.score <= 0:
+        return False
+    return len(own) < 2 or own[1].score <= p.distinct_ratio * c.score
 
 
 def _mean_transform(Ts: list[F64]) -> F64:
