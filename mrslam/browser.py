@@ -1,0 +1,76 @@
+"""A headless browser on the operator console: the demo's screenshot at the end of a run, the
+console's benchmark (``bench/console.py``) and its tests.
+
+Debian's ``chromium`` (``deploy/bootstrap.sh`` installs it with the dev extra), driven by
+``playwright`` (dev extra); playwright's own browser download is never used. One thread uses
+a ``ConsolePage`` (playwright's synchronous API).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+CHROMIUM = "/usr/bin/chromium"
+
+
+class BrowserUnavailable(RuntimeError):
+    """No browser to drive: what is missing, and how to install it."""
+
+
+def chromium_path() -> str:
+    """The chromium to launch, or ``BrowserUnavailable`` saying what to install."""
+    path = os.environ.get("MRSLAM_CHROMIUM") or (CHROMIUM if Path(CHROMIUM).exists()
+                                                 else shutil.which("chromium"))
+    if not path:
+        raise BrowserUnavailable("no chromium (sudo apt-get install -y chromium)")
+    try:
+        import playwright.sync_api  # noqa: F401
+    except ImportError as e:
+        raise BrowserUnavailable("no playwright (pip install -e '.[dev]')") from e
+    return path
+
+
+class ConsolePage:
+    """The console's page at ``url`` in a headless chromium of its own."""
+
+    def __init__(self, url: str, width: int = 1500, height: int = 950) -> None:
+        from playwright.sync_api import sync_playwright
+
+        exe = chromium_path()
+        self._pw = sync_playwright().start()
+        try:
+            args = ["--no-sandbox"] if os.geteuid() == 0 else []   # chromium refuses root
+            self.browser = self._pw.chromium.launch(executable_path=exe, headless=True,
+                                                    args=[*args, "--disable-gpu"])
+            self.page = self.browser.new_page(viewport={"width": width, "height": height})
+            self.page.goto(url)
+        except Exception:
+            self._pw.stop()
+            raise
+
+    def stats(self) -> dict[str, Any]:
+        """The page's own counters (``window.mrslam.stats``)."""
+        return dict(self.page.evaluate("() => window.mrslam.stats"))
+
+    def wait_for(self, js: str, timeout_s: float) -> Any:
+        """Wait until ``js`` (an expression over ``window.mrslam``) is truthy."""
+        return self.page.wait_for_function(js, timeout=timeout_s * 1000)
+
+    def screenshot(self, path: Path) -> Path:
+        self.page.screenshot(path=str(path), full_page=True)
+        return path
+
+    def close(self) -> None:
+        try:
+            self.browser.close()
+        finally:
+            self._pw.stop()
+
+    def __enter__(self) -> ConsolePage:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
