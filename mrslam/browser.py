@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +37,11 @@ def chromium_path() -> str:
 class ConsolePage:
     """The console's page at ``url`` in a headless chromium of its own."""
 
-    def __init__(self, url: str, width: int = 1500, height: int = 950) -> None:
-        from playwright.sync_api import sync_playwright
+    def __init__(self, url: str, width: int = 1500, height: int = 950,
+                 must_load: bool = True) -> None:
+        """``must_load`` False: a page the server refuses (chromium fails to load an error
+        with no body) is no error here; ``last_status`` and ``load_error`` say what came."""
+        from playwright.sync_api import Error, sync_playwright
 
         exe = chromium_path()
         self._pw = sync_playwright().start()
@@ -46,7 +50,18 @@ class ConsolePage:
             self.browser = self._pw.chromium.launch(executable_path=exe, headless=True,
                                                     args=[*args, "--disable-gpu"])
             self.page = self.browser.new_page(viewport={"width": width, "height": height})
-            self.page.goto(url)
+            statuses: list[int] = []
+            self.page.on("response", lambda r: statuses.append(r.status)
+                         if r.request.is_navigation_request() else None)
+            self.load_error = ""
+            try:
+                self.page.goto(url)
+            except Error as e:
+                if must_load:
+                    raise
+                self.load_error = str(e)
+            #: the HTTP status the page itself was served with
+            self.last_status = statuses[-1] if statuses else None
         except Exception:
             self._pw.stop()
             raise
@@ -55,9 +70,18 @@ class ConsolePage:
         """The page's own counters (``window.mrslam.stats``)."""
         return dict(self.page.evaluate("() => window.mrslam.stats"))
 
-    def wait_for(self, js: str, timeout_s: float) -> Any:
-        """Wait until ``js`` (an expression over ``window.mrslam``) is truthy."""
-        return self.page.wait_for_function(js, timeout=timeout_s * 1000)
+    def wait_for(self, js: str, timeout_s: float, every_s: float = 0.05) -> Any:
+        """Wait until the expression ``js`` is truthy (polled from here: the page's content
+        security policy forbids the evaluated strings a wait inside the page would need);
+        its value, or ``TimeoutError``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            value = self.page.evaluate(f"() => ({js})")
+            if value:
+                return value
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the page never had {js} within {timeout_s:.0f} s")
+            self.page.wait_for_timeout(every_s * 1000)
 
     def screenshot(self, path: Path) -> Path:
         self.page.screenshot(path=str(path), full_page=True)

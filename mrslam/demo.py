@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -286,7 +287,7 @@ class _ConsoleShot:
             with socket.socket() as s:
                 s.bind(("127.0.0.1", 0))
                 port = int(s.getsockname()[1])
-        token = new_token()
+        token = os.environ.get(TOKEN_ENV) or new_token()
         self.args, self.env = ["--console", str(port)], {TOKEN_ENV: token}
         self.url = f"http://127.0.0.1:{port}/?token={token}"
 
