@@ -1,0 +1,229 @@
+"""Console benchmark: the operator console against the running demo, in real browsers; prints
+JSON.
+
+Two parts, each on ``mrslam demo --no-record`` (three robots, lockstep) as its own process,
+with Debian's chromium driven by playwright (``mrslam.browser``):
+
+1. ``stop``: one run with the console and one browser on it. Once the simulation passes
+   ``--stop-at`` s the browser clicks *STOP ALL*; this program, a client on the demo's bus,
+   writes down every velocity command to a robot and every velocity the simulator reports,
+   with the wall time it saw each. ``stop_s``: per robot, from the click to the first zero
+   after its last non-zero, for commands and for the simulated robots (goal ≤ 0.5 s); the
+   stop is held ``--hold-s`` of wall time (every sample in it zero), then *Resume all* is
+   clicked: ``resume_s`` until the first non-zero command; the run must still reach its
+   threshold. The page must show the three robots, and its map must grow meanwhile.
+2. ``throughput``: ``--pairs`` pairs of runs, one without the console and one with it and
+   ``--browsers`` browsers on it (plus the demo's own, which takes the end-of-run screenshot),
+   alternated so that the machine's other load falls on both alike. A lockstep run is the
+   same run every time, so its work is fixed: throughput is simulated seconds per wall
+   second to the threshold (the server paces the lockstep), and the server's CPU per scan
+   (its summary). Goal: with the console within 5 % of without (medians). The browsers' page
+   latency: from the server's console seeing a map update to the animation frame after the
+   page drew it (``window.mrslam.stats.mapLatencyMs``; goal ≤ 1 s).
+
+    python bench/console.py [--pairs 2] [--browsers 3] [--stop-at 25] [--hold-s 5]
+                            [--only stop|throughput] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+# run as a script, this folder comes first on sys.path and bench/sim.py would hide the
+# simulator package: look in the repository instead
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
+
+from bench.support.console_demo import (  # noqa: E402
+    DemoRun,
+    first_moving_after,
+    zero_after,
+)
+from mrslam.browser import ConsolePage  # noqa: E402
+
+ROBOTS = ["r1", "r2", "r3"]
+GOALS = {"stop_s": 0.5, "page_latency_s": 1.0, "throughput_loss": 0.05}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def report_of(run: Path) -> dict[str, Any]:
+    try:
+        return dict(json.loads((run / "report.json").read_text()))
+    except (OSError, ValueError):
+        return {}
+
+
+def server_figures(run: Path) -> dict[str, Any]:
+    """The server's CPU and scans processed (its summary)."""
+    try:
+        s = json.loads((run / "server" / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    scans = sum(r["scans"] for r in s["robots"].values())
+    return {"server_cpu_s": s["cpu_s"], "scans": scans,
+            "server_cpu_ms_per_scan": round(1000 * s["cpu_s"] / max(scans, 1), 3),
+            "console": s.get("console")}
+
+
+def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
+    demo = DemoRun(out / "stop", free_port())
+    watch = demo.watch()
+    res: dict[str, Any] = {}
+    try:
+        with ConsolePage(demo.url) as cp:
+            for rid in ROBOTS:
+                cp.page.get_by_test_id(f"robot-row-{rid}").wait_for(timeout=120_000)
+            cp.wait_for("window.mrslam.knownCells() > 0", 120)
+            known = [cp.page.evaluate("() => window.mrslam.knownCells()")]
+            while watch.sim_time_s < stop_at_s and demo.proc.poll() is None:
+                time.sleep(0.05)
+            known.append(cp.page.evaluate("() => window.mrslam.knownCells()"))
+            res["page"] = {"robot_rows": cp.page.locator('[data-testid^="robot-row-"]').count(),
+                           "known_cells": known, "map_grew": known[-1] > known[0]}
+            t_click = time.time()
+            cp.page.get_by_test_id("stop-all").click()
+            t_clicked = time.time()
+            time.sleep(hold_s + 1.0)
+            t_hold = time.time()
+            cmds = watch.samples("commands", t_click, t_hold)
+            sims = watch.samples("sim", t_click, t_hold)
+            res["stop"] = {
+                "click_s": round(t_clicked - t_click, 3),
+                "sim_time_s": round(watch.sim_time_s, 1),
+                "commands_zero_after_s": zero_after(cmds, ROBOTS, t_click, t_hold),
+                "sim_velocity_zero_after_s": zero_after(sims, ROBOTS, t_click, t_hold),
+                "moving_at_click": sorted({s[1] for s in watch.samples("commands", t_click - 1,
+                                                                        t_click) if s[2] or s[3]}),
+            }
+            held_from = t_click + 1.0
+            res["stop"]["held_samples"] = len([s for s in cmds + sims if s[0] >= held_from])
+            res["stop"]["moving_while_held"] = len([s for s in cmds + sims if s[0] >= held_from
+                                                    and (s[2] or s[3])])
+            t_resume = time.time()
+            cp.page.get_by_test_id("resume-all").click()
+            deadline = time.time() + 60
+            while first_moving_after(watch.samples("commands", t_resume), t_resume) is None \
+                    and time.time() < deadline:
+                time.sleep(0.05)
+            res["resume_s"] = first_moving_after(watch.samples("commands", t_resume), t_resume)
+            demo.wait()
+    finally:
+        watch.close()
+        if demo.proc.poll() is None:
+            demo.proc.kill()
+    rep = report_of(demo.run)
+    res.update(exit_code=demo.proc.returncode, reached=rep.get("reached"),
+               sim_time_to_threshold_s=rep.get("sim_time_to_threshold_s"),
+               screenshot=(demo.run / "console.png").exists())
+    worst = [v for part in ("commands_zero_after_s", "sim_velocity_zero_after_s")
+             for v in res["stop"][part].values()]
+    res["stop_s_max"] = None if None in worst else max(worst)
+    return res
+
+
+def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
+    port = free_port() if browsers else None
+    demo = DemoRun(out / name, port)
+    pages: list[ConsolePage] = []
+    latency: list[float] = []
+    try:
+        if port is not None:
+            demo.watch().close()       # the server is up
+            pages = [ConsolePage(demo.url) for _ in range(browsers)]
+        demo.wait()
+        for p in pages:
+            latency += p.stats()["mapLatencyMs"]
+    finally:
+        for p in pages:
+            p.close()
+    rep = report_of(demo.run)
+    sim_s = rep.get("sim_time_to_threshold_s")
+    res = {"run": name, "browsers": browsers, "exit_code": demo.proc.returncode,
+           "reached": rep.get("reached"), "wall_s": round(demo.wall_s, 2),
+           "sim_time_to_threshold_s": sim_s, "wall_time_s": rep.get("wall_time_s"),
+           **server_figures(demo.run)}
+    if sim_s and rep.get("wall_time_s"):
+        res["sim_s_per_wall_s"] = round(sim_s / rep["wall_time_s"], 4)
+    if latency:
+        lat = sorted(latency)
+        res["page_latency_ms"] = {"n": len(lat), "p50": round(statistics.median(lat), 1),
+                                  "p95": round(lat[int(0.95 * (len(lat) - 1))], 1),
+                                  "max": round(lat[-1], 1)}
+    return res
+
+
+def throughput(out: Path, pairs: int, browsers: int) -> dict[str, Any]:
+    runs = []
+    for k in range(pairs):
+        for with_console in ((False, True) if k % 2 == 0 else (True, False)):
+            name = f"{'console' if with_console else 'plain'}-{k}"
+            runs.append(throughput_run(out, name, browsers if with_console else 0))
+            print(json.dumps(runs[-1]), file=sys.stderr)
+
+    def med(key: str, console: bool) -> float | None:
+        vals = [r[key] for r in runs if (r["browsers"] > 0) == console and r.get(key)]
+        return statistics.median(vals) if vals else None
+
+    res: dict[str, Any] = {"runs": runs}
+    for key in ("sim_s_per_wall_s", "server_cpu_ms_per_scan"):
+        a, b = med(key, False), med(key, True)
+        res[key] = {"without": a, "with": b,
+                    "ratio": None if not (a and b) else round(b / a, 4)}
+    lat = [r["page_latency_ms"] for r in runs if "page_latency_ms" in r]
+    res["page_latency_ms_p95_max"] = max((x["p95"] for x in lat), default=None)
+    res["page_latency_ms_max"] = max((x["max"] for x in lat), default=None)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--browsers", type=int, default=3)
+    ap.add_argument("--stop-at", type=float, default=25.0, help="simulated time of the click")
+    ap.add_argument("--hold-s", type=float, default=5.0)
+    ap.add_argument("--only", choices=["stop", "throughput"], default=None)
+    ap.add_argument("--out", default=None, help="keep the runs here")
+    args = ap.parse_args()
+    out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="console-bench-"))
+    t0 = time.monotonic()
+    result: dict[str, Any] = {"goals": GOALS, "out": str(out)}
+    if args.only in (None, "stop"):
+        result["stop"] = stop_run(out, args.stop_at, args.hold_s)
+        print(json.dumps(result["stop"]), file=sys.stderr)
+    if args.only in (None, "throughput"):
+        result["throughput"] = throughput(out, args.pairs, args.browsers)
+    met: dict[str, Any] = {}
+    if "stop" in result:
+        s = result["stop"]
+        met["stop_within_0_5_s"] = s["stop_s_max"] is not None and s["stop_s_max"] <= 0.5
+        met["held"] = s["stop"]["moving_while_held"] == 0
+        met["resumed_and_reached"] = s["resume_s"] is not None and bool(s["reached"])
+        met["page_shows_robots_and_growing_map"] = (s["page"]["robot_rows"] == 3
+                                                    and s["page"]["map_grew"])
+    if "throughput" in result:
+        t = result["throughput"]
+        ratio = t["sim_s_per_wall_s"]["ratio"]
+        met["throughput_within_5_percent"] = ratio is not None and ratio >= 0.95
+        p95 = t["page_latency_ms_p95_max"]
+        met["page_latency_p95_within_1_s"] = p95 is not None and p95 <= 1000
+    result["goal_met"] = met
+    result["bench_wall_s"] = round(time.monotonic() - t0, 1)
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
