@@ -11,7 +11,9 @@ with Debian's chromium driven by playwright (``mrslam.browser``):
    after its last non-zero, for commands and for the simulated robots (goal ≤ 0.5 s); the
    stop is held ``--hold-s`` of wall time (every sample in it zero), then *Resume all* is
    clicked: ``resume_s`` until the first non-zero command; the run must still reach its
-   threshold. The page must show the three robots, and its map must grow meanwhile.
+   threshold. The page must show the three robots, and its map must grow meanwhile. Beside
+   it, what the pose σ in the robot states costs the server per new keyframe (on the state
+   the run ended with).
 2. ``throughput``: ``--pairs`` pairs of runs, one without the console and one with it and
    ``--browsers`` browsers on it (plus the demo's own, which takes the end-of-run screenshot),
    alternated so that the machine's other load falls on both alike. A lockstep run is the
@@ -79,6 +81,34 @@ def server_figures(run: Path) -> dict[str, Any]:
             "console": s.get("console")}
 
 
+def pose_sigma_cost(run: Path) -> dict[str, Any]:
+    """What the robot states' pose σ costs the server: the marginal covariance of each
+    robot's newest keyframe, on the state the run ended with (its largest graphs), worked
+    out once per new keyframe (``ServerCore._pose_sigma``)."""
+    from schemas.config_loading import load_config
+    from server.config import ServerConfig
+    from server.core import ServerCore
+    from server.journal import replay
+    from server.snapshot import Snapshots
+
+    state = run / "server" / "state"
+    loaded = Snapshots(state).load()
+    if loaded is not None:
+        core, since = loaded
+    else:    # written by other code: the journal alone gives it back
+        core = ServerCore(load_config(ServerConfig, run / "server" / "server_config.yaml"))
+        since = 0
+    replay(core, state, from_sequence=since)
+    out = {}
+    for rid, r in sorted(core.robots.items()):
+        t0 = time.perf_counter()
+        for _ in range(20):
+            sigma = r.slam.pose_sigma()
+        out[rid] = {"ms": round((time.perf_counter() - t0) / 20 * 1000, 3),
+                    "keyframes": len(r.slam.keyframes), "sigma": [round(v, 4) for v in sigma]}
+    return out
+
+
 def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
     demo = DemoRun(out / "stop", free_port())
     watch = demo.watch()
@@ -123,12 +153,12 @@ def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
             demo.wait()
     finally:
         watch.close()
-        if demo.proc.poll() is None:
-            demo.proc.kill()
+        demo.stop()
     rep = report_of(demo.run)
     res.update(exit_code=demo.proc.returncode, reached=rep.get("reached"),
                sim_time_to_threshold_s=rep.get("sim_time_to_threshold_s"),
-               screenshot=(demo.run / "console.png").exists())
+               screenshot=(demo.run / "console.png").exists(),
+               pose_sigma_cost=pose_sigma_cost(demo.run))
     worst = [v for part in ("commands_zero_after_s", "sim_velocity_zero_after_s")
              for v in res["stop"][part].values()]
     res["stop_s_max"] = None if None in worst else max(worst)
@@ -138,18 +168,18 @@ def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
 def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
     port = free_port() if browsers else None
     demo = DemoRun(out / name, port)
-    pages: list[ConsolePage] = []
     latency: list[float] = []
     try:
-        if port is not None:
+        if port is None:
+            demo.wait()
+        else:
             demo.watch().close()       # the server is up
-            pages = [ConsolePage(demo.url) for _ in range(browsers)]
-        demo.wait()
-        for p in pages:
-            latency += p.stats()["mapLatencyMs"]
+            with ConsolePage(demo.url, browsers=browsers) as pages:
+                demo.wait()
+                for k in range(browsers):
+                    latency += pages.stats(k)["mapLatencyMs"]
     finally:
-        for p in pages:
-            p.close()
+        demo.stop()
     rep = report_of(demo.run)
     sim_s = rep.get("sim_time_to_threshold_s")
     res = {"run": name, "browsers": browsers, "exit_code": demo.proc.returncode,

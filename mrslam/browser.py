@@ -35,45 +35,52 @@ def chromium_path() -> str:
 
 
 class ConsolePage:
-    """The console's page at ``url`` in a headless chromium of its own."""
+    """The console's page at ``url`` in ``browsers`` headless chromiums of their own (one
+    playwright, which allows one per thread): ``page`` is the first one's, ``pages`` all."""
 
     def __init__(self, url: str, width: int = 1500, height: int = 950,
-                 must_load: bool = True) -> None:
+                 must_load: bool = True, browsers: int = 1) -> None:
         """``must_load`` False: a page the server refuses (chromium fails to load an error
         with no body) is no error here; ``last_status`` and ``load_error`` say what came."""
         from playwright.sync_api import Error, sync_playwright
 
         exe = chromium_path()
         self._pw = sync_playwright().start()
+        self.browsers: list[Any] = []
+        self.pages: list[Any] = []
+        statuses: list[int] = []
+        self.load_error = ""
         try:
             args = ["--no-sandbox"] if os.geteuid() == 0 else []   # chromium refuses root
-            self.browser = self._pw.chromium.launch(executable_path=exe, headless=True,
-                                                    args=[*args, "--disable-gpu"])
-            self.page = self.browser.new_page(viewport={"width": width, "height": height})
-            statuses: list[int] = []
-            self.page.on("response", lambda r: statuses.append(r.status)
-                         if r.request.is_navigation_request() else None)
-            self.load_error = ""
-            try:
-                self.page.goto(url)
-            except Error as e:
-                if must_load:
-                    raise
-                self.load_error = str(e)
-            #: the HTTP status the page itself was served with
-            self.last_status = statuses[-1] if statuses else None
+            for _ in range(browsers):
+                browser = self._pw.chromium.launch(executable_path=exe, headless=True,
+                                                   args=[*args, "--disable-gpu"])
+                self.browsers.append(browser)
+                page = browser.new_page(viewport={"width": width, "height": height})
+                self.pages.append(page)
+                page.on("response", lambda r: statuses.append(r.status)
+                        if r.request.is_navigation_request() else None)
+                try:
+                    page.goto(url)
+                except Error as e:
+                    if must_load:
+                        raise
+                    self.load_error = str(e)
         except Exception:
-            self._pw.stop()
+            self.close()
             raise
+        self.page = self.pages[0]
+        #: the HTTP status the page itself was served with (the last browser's)
+        self.last_status = statuses[-1] if statuses else None
 
-    def stats(self) -> dict[str, Any]:
-        """The page's own counters (``window.mrslam.stats``)."""
-        return dict(self.page.evaluate("() => window.mrslam.stats"))
+    def stats(self, index: int = 0) -> dict[str, Any]:
+        """A page's own counters (``window.mrslam.stats``)."""
+        return dict(self.pages[index].evaluate("() => window.mrslam.stats"))
 
     def wait_for(self, js: str, timeout_s: float, every_s: float = 0.05) -> Any:
-        """Wait until the expression ``js`` is truthy (polled from here: the page's content
-        security policy forbids the evaluated strings a wait inside the page would need);
-        its value, or ``TimeoutError``."""
+        """Wait until the expression ``js`` is truthy on the first page (polled from here:
+        the page's content security policy forbids the evaluated strings a wait inside the
+        page would need); its value, or ``TimeoutError``."""
         deadline = time.monotonic() + timeout_s
         while True:
             value = self.page.evaluate(f"() => ({js})")
@@ -89,8 +96,10 @@ class ConsolePage:
 
     def close(self) -> None:
         try:
-            self.browser.close()
+            for b in self.browsers:
+                b.close()
         finally:
+            self.browsers = []
             self._pw.stop()
 
     def __enter__(self) -> ConsolePage:

@@ -5,6 +5,7 @@ is killed with SIGKILL and started again."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import socket
@@ -154,6 +155,23 @@ def test_a_page_that_stops_reading_holds_nothing_up(fleet: Fleet) -> None:
         for s in hung:
             s.close()
     assert within(lambda: state(port)["health"]["console"]["pages"] == 0, 60)
+    # a flood of idle connections: those past the limit are closed at once, and once they
+    # go the console serves again
+    flood = [socket.create_connection(("127.0.0.1", port)) for _ in range(80)]
+    try:
+        refused = 0
+        for s in flood:
+            s.settimeout(0.5)
+            with contextlib.suppress(TimeoutError):   # held open, waiting for a request
+                refused += s.recv(1) == b""           # closed by the server, nothing sent
+        assert refused >= 10
+    finally:
+        for s in flood:
+            s.close()
+    assert within(lambda: try_state(port) is not None, 60)
+    assert state(port)["health"]["console"]["connections_refused"] >= 10
+    t = time.monotonic()
+    assert within(lambda: all(r.answered_since(t) > 10 for r in robots), 60)
 
 
 def test_a_stop_all_still_holds_after_a_sigkill_and_a_restart(tmp_path: Path) -> None:

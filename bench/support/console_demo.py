@@ -5,6 +5,7 @@ time it saw each; for the console's benchmark and its end-to-end test."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -36,6 +37,7 @@ class DemoRun:
         run.parent.mkdir(parents=True, exist_ok=True)
         self._log = (run.parent / f"{run.name}.log").open("wb")
         self.t0 = time.monotonic()
+        self.wall_s = 0.0
         self.proc = subprocess.Popen(cmd, cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
                                      env={**os.environ, "PYTHONPATH": str(ROOT),
                                           TOKEN_ENV: TOKEN})
@@ -55,14 +57,23 @@ class DemoRun:
                 time.sleep(0.5)
         raise RuntimeError(f"the demo's server never came up ({self.run})")
 
+    def stop(self) -> None:
+        """Interrupt a demo still running, as Ctrl-C would (it stops its processes)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=90)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if not self._log.closed:
+            self._log.close()
+
     def wait(self, timeout_s: float = 1800.0) -> int:
         try:
             self.proc.wait(timeout=timeout_s)
         finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-                self.proc.wait()
-            self._log.close()
+            self.stop()
         self.wall_s = time.monotonic() - self.t0
         return int(self.proc.returncode)
 

@@ -83,7 +83,7 @@ class Console:
         self._lock = threading.Lock()          # the model: the console's thread and new pages
         self._inbox: deque[tuple[str, bytes, float]] = deque(maxlen=INBOX)
         self._wake = threading.Event()
-        self._errlog = RateLimitedLog(log)
+        self.errlog = RateLimitedLog(log)
         self._page = resources.files("server.console").joinpath("page.html").read_bytes()
         try:
             self.http = ConsoleHTTPServer((host, port), self)
@@ -136,12 +136,12 @@ class Console:
                     frame = self._ingest(key, payload, seen)
                 except (SchemaError, ValueError) as e:
                     self.counters["undecodable"] += 1
-                    self._errlog.warning(type(e).__name__, "console: %s did not decode: %s",
+                    self.errlog.warning(type(e).__name__, "console: %s did not decode: %s",
                                          key, e)
                     continue
                 except Exception as e:   # the console must never take the server down
                     self.counters["errors"] += 1
-                    self._errlog.log(logging.ERROR, type(e).__name__,
+                    self.errlog.log(logging.ERROR, type(e).__name__,
                                      "console: %s failed", key, exc_info=True)
                     continue
                 if frame is not None:
@@ -153,7 +153,7 @@ class Console:
                     self.pages.send(self._health())
                 except Exception:
                     self.counters["errors"] += 1
-                    self._errlog.log(logging.ERROR, "health", "console: health failed",
+                    self.errlog.log(logging.ERROR, "health", "console: health failed",
                                      exc_info=True)
 
     def _ingest(self, key: str, payload: bytes, seen: float) -> Frame | None:
@@ -203,7 +203,7 @@ class Console:
             cmd = parse(data)
         except OperatorError as e:
             self.counters["bad_commands"] += 1
-            self._errlog.warning("bad-command", "console: a command refused: %s", e)
+            self.errlog.warning("bad-command", "console: a command refused: %s", e)
             return e.status, {"ok": False, "error": str(e)}
         self.counters["commands"] += 1
         log.info("console: %s", cmd.describe())

@@ -17,6 +17,7 @@ from __future__ import annotations
 import hmac
 import json
 import logging
+import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import TYPE_CHECKING, Any
@@ -33,6 +34,8 @@ MAX_BODY = 4096
 SEND_TIMEOUT_S = 5.0
 #: a comment line keeps a quiet stream open (and finds pages that went away) [s]
 KEEPALIVE_S = 10.0
+#: connections served at once (each has a thread); more are closed at once
+MAX_CONNECTIONS = 64
 
 _HEADERS = {
     "Cache-Control": "no-store",
@@ -51,12 +54,33 @@ class ConsoleHTTPServer(ThreadingHTTPServer):
 
     def __init__(self, address: tuple[str, int], console: Console) -> None:
         self.console = console
+        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
         super().__init__(address, ConsoleHandler)
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        """A thread per connection, up to ``MAX_CONNECTIONS``: a flood of connections
+        cannot take the server's memory or threads."""
+        if not self._slots.acquire(blocking=False):
+            self.console.count("connections_refused")
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except Exception:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
 
 class ConsoleHandler(BaseHTTPRequestHandler):
     server: ConsoleHTTPServer
     protocol_version = "HTTP/1.1"
+    timeout = 15.0        # a connection that sends nothing for this long is closed
     server_version = "mrslam-console"
     sys_version = ""
 
@@ -75,8 +99,9 @@ class ConsoleHandler(BaseHTTPRequestHandler):
         if hmac.compare_digest(given.encode(), token):
             return True
         self.server.console.count("unauthorised")
-        log.info("console: a request without the right token (%s %s) from %s",
-                 self.command, urlsplit(self.path).path, self.client_address[0])
+        self.server.console.errlog.warning(
+            "unauthorised", "console: a request without the right token (%s %s) from %s",
+            self.command, urlsplit(self.path).path, self.client_address[0])
         self._send(HTTPStatus.UNAUTHORIZED, b"", "text/plain")
         return False
 
