@@ -17,11 +17,14 @@ with Debian's chromium driven by playwright (``mrslam.browser``):
 2. ``throughput``: ``--pairs`` pairs of runs, one without the console and one with it and
    ``--browsers`` browsers on it (plus the demo's own, which takes the end-of-run screenshot),
    alternated so that the machine's other load falls on both alike. A lockstep run is the
-   same run every time, so its work is fixed: throughput is simulated seconds per wall
-   second to the threshold (the server paces the lockstep), and the server's CPU per scan
-   (its summary). Goal: with the console within 5 % of without (medians). The browsers' page
-   latency: from the server's console seeing a map update to the animation frame after the
-   page drew it (``window.mrslam.stats.mapLatencyMs``; goal ≤ 1 s).
+   same run every time, so its work is fixed. Figures: the server's CPU per scan processed
+   (its summary: what the server itself spends, whatever else runs), the console's own CPU
+   in the server's process (its threads and bus callbacks, timed by the console) as a share
+   of the server's, and simulated seconds per wall second to the threshold — which on a
+   small machine also pays for the browsers' own CPU, as they run beside the server here.
+   Goal: with the console within 5 % of without (medians). The browsers' page latency: from
+   the server's console seeing a map update to the animation frame after the page drew it
+   (``window.mrslam.stats.mapLatencyMs``; goal ≤ 1 s).
 
     python bench/console.py [--pairs 2] [--browsers 3] [--stop-at 25] [--hold-s 5]
                             [--only stop|throughput] [--out DIR]
@@ -36,6 +39,7 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +50,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
 from bench.support.console_demo import (  # noqa: E402
+    DemoDidNotStart,
     DemoRun,
     first_moving_after,
     zero_after,
@@ -54,6 +59,17 @@ from mrslam.browser import ConsolePage  # noqa: E402
 
 ROBOTS = ["r1", "r2", "r3"]
 GOALS = {"stop_s": 0.5, "page_latency_s": 1.0, "throughput_loss": 0.05}
+
+
+def retried(fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any]:
+    """``fn(*args)``, started once more if its demo did not start (it counts in the
+    result as ``starts``)."""
+    for starts in (1, 2, 3):
+        try:
+            return {**fn(*args), "starts": starts}
+        except DemoDidNotStart as e:
+            print(f"{e}; again", file=sys.stderr)
+    raise RuntimeError("the demo did not start three times")
 
 
 def free_port() -> int:
@@ -76,9 +92,12 @@ def server_figures(run: Path) -> dict[str, Any]:
     except (OSError, ValueError):
         return {}
     scans = sum(r["scans"] for r in s["robots"].values())
+    console = s.get("console")
     return {"server_cpu_s": s["cpu_s"], "scans": scans,
             "server_cpu_ms_per_scan": round(1000 * s["cpu_s"] / max(scans, 1), 3),
-            "console": s.get("console")}
+            "console": console,
+            "console_cpu_share": (None if not console else
+                                  round(console["cpu_s"] / max(s["cpu_s"], 1e-9), 4))}
 
 
 def pose_sigma_cost(run: Path) -> dict[str, Any]:
@@ -124,15 +143,21 @@ def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
             known.append(cp.page.evaluate("() => window.mrslam.knownCells()"))
             res["page"] = {"robot_rows": cp.page.locator('[data-testid^="robot-row-"]').count(),
                            "known_cells": known, "map_grew": known[-1] > known[0]}
+            cp.page.evaluate("() => { window.mrslam.lastAnswer = undefined; }")
             t_click = time.time()
             cp.page.get_by_test_id("stop-all").click()
             t_clicked = time.time()
+            answer = cp.wait_for("window.mrslam.lastAnswer", 30)
             time.sleep(hold_s + 1.0)
             t_hold = time.time()
             cmds = watch.samples("commands", t_click, t_hold)
             sims = watch.samples("sim", t_click, t_hold)
             res["stop"] = {
                 "click_s": round(t_clicked - t_click, 3),
+                # the page's fetch: when it went out, and when the server's answer (the order
+                # carried out by its worker) came back, after the click
+                "request_sent_s": round(answer["sentAtMs"] / 1000 - t_click, 3),
+                "answered_s": round(answer["answeredAtMs"] / 1000 - t_click, 3),
                 "sim_time_s": round(watch.sim_time_s, 1),
                 "commands_zero_after_s": zero_after(cmds, ROBOTS, t_click, t_hold),
                 "sim_velocity_zero_after_s": zero_after(sims, ROBOTS, t_click, t_hold),
@@ -181,6 +206,8 @@ def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
     finally:
         demo.stop()
     rep = report_of(demo.run)
+    if not rep:
+        raise DemoDidNotStart(f"no report in {demo.run} (exit code {demo.proc.returncode})")
     sim_s = rep.get("sim_time_to_threshold_s")
     res = {"run": name, "browsers": browsers, "exit_code": demo.proc.returncode,
            "reached": rep.get("reached"), "wall_s": round(demo.wall_s, 2),
@@ -201,7 +228,7 @@ def throughput(out: Path, pairs: int, browsers: int) -> dict[str, Any]:
     for k in range(pairs):
         for with_console in ((False, True) if k % 2 == 0 else (True, False)):
             name = f"{'console' if with_console else 'plain'}-{k}"
-            runs.append(throughput_run(out, name, browsers if with_console else 0))
+            runs.append(retried(throughput_run, out, name, browsers if with_console else 0))
             print(json.dumps(runs[-1]), file=sys.stderr)
 
     def med(key: str, console: bool) -> float | None:
@@ -213,6 +240,8 @@ def throughput(out: Path, pairs: int, browsers: int) -> dict[str, Any]:
         a, b = med(key, False), med(key, True)
         res[key] = {"without": a, "with": b,
                     "ratio": None if not (a and b) else round(b / a, 4)}
+    shares = [r["console_cpu_share"] for r in runs if r.get("console_cpu_share") is not None]
+    res["console_cpu_share_max"] = max(shares, default=None)
     lat = [r["page_latency_ms"] for r in runs if "page_latency_ms" in r]
     res["page_latency_ms_p95_max"] = max((x["p95"] for x in lat), default=None)
     res["page_latency_ms_max"] = max((x["max"] for x in lat), default=None)
@@ -232,7 +261,7 @@ def main() -> None:
     t0 = time.monotonic()
     result: dict[str, Any] = {"goals": GOALS, "out": str(out)}
     if args.only in (None, "stop"):
-        result["stop"] = stop_run(out, args.stop_at, args.hold_s)
+        result["stop"] = retried(stop_run, out, args.stop_at, args.hold_s)
         print(json.dumps(result["stop"]), file=sys.stderr)
     if args.only in (None, "throughput"):
         result["throughput"] = throughput(out, args.pairs, args.browsers)
@@ -246,8 +275,12 @@ def main() -> None:
                                                     and s["page"]["map_grew"])
     if "throughput" in result:
         t = result["throughput"]
+        ratio = t["server_cpu_ms_per_scan"]["ratio"]
+        met["server_cpu_per_scan_within_5_percent"] = ratio is not None and ratio <= 1.05
+        share = t["console_cpu_share_max"]
+        met["console_cpu_share_within_5_percent"] = share is not None and share <= 0.05
         ratio = t["sim_s_per_wall_s"]["ratio"]
-        met["throughput_within_5_percent"] = ratio is not None and ratio >= 0.95
+        met["wall_throughput_within_5_percent"] = ratio is not None and ratio >= 0.95
         p95 = t["page_latency_ms_p95_max"]
         met["page_latency_p95_within_1_s"] = p95 is not None and p95 <= 1000
     result["goal_met"] = met

@@ -88,7 +88,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         node.guarded("writing the last snapshot", node.snapshot)
         summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
         if console is not None:
-            summary["console"] = dict(console.counters)
+            summary["console"] = {**console.counters, "cpu_s": round(console.cpu_s, 3)}
         if out is not None:
             write_outputs(node.core, out, summary)
     return summary
@@ -116,8 +116,7 @@ def _console(bus: Bus, node: ServerNode, port: int | None, token: str | None) ->
 
     from server.console.service import TOKEN_ENV, Console
 
-    console = Console(port, node.operate,
-                      lambda: (dict(node.dropped), node.orders_view),
+    console = Console(port, node.operate, node.health,
                       token=token or os.environ.get(TOKEN_ENV) or None)
     console.attach(bus)
     # the one line an operator needs; the token is in it (the log is the server's own)

@@ -312,6 +312,13 @@ class ServerNode:
         if job is not None:
             self._writer.submit("outputs", job)
 
+    def health(self) -> dict[str, Any]:
+        """For the console (any thread): per robot the scans accepted and dropped, and the
+        operator's orders."""
+        with self._cv:
+            scans = {rid: rec.accepted.get("scan", 0) for rid, rec in self.registry.robots.items()}
+        return {"scans": scans, "dropped": dict(self.dropped), "orders": self.orders_view}
+
     # -- the operator's orders ---------------------------------------------------------------
     def operate(self, cmd: OperatorCommand) -> Future[tuple[int, str]]:
         """Queue an operator's order ahead of everything else (any thread); the future gives

@@ -70,15 +70,19 @@ def test_series_stay_bounded() -> None:
 
 def test_health_gives_each_robots_rate_and_what_it_lost() -> None:
     m = ConsoleModel()
-    for k in range(40):
-        m.on_scan("r1", 100.0 + 0.1 * k)
-    m.on_scan("r2", 96.0)
-    f = m.health_frame({"r1": 3}, {"stop_all": True}, {"pages": 1}, now_wall=104.0)
+    for k in range(10):                 # r1: 10 scans a second; r2: silent since 96 s
+        m.on_counts({"r1": 10 * k, "r2": 5}, 95.0 + k)
+    f = m.health_frame({"r1": 3}, {"stop_all": True}, {"pages": 1}, now_wall=104.5)
     r1, r2 = f.data["robots"]["r1"], f.data["robots"]["r2"]
-    assert abs(r1["scan_rate_hz"] - 10.0) < 0.5 and r1["dropped_scans"] == 3
-    assert r1["last_seen_s_ago"] == 0.1 and r2["scan_rate_hz"] == 0.0
-    assert r2["last_seen_s_ago"] == 8.0
+    assert r1["scan_rate_hz"] == 10.0 and r1["dropped_scans"] == 3 and r1["scans"] == 90
+    assert r1["last_seen_s_ago"] == 0.5
+    assert r2["scan_rate_hz"] == 0.0 and r2["last_seen_s_ago"] == 9.5
     assert f.data["orders"] == {"stop_all": True}
+    # the rate is over the last few seconds only
+    for k in range(10, 20):
+        m.on_counts({"r1": 90 + 2 * (k - 9), "r2": 5}, 95.0 + k)
+    r1 = m.health_frame({}, {}, {}, now_wall=115.0).data["robots"]["r1"]
+    assert r1["scan_rate_hz"] == 2.0
 
 
 def test_events_and_the_snapshot_a_new_page_gets() -> None:

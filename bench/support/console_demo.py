@@ -5,6 +5,7 @@ time it saw each; for the console's benchmark and its end-to-end test."""
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -26,6 +27,11 @@ TOKEN = "console-bench-token-0123456789"
 Sample = tuple[float, str, float, float]
 
 
+class DemoDidNotStart(RuntimeError):
+    """The demo ended, or its server did not come up, before it ran (e.g. its monitor gave
+    up waiting for a server slow to start on a loaded machine)."""
+
+
 class DemoRun:
     """``mrslam demo --no-record --out RUN [--console PORT]`` with a known token."""
 
@@ -34,6 +40,7 @@ class DemoRun:
         self.console_port = console_port
         cmd = [sys.executable, "-m", "mrslam", "demo", "--no-record", "--out", str(run),
                *(["--console", str(console_port)] if console_port is not None else []), *args]
+        shutil.rmtree(run, ignore_errors=True)       # a run tried before in its place
         run.parent.mkdir(parents=True, exist_ok=True)
         self._log = (run.parent / f"{run.name}.log").open("wb")
         self.t0 = time.monotonic()
@@ -55,7 +62,8 @@ class DemoRun:
                 return Watch(cfg["bus"]["listen"][0])
             except (OSError, TypeError, KeyError, BusError):   # not written or not up yet
                 time.sleep(0.5)
-        raise RuntimeError(f"the demo's server never came up ({self.run})")
+        self.stop()
+        raise DemoDidNotStart(f"the demo's server never came up ({self.run})")
 
     def stop(self) -> None:
         """Interrupt a demo still running, as Ctrl-C would (it stops its processes)."""

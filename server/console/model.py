@@ -4,8 +4,9 @@ The server publishes team maps, robot states and events (``docs/wire.md``); the 
 what a page needs of them — each team's latest map (its cells still zlib-compressed: the
 browser inflates them), every robot's state and trail, each team's coverage against time, the
 last events — and turns each message into a frame for the pages already open. A page that
-connects later gets ``snapshot()``. Per-robot health comes from the scans seen on the bus
-(rate, last seen) and the node's counters (dropped scans). No I/O, one thread.
+connects later gets ``snapshot()``. Per-robot health comes from the node's counters, read once
+a second: scans accepted (their rate, and when the count last moved) and dropped. No I/O, one
+thread.
 """
 
 from __future__ import annotations
@@ -44,9 +45,10 @@ class Frame:
 
 @dataclass
 class RobotHealth:
-    scan_times: deque[float] = field(default_factory=lambda: deque(maxlen=512))
+    #: (wall time, scans accepted so far), one a second over the rate's window
+    counts: deque[tuple[float, int]] = field(default_factory=lambda: deque(maxlen=64))
     scans: int = 0
-    last_seen: float = 0.0          # wall time of its last scan on the bus
+    last_seen: float = 0.0          # wall time its count was last seen to move
 
 
 def _thin(points: list[Any], cap: int) -> None:
@@ -121,13 +123,17 @@ class ConsoleModel:
         self.events.append(data)
         return Frame("event", data)
 
-    def on_scan(self, robot_id: str, seen_wall: float) -> None:
-        h = self.health.get(robot_id)
-        if h is None:
-            h = self.health[robot_id] = RobotHealth()
-        h.scans += 1
-        h.last_seen = seen_wall
-        h.scan_times.append(seen_wall)
+    def on_counts(self, scans: dict[str, int], now_wall: float) -> None:
+        """The node's count of scans accepted per robot, as of ``now_wall``."""
+        for rid, n in scans.items():
+            h = self.health.get(rid)
+            if h is None:
+                h = self.health[rid] = RobotHealth()
+            if n != h.scans:
+                h.scans, h.last_seen = n, now_wall
+            h.counts.append((now_wall, n))
+            while len(h.counts) > 2 and now_wall - h.counts[1][0] >= RATE_WINDOW_S:
+                h.counts.popleft()
 
     # -- outputs ---------------------------------------------------------------------------
     def health_frame(self, dropped: dict[str, int], orders: dict[str, Any],
@@ -136,10 +142,11 @@ class ConsoleModel:
         rows = {}
         for rid in sorted(set(self.health) | set(self.robots)):
             h = self.health.get(rid, RobotHealth())
-            recent = [t for t in h.scan_times if now - t <= RATE_WINDOW_S]
-            span = min(RATE_WINDOW_S, now - recent[0]) if len(recent) > 1 else 0.0
-            rows[rid] = {"scans": h.scans,
-                         "scan_rate_hz": round((len(recent) - 1) / span, 2) if span > 0 else 0.0,
+            rate = 0.0
+            if len(h.counts) > 1:
+                (t0, n0), (t1, n1) = h.counts[0], h.counts[-1]
+                rate = (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+            rows[rid] = {"scans": h.scans, "scan_rate_hz": round(rate, 2),
                          "dropped_scans": int(dropped.get(rid, 0)),
                          "last_seen_s_ago": (round(now - h.last_seen, 2) if h.last_seen
                                              else None)}

@@ -4,9 +4,9 @@ PORT``), live from the server's own outputs, with fleet controls that go through
 How it keeps off the server's back:
 
 1. It listens to the server's messages on the bus like any client would (maps, robot states,
-   events, and the robots' scans for their rates); each arrives in a callback that only
-   appends to a bounded inbox (the oldest dropped first) — the server's worker never waits
-   for the console.
+   events); each arrives in a callback that only appends to a bounded inbox (the oldest
+   dropped first) — the server's worker never waits for the console. The robots' health
+   comes from the node's own counters, read once a second.
 2. Its own thread decodes the inbox, keeps the page's model (``server.console.model``),
    encodes each frame once and puts it in every open page's bounded queue
    (``server.console.clients``).
@@ -68,10 +68,11 @@ class Console:
     """The console of one server: its model, its pages, its HTTP server."""
 
     def __init__(self, port: int, operate: Callable[[OperatorCommand], Future[Any]],
-                 health: Callable[[], tuple[dict[str, int], dict[str, Any]]],
+                 health: Callable[[], dict[str, Any]],
                  token: str | None = None, host: str = DEFAULT_HOST) -> None:
         """``operate``: hands an order to the server (``ServerNode.operate``); ``health``:
-        the node's dropped scans per robot and its orders' view (any thread)."""
+        the node's scans accepted and dropped per robot and its orders' view
+        (``ServerNode.health``; any thread)."""
         self.token = token or new_token()
         if len(self.token) < 16:
             raise ConsoleError("the console's token must be at least 16 characters")
@@ -79,6 +80,10 @@ class Console:
         self.model = ConsoleModel()
         self.pages = Pages(MAX_PAGES)
         self.counters: Counter[str] = Counter()
+        #: CPU time the console took in the server's process [s]: its thread, its pages'
+        #: threads and its bus callbacks
+        self.cpu_s = 0.0
+        self._cpu_lock = threading.Lock()
         self.closing = False
         self._lock = threading.Lock()          # the model: the console's thread and new pages
         self._inbox: deque[tuple[str, bytes, float]] = deque(maxlen=INBOX)
@@ -110,19 +115,21 @@ class Console:
         """Listen to the server's outputs (and the robots' scans) on ``bus``."""
         for key in (keys.SERVER_MAP, keys.SERVER_ROBOTS, keys.SERVER_EVENTS):
             bus.subscribe_raw(key, self._arrived)
-        bus.subscribe_raw(keys.ALL_SCANS, self._scan)
+
+    def add_cpu(self, since_thread_s: float) -> None:
+        """Count this thread's CPU time since ``since_thread_s`` (``time.thread_time()``)."""
+        used = time.thread_time() - since_thread_s
+        with self._cpu_lock:
+            self.cpu_s += used
 
     # -- the bus's threads (and the server's worker, for its own messages): append only ------
     def _arrived(self, key: str, payload: bytes) -> None:
+        t0 = time.thread_time()
         if len(self._inbox) == INBOX:
             self.counters["inbox_dropped"] += 1
         self._inbox.append((key, payload, time.time()))
         self._wake.set()
-
-    def _scan(self, key: str, _payload: bytes) -> None:
-        rid = keys.robot_id_of(key)
-        if rid is not None:
-            self._inbox.append(("#scan", rid.encode(), time.time()))
+        self.add_cpu(t0)
 
     # -- the console's thread --------------------------------------------------------------
     def _run(self) -> None:
@@ -130,6 +137,7 @@ class Console:
         while not self.closing:
             self._wake.wait(0.25)
             self._wake.clear()
+            t0 = time.thread_time()
             while self._inbox:
                 key, payload, seen = self._inbox.popleft()
                 try:
@@ -137,12 +145,12 @@ class Console:
                 except (SchemaError, ValueError) as e:
                     self.counters["undecodable"] += 1
                     self.errlog.warning(type(e).__name__, "console: %s did not decode: %s",
-                                         key, e)
+                                        key, e)
                     continue
                 except Exception as e:   # the console must never take the server down
                     self.counters["errors"] += 1
                     self.errlog.log(logging.ERROR, type(e).__name__,
-                                     "console: %s failed", key, exc_info=True)
+                                    "console: %s failed", key, exc_info=True)
                     continue
                 if frame is not None:
                     self.pages.send(frame)
@@ -150,17 +158,18 @@ class Console:
             if now >= next_health:
                 next_health = now + 1.0
                 try:
-                    self.pages.send(self._health())
+                    health = self.health()
+                    with self._lock:
+                        self.model.on_counts(health["scans"], time.time())
+                    self.pages.send(self._health(health))
                 except Exception:
                     self.counters["errors"] += 1
                     self.errlog.log(logging.ERROR, "health", "console: health failed",
-                                     exc_info=True)
+                                    exc_info=True)
+            self.add_cpu(t0)
 
     def _ingest(self, key: str, payload: bytes, seen: float) -> Frame | None:
         with self._lock:
-            if key == "#scan":
-                self.model.on_scan(payload.decode(), seen)
-                return None
             if key == keys.SERVER_MAP:
                 return self.model.on_map(decode(payload, MapUpdate), seen)
             if key == keys.SERVER_ROBOTS:
@@ -169,11 +178,11 @@ class Console:
                 return self.model.on_event(decode(payload, Event))
         return None
 
-    def _health(self) -> Frame:
-        dropped, orders = self.health()
-        counters = {**self.counters, **self.pages.counters()}
+    def _health(self, health: dict[str, Any] | None = None) -> Frame:
+        health = health if health is not None else self.health()
+        counters = {**self.counters, **self.pages.counters(), "cpu_s": round(self.cpu_s, 3)}
         with self._lock:
-            return self.model.health_frame(dropped, orders, counters)
+            return self.model.health_frame(health["dropped"], health["orders"], counters)
 
     # -- what the pages ask (their HTTP threads) -------------------------------------------
     def page(self) -> bytes:

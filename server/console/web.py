@@ -18,6 +18,7 @@ import hmac
 import json
 import logging
 import threading
+import time
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import TYPE_CHECKING, Any
@@ -85,6 +86,14 @@ class ConsoleHandler(BaseHTTPRequestHandler):
     sys_version = ""
 
     # -- plumbing ----------------------------------------------------------------------
+    def handle_one_request(self) -> None:
+        t0 = time.thread_time()
+        self._cpu_from = t0
+        try:
+            super().handle_one_request()
+        finally:
+            self.server.console.add_cpu(self._cpu_from)
+
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("%s %s", self.address_string(), format % args)
 
@@ -187,7 +196,9 @@ class ConsoleHandler(BaseHTTPRequestHandler):
             self.wfile.write(b"retry: 1000\n\n" + console.encoded_snapshot())
             self.wfile.flush()
             while not console.closing:
+                console.add_cpu(self._cpu_from)     # counted as it goes: a stream lasts
                 frames = q.take(KEEPALIVE_S)
+                self._cpu_from = time.thread_time()
                 if q.closed:
                     break
                 self.wfile.write(b"".join(frames) if frames else b": keep-alive\n\n")
