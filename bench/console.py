@@ -27,13 +27,14 @@ with Debian's chromium driven by playwright (``mrslam.browser``):
    (``window.mrslam.stats.mapLatencyMs``; goal ≤ 1 s).
 
     python bench/console.py [--pairs 2] [--browsers 3] [--stop-at 25] [--hold-s 5]
-                            [--only stop|throughput] [--out DIR]
+                            [--only stop|throughput] [--browser-nice 19] [--out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
 import statistics
 import sys
@@ -190,16 +191,50 @@ def stop_run(out: Path, stop_at_s: float, hold_s: float) -> dict[str, Any]:
     return res
 
 
-def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
+def descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (from /proc)."""
+    children: dict[int, list[int]] = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                ppid = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+            children.setdefault(ppid, []).append(int(d.name))
+    out, todo = [], [pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def renice_browsers(niceness: int) -> int:
+    """Give this program's chromium processes ``niceness`` (0: leave them); how many."""
+    n = 0
+    for pid in descendants(os.getpid()) if niceness else []:
+        try:
+            if "chrom" in Path(f"/proc/{pid}/comm").read_text():
+                os.setpriority(os.PRIO_PROCESS, pid, niceness)
+                n += 1
+        except OSError:
+            continue
+    return n
+
+
+def throughput_run(out: Path, name: str, browsers: int,
+                   browser_nice: int = 0) -> dict[str, Any]:
     port = free_port() if browsers else None
     demo = DemoRun(out / name, port)
     latency: list[float] = []
+    reniced = 0
     try:
         if port is None:
             demo.wait()
         else:
             demo.watch().close()       # the server is up
             with ConsolePage(demo.url, browsers=browsers) as pages:
+                reniced = renice_browsers(browser_nice)
                 demo.wait()
                 for k in range(browsers):
                     latency += pages.stats(k)["mapLatencyMs"]
@@ -210,6 +245,7 @@ def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
         raise DemoDidNotStart(f"no report in {demo.run} (exit code {demo.proc.returncode})")
     sim_s = rep.get("sim_time_to_threshold_s")
     res = {"run": name, "browsers": browsers, "exit_code": demo.proc.returncode,
+           "browser_nice": browser_nice if browsers else None, "reniced": reniced,
            "reached": rep.get("reached"), "wall_s": round(demo.wall_s, 2),
            "sim_time_to_threshold_s": sim_s, "wall_time_s": rep.get("wall_time_s"),
            **server_figures(demo.run)}
@@ -223,12 +259,13 @@ def throughput_run(out: Path, name: str, browsers: int) -> dict[str, Any]:
     return res
 
 
-def throughput(out: Path, pairs: int, browsers: int) -> dict[str, Any]:
+def throughput(out: Path, pairs: int, browsers: int, browser_nice: int = 0) -> dict[str, Any]:
     runs = []
     for k in range(pairs):
         for with_console in ((False, True) if k % 2 == 0 else (True, False)):
             name = f"{'console' if with_console else 'plain'}-{k}"
-            runs.append(retried(throughput_run, out, name, browsers if with_console else 0))
+            runs.append(retried(throughput_run, out, name, browsers if with_console else 0,
+                                browser_nice))
             print(json.dumps(runs[-1]), file=sys.stderr)
 
     def med(key: str, console: bool) -> float | None:
@@ -255,6 +292,10 @@ def main() -> None:
     ap.add_argument("--stop-at", type=float, default=25.0, help="simulated time of the click")
     ap.add_argument("--hold-s", type=float, default=5.0)
     ap.add_argument("--only", choices=["stop", "throughput"], default=None)
+    ap.add_argument("--browser-nice", type=int, default=0,
+                    help="run the throughput part's browsers at this niceness (e.g. 19: they "
+                    "stand in for the operators' own machines, and take only CPU the server, "
+                    "simulator and agents leave); 0: as this program")
     ap.add_argument("--out", default=None, help="keep the runs here")
     args = ap.parse_args()
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="console-bench-"))
@@ -264,7 +305,7 @@ def main() -> None:
         result["stop"] = retried(stop_run, out, args.stop_at, args.hold_s)
         print(json.dumps(result["stop"]), file=sys.stderr)
     if args.only in (None, "throughput"):
-        result["throughput"] = throughput(out, args.pairs, args.browsers)
+        result["throughput"] = throughput(out, args.pairs, args.browsers, args.browser_nice)
     met: dict[str, Any] = {}
     if "stop" in result:
         s = result["stop"]

@@ -19,7 +19,8 @@ COMMAND_PAUSE_S = 0.5
 
 class Monitor:
     def __init__(self, endpoint: str, robots: list[str]) -> None:
-        self.bus = Bus.open("client", connect=[endpoint], connect_timeout_ms=10000)
+        # the server was just started: on a loaded machine it may take a while to listen
+        self.bus = Bus.open("client", connect=[endpoint], connect_timeout_ms=60000)
         self.robots = robots
         self.sim_time_s = 0.0
         self.states: RobotStates | None = None

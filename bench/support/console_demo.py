@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from pathlib import Path
 from typing import Any
 
@@ -54,16 +55,39 @@ class DemoRun:
         return f"http://127.0.0.1:{self.console_port}/?token={TOKEN}"
 
     def watch(self, timeout_s: float = 120.0) -> Watch:
-        """A ``Watch`` on the demo's bus once its server is up."""
+        """A ``Watch`` on the demo's bus once its server (and its console) is up."""
         deadline = time.monotonic() + timeout_s
         while self.proc.poll() is None and time.monotonic() < deadline:
             try:
                 cfg = yaml.safe_load((self.run / "server.yaml").read_text())
-                return Watch(cfg["bus"]["listen"][0])
+                watch = Watch(cfg["bus"]["listen"][0])
+                if self.console_port is not None:
+                    try:
+                        self.wait_console(max(1.0, deadline - time.monotonic()))
+                    except DemoDidNotStart:
+                        watch.close()
+                        raise
+                return watch
             except (OSError, TypeError, KeyError, BusError):   # not written or not up yet
                 time.sleep(0.5)
         self.stop()
         raise DemoDidNotStart(f"the demo's server never came up ({self.run})")
+
+    def wait_console(self, timeout_s: float = 120.0) -> None:
+        """Wait until the console answers (the server listens on the bus a moment before:
+        it opens its console once its state is loaded)."""
+        deadline = time.monotonic() + timeout_s
+        while self.proc.poll() is None and time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(f"{self.url.replace('/?', '/state?')}",
+                                            timeout=5) as r:
+                    if r.status == 200:
+                        return
+            except OSError:
+                pass
+            time.sleep(0.5)
+        self.stop()
+        raise DemoDidNotStart(f"the demo's console never answered ({self.run})")
 
     def stop(self) -> None:
         """Interrupt a demo still running, as Ctrl-C would (it stops its processes)."""
