@@ -267,10 +267,10 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
 
 class _ConsoleShot:
     """The demo's console: the server serves it on ``port`` (a free one for 0) with a token
-    made here, the address is printed, and a headless browser keeps the page open through
-    the run, so that the page as it ended is saved (``console.png``) even when the server
-    has already stopped. Without a browser (``mrslam.browser``) the screenshot is left out,
-    with a warning."""
+    made here (or ``MRSLAM_CONSOLE_TOKEN``'s), the address is printed, and a headless
+    browser keeps the page open through the run, so that the page as it ended is saved
+    (``console.png``) even when the server has already stopped. Without a browser
+    (``mrslam.browser``) the screenshot is left out, with a warning."""
 
     def __init__(self, port: int | None) -> None:
         self.args: list[str] = []
