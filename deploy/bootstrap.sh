@@ -73,7 +73,21 @@ if [[ "$extras" == *dev* ]]; then
   fi
 fi
 
-# 5. the project and its extras
+# 5. a browser for the operator console's tests (dev only; docs/console.md): Debian's chromium,
+#    which playwright drives (its own browser download is not used). Without root the browser
+#    tests skip and say what to install.
+if [[ "$extras" == *dev* ]]; then
+  if ! command -v chromium >/dev/null 2>&1; then
+    if as_root; then
+      echo "installing chromium (the operator console's browser tests)" >&2
+      apt_install chromium
+    else
+      echo "no chromium: the console's browser tests will skip. Run: sudo apt-get install -y chromium" >&2
+    fi
+  fi
+fi
+
+# 6. the project and its extras
 stamp=".venv/.installed-$(cat pyproject.toml deploy/constraints.txt <(echo "$extras") |
   sha1sum | cut -c1-12)"
 if [ ! -f "$stamp" ]; then

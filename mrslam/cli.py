@@ -197,6 +197,12 @@ FoxgloveOpt = Annotated[int | None, typer.Option(
     "over a WebSocket on this loopback port (0: any free one), for Foxglove to connect to")]
 
 
+ConsoleOpt = Annotated[int | None, typer.Option(
+    "--console", metavar="PORT", min=0, max=65535, help="serve the operator console (a web "
+    "page with the maps, the robots and fleet controls) on this loopback port (0: any free "
+    "one); its address with the token is printed at start (docs/console.md)")]
+
+
 @app.command()
 def server(
     config: ConfigOpt = None,
@@ -204,6 +210,7 @@ def server(
         "--insecure", help="allow listening beyond this machine without TLS and access rules "
         "(bus.insecure_listen; warned at every start)")] = False,
     foxglove: FoxgloveOpt = None,
+    console: ConsoleOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
@@ -213,7 +220,8 @@ def server(
         from server.daemon import run
 
         return run(config, {"bus": {"insecure_listen": True}} if insecure else None,
-                   foxglove_port=foxglove)
+                   foxglove_port=foxglove, console_port=console,
+                   on_console=lambda c: typer.echo(f"console: {c.url}", err=True))
 
     call("server", body)
 
@@ -334,6 +342,7 @@ def demo(
     record: Annotated[bool, typer.Option("--record/--no-record",
                                          help="record the run into run.mcap")] = True,
     foxglove: FoxgloveOpt = None,
+    console: ConsoleOpt = None,
     server_restarts: Annotated[int, typer.Option(
         help="restart a server that dies at most this many times (0: never)")] = 5,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
@@ -364,7 +373,7 @@ def demo(
                      ("out", str(out) if out else None)):
             if v is not None:
                 opts[k] = v
-        report = run(opts, foxglove_port=foxglove)
+        report = run(opts, foxglove_port=foxglove, console_port=console)
         if not report["reached"]:
             raise typer.Exit(1)
         return report

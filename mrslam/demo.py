@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from pathlib import Path
@@ -102,10 +103,12 @@ class DemoConfig(ConfigModel):
 
 
 def run(overrides: dict[str, Any] | None = None, progress: bool = True,
-        foxglove_port: int | None = None) -> dict[str, Any]:
+        foxglove_port: int | None = None, console_port: int | None = None) -> dict[str, Any]:
     """Run one demo; returns the report (also written to ``<out>/report.json``).
     ``foxglove_port``: serve the run live to Foxglove on that loopback port (the recorder
-    serves it, else the server)."""
+    serves it, else the server). ``console_port``: the server serves the operator console
+    there (0: a free port); its address is printed, and a screenshot of the page at the end
+    goes to ``<out>/console.png``."""
     from rich.console import Console
 
     cfg = load_config(DemoConfig, overrides=overrides or {}, environ={})  # bad values: ConfigError
@@ -123,7 +126,7 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
                   f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
                   f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; run folder {out}")
     t0 = time.monotonic()
-    watch = _execute(cfg, plan, out, console, progress, t0, foxglove_port)
+    watch = _execute(cfg, plan, out, console, progress, t0, foxglove_port, console_port)
     from mrslam.report import build_report
 
     report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
@@ -201,19 +204,22 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
 
 
 def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
-             progress: bool, t0: float, foxglove_port: int | None = None) -> dict[str, Any]:
+             progress: bool, t0: float, foxglove_port: int | None = None,
+             console_port: int | None = None) -> dict[str, Any]:
     from mrslam.monitor import Monitor
     from schemas.bus import free_local_endpoint
 
     endpoint = free_local_endpoint()
     _configs(cfg, plan, out, endpoint)
+    page = _ConsoleShot(console_port)
     with ProcessGroup(out / "logs") as procs:
         live = [] if foxglove_port is None else ["--foxglove", str(foxglove_port)]
         server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v",
-                             *([] if cfg.record else live))
+                             *([] if cfg.record else live), *page.args, env=page.env)
         with Monitor(endpoint, list(plan["robots"])) as mon:
             if not mon.wait_for_server(30.0, server.alive):
                 raise RuntimeError(f"the server did not come up:\n{server.tail()}")
+            page.open(console)
             if cfg.record:  # the file appears once the recorder is on the bus
                 # camera images are the simulator's business (the agents' tag detections are
                 # recorded): leaving them out keeps a run's file small
@@ -242,6 +248,7 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                                  console, progress)
             finally:
                 reboots.stop()
+                page.close(out / "console.png")
             procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
             _let_server_come_up(supervisor, mon, timeout_s=60.0)
             procs.stop(["server"], timeout_s=60.0)
@@ -256,6 +263,58 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
         for p in failed:
             console.print(f"[red]{p.name} exited with {p.popen.returncode}[/]:\n{p.tail()}")
     return watch
+
+
+class _ConsoleShot:
+    """The demo's console: the server serves it on ``port`` (a free one for 0) with a token
+    made here (or ``MRSLAM_CONSOLE_TOKEN``'s), the address is printed, and a headless
+    browser keeps the page open through the run, so that the page as it ended is saved
+    (``console.png``) even when the server has already stopped. Without a browser
+    (``mrslam.browser``) the screenshot is left out, with a warning."""
+
+    def __init__(self, port: int | None) -> None:
+        self.args: list[str] = []
+        self.env: dict[str, str] = {}
+        self.url = ""
+        self._page: Any = None
+        if port is None:
+            return
+        from server.console.service import TOKEN_ENV, new_token
+
+        if port == 0:     # chosen here: a restarted server must come back on the same one
+            import socket
+
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                port = int(s.getsockname()[1])
+        token = os.environ.get(TOKEN_ENV) or new_token()
+        self.args, self.env = ["--console", str(port)], {TOKEN_ENV: token}
+        self.url = f"http://127.0.0.1:{port}/?token={token}"
+
+    def open(self, console: Any) -> None:
+        if not self.url:
+            return
+        console.print(f"[bold]console[/]: {self.url}")
+        from mrslam.browser import BrowserUnavailable, ConsolePage
+
+        try:
+            self._page = ConsolePage(self.url)
+        except BrowserUnavailable as e:
+            log.warning("no screenshot of the console at the end: %s", e)
+        except Exception as e:   # the run does not depend on it
+            log.warning("no screenshot of the console at the end: the browser failed (%s)", e)
+
+    def close(self, path: Path) -> None:
+        if self._page is None:
+            return
+        try:
+            self._page.screenshot(path)
+            log.info("the console as the run ended: %s", path)
+        except Exception as e:
+            log.warning("the console's screenshot failed: %s", e)
+        finally:
+            self._page.close()
+            self._page = None
 
 
 def _let_server_come_up(supervisor: Supervisor, mon: Monitor, timeout_s: float) -> None:

@@ -23,6 +23,8 @@ class Proc:
     args: tuple[str, ...] = ()
     #: the group was asked to stop it: an exit now is no failure
     stopping: bool = False
+    #: environment variables it runs with beyond the group's own (kept across restarts)
+    env: dict[str, str] = field(default_factory=dict)
 
     def alive(self) -> bool:
         return self.popen.poll() is None
@@ -48,11 +50,12 @@ class ProcessGroup:
     #: what a child runs: ``python -m mrslam ARGS`` (the same interpreter, so the same install)
     command: tuple[str, ...] = (sys.executable, "-m", "mrslam")
 
-    def start(self, name: str, *args: str) -> Proc:
-        """Run ``command ARGS``, its output going to ``<log_dir>/<name>.log``."""
+    def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> Proc:
+        """Run ``command ARGS``, its output going to ``<log_dir>/<name>.log``; ``env``: more
+        environment variables (a secret that must not show in the process list)."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         path = self.log_dir / f"{name}.log"
-        p = Proc(name, self._spawn(path, args, "wb"), path, args)
+        p = Proc(name, self._spawn(path, args, "wb", env or {}), path, args, env=dict(env or {}))
         self.procs.append(p)
         log.info("started %s (pid %d)", name, p.pid)
         return p
@@ -68,11 +71,12 @@ class ProcessGroup:
         old = p.pid
         if args is not None:
             p.args = args
-        p.popen = self._spawn(p.log_path, p.args, "ab")
+        p.popen = self._spawn(p.log_path, p.args, "ab", p.env)
         log.info("restarted %s (pid %d, was %d)", p.name, p.pid, old)
 
-    def _spawn(self, log_path: Path, args: tuple[str, ...], mode: str) -> subprocess.Popen[bytes]:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+    def _spawn(self, log_path: Path, args: tuple[str, ...], mode: str,
+               extra_env: dict[str, str]) -> subprocess.Popen[bytes]:
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **extra_env)
         with log_path.open(mode) as out:
             return subprocess.Popen([*self.command, *args], stdout=out,
                                     stderr=subprocess.STDOUT, env=env, start_new_session=True)

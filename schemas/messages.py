@@ -250,7 +250,7 @@ class RobotStates(Message, kw_only=True):
 
 EventKind = Literal[
     "robot_joined", "robot_lost", "merge", "merge_rejected", "merge_undone", "target_reached",
-    "stuck", "terminated", "error", "meeting",
+    "stuck", "terminated", "error", "meeting", "operator",
 ]
 
 

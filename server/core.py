@@ -7,7 +7,8 @@ One call per scan does the robot's whole loop (see ``ServerCore.on_scan``):
     desk.process(...)                     # sightings whose scans are in → merges
     matcher.tick(...)                     # one pair of teams' maps matched → merges, meetings
     progress.tick(...)                    # coverage, termination, λ
-    cmd   = steering.command(...)         # lookout, or explore → plan → pursue → avoid
+    cmd   = steering.command(...)         # the operator's orders, the lookout, or
+                                          # explore → plan → pursue → avoid
 
 Stamps reach the core in the server's time (``server.node`` maps each robot's clock onto it).
 Periodic work (coverage and termination, map and state messages) runs on the ``now_ns`` the
@@ -42,6 +43,7 @@ from schemas.se2 import compose, inverse
 from server.config import ServerConfig
 from server.events import EventLog
 from server.fleet import Fleet, MergeRecord, RobotContext, Team
+from server.operator import OperatorCommand, OperatorError, OperatorOrders
 from server.planning import OccupancyGrid as PlanningGrid
 from server.progress import Progress
 from server.rendezvous.counters import RendezvousCounters
@@ -73,7 +75,11 @@ class ServerCore:
                                  self.stages.pose_sigmas)
         self.matcher = MapMatchDesk(cfg, self.fleet, self.merger, self.events, self.counters)
         self.progress = Progress(cfg, self.fleet, self.events)
-        self.steering = Steering(cfg, self.fleet)
+        #: what the operator ordered (``server.operator``): it wins over every other command
+        self.orders = OperatorOrders()
+        self.steering = Steering(cfg, self.fleet, self.orders, self.events)
+        #: each robot's pose σ (x, y, θ) at its newest keyframe: (keyframes, σ)
+        self._sigmas: dict[str, tuple[int, tuple[float, float, float]]] = {}
         #: robots whose agent came back (after a reboot, say), until a scan match places them
         #: again in their map: their scans since
         self.returning: dict[str, int] = {}
@@ -154,6 +160,18 @@ class ServerCore:
         """A robot's tag sightings (see ``server.rendezvous.desk``)."""
         self.desk.receive(msg)
 
+    def operate(self, cmd: OperatorCommand, stamp_ns: int) -> tuple[int, str]:
+        """Carry out an operator's order (``server.operator``); an event says what was done
+        or why not. Returns (200, that line), or the refusal's status (``OperatorError``)
+        and its line."""
+        try:
+            status, line = 200, self.orders.apply(cmd, self.fleet)
+        except OperatorError as e:
+            status, line = e.status, f"{cmd.describe()} refused: {e}"
+        self.events.emit("operator", [cmd.robot_id] if cmd.robot_id else [],
+                         None, line, stamp_ns)
+        return status, line
+
     def set_alive(self, robot_id: str, alive: bool) -> None:
         r = self.fleet.robots.get(robot_id)
         if alive and r is not None and not r.alive and r.scans:
@@ -223,10 +241,17 @@ class ServerCore:
         robots = []
         for r in self.fleet.robots.values():
             t = r.nav.target_xy
+            mode: str = r.nav.mode.value
+            errand = self.orders.errands.get(r.robot_id)
+            if errand is not None:
+                t, mode = errand.goal_xy, "returning"
+            if self.orders.holds(r.robot_id):
+                mode = "idle"
             robots.append(RobotEstimate(
                 robot_id=r.robot_id, team_id=r.team_id,
                 pose=(float(r.pose[0]), float(r.pose[1]), float(r.pose[2])),
-                mode=r.nav.mode.value if r.alive else "lost",
+                pose_sigma=self._pose_sigma(r),
+                mode=mode if r.alive else "lost",  # type: ignore[arg-type]
                 target=(float(t[0]), float(t[1])) if t is not None else None,
                 distance_m=r.distance_m, keyframes=len(r.slam.keyframes),
                 last_scan_stamp_ns=r.last_stamp_ns))
@@ -235,3 +260,19 @@ class ServerCore:
                  for t in self.fleet.teams.values()]
         return RobotStates(seq=self.events.next_seq(), stamp_ns=stamp_ns, robots=robots,
                            teams=teams)
+
+    def _pose_sigma(self, r: RobotContext) -> tuple[float, float, float]:
+        """σ of the robot's newest keyframe pose from its graph's marginals (x, y [m], θ
+        [rad]); worked out again only when the robot has a new keyframe."""
+        n = len(r.slam.keyframes)
+        cached = self._sigmas.get(r.robot_id)
+        if cached is not None and cached[0] == n:
+            return cached[1]
+        sigma = (0.0, 0.0, 0.0)
+        if n:
+            try:
+                sigma = r.slam.pose_sigma()
+            except Exception:   # GTSAM may refuse an indeterminate system: no figure then
+                sigma = (0.0, 0.0, 0.0)
+        self._sigmas[r.robot_id] = (n, sigma)
+        return sigma

@@ -23,10 +23,15 @@ log = logging.getLogger(__name__)
 
 
 def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None = None,
-        stop: threading.Event | None = None, foxglove_port: int | None = None) -> dict[str, Any]:
+        stop: threading.Event | None = None, foxglove_port: int | None = None,
+        console_port: int | None = None, console_token: str | None = None,
+        on_console: Callable[[Any], None] | None = None) -> dict[str, Any]:
     """Run the server until ``stop`` is set, a signal arrives, or (``exit_when_done``) the
     exploration has finished. Returns the summary. ``foxglove_port``: serve the bus's Foxglove
-    channels live on that loopback port (``recording.live``)."""
+    channels live on that loopback port (``recording.live``). ``console_port``: serve the
+    operator console there (``server.console``), with ``console_token`` (else the
+    environment's ``MRSLAM_CONSOLE_TOKEN``, else a new one, logged with the address);
+    ``on_console`` is called with it once it is up."""
     from schemas.config_loading import load_config, write_resolved
     from server.outputs import collect_outputs, write_outputs
 
@@ -63,6 +68,9 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         core, journal, resumed = _resume(cfg)
         node = ServerNode(bus, cfg, core, journal, outputs)
         live = _foxglove_live(bus, foxglove_port)
+        console = _console(bus, node, console_port, console_token)
+        if console is not None and on_console is not None:
+            on_console(console)
         node.start()
         log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))
         while not stop.wait(0.2):
@@ -75,8 +83,12 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         node.stop()
         if live is not None:
             live.close()
+        if console is not None:
+            console.close()
         node.guarded("writing the last snapshot", node.snapshot)
         summary = {"wall_s": time.monotonic() - t0, **node.summary(), "resumed": resumed}
+        if console is not None:
+            summary["console"] = {**console.counters, "cpu_s": round(console.cpu_s, 3)}
         if out is not None:
             write_outputs(node.core, out, summary)
     return summary
@@ -93,6 +105,23 @@ def _foxglove_live(bus: Bus, port: int | None) -> Any:
     live = FoxgloveLive(port)
     bus.subscribe_raw(keys.ALL, live.add)
     return live
+
+
+def _console(bus: Bus, node: ServerNode, port: int | None, token: str | None) -> Any:
+    """The operator console fed by the server's outputs, its orders going to ``node``; or
+    None without a port."""
+    if port is None:
+        return None
+    import os
+
+    from server.console.service import TOKEN_ENV, Console
+
+    console = Console(port, node.operate, node.health,
+                      token=token or os.environ.get(TOKEN_ENV) or None)
+    console.attach(bus)
+    # the one line an operator needs; the token is in it (the log is the server's own)
+    log.warning("console: %s", console.url)
+    return console
 
 
 def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:

@@ -8,7 +8,8 @@ same robots, graphs, teams and merges: a server killed at any moment resumes whe
 Files: ``<state_dir>/journal-NNNN.mcap``, one segment per server start (an MCAP file cannot be
 appended to once finished, and a killed server never finishes its file). Each record is a
 msgpack envelope on the channel ``journal``: ``{"k": "scan" | "tags" | "alive", "now": int |
-None, "msg": bytes, "rid": str, "alive": bool}``, or, for a server split over workers, a team
+None, "msg": bytes, "rid": str, "alive": bool}``, an operator's order (``{"k": "operator",
+"now": int, "cmd": {...}}``, ``server.operator``), or, for a server split over workers, a team
 that left (``{"k": "gave", "rids": [str]}``) or came (``{"k": "adopted", "parcel": bytes}``);
 the MCAP sequence number is the processing order across all segments. Chunks are closed at least
 once a second, so a crash loses at most that much; a segment cut anywhere (a torn tail) is read
@@ -31,6 +32,8 @@ from schemas import Scan, TagDetections
 from schemas.codec import decode, encode
 from schemas.errors import SchemaError
 from server import handover
+from server.operator import OperatorCommand
+from server.operator import parse as parse_order
 
 if TYPE_CHECKING:
     from server.core import ServerCore
@@ -51,7 +54,7 @@ class JournalError(ValueError):
 class Entry:
     """One thing the server processed."""
 
-    kind: str                       # scan | tags | alive | gave | adopted
+    kind: str                       # scan | tags | alive | gave | adopted | operator
     now_ns: int | None              # the time the core's periodic work ran on (scans)
     message: Scan | TagDetections | None = None
     sequence: int = 0               # processing order across all segments
@@ -59,6 +62,7 @@ class Entry:
     alive: bool = False
     robot_ids: list[str] = field(default_factory=list)   # gave: the team that left
     parcel: bytes = b""             # adopted: the team that came (server.handover)
+    order: OperatorCommand | None = None   # operator: the order (its stamp in now_ns)
 
 
 @dataclass
@@ -107,6 +111,10 @@ class JournalWriter:
 
     def alive(self, robot_id: str, alive: bool, stamp_ns: int) -> None:
         self._add({"k": "alive", "now": None, "rid": robot_id, "alive": alive}, stamp_ns)
+
+    def operator(self, cmd: OperatorCommand, stamp_ns: int) -> None:
+        """An operator's order (``server.operator``), before the core carries it out."""
+        self._add({"k": "operator", "now": stamp_ns, "cmd": cmd.as_dict()}, stamp_ns)
 
     def gave(self, robot_ids: list[str], stamp_ns: int) -> None:
         """These robots' team went to another worker (``server.cluster``)."""
@@ -205,6 +213,9 @@ def _entry(env: dict[str, Any], sequence: int) -> Entry:
         return Entry("gave", None, robot_ids=[str(r) for r in env["rids"]], sequence=sequence)
     if kind == "adopted":
         return Entry("adopted", None, parcel=bytes(env["parcel"]), sequence=sequence)
+    if kind == "operator":
+        return Entry("operator", int(env["now"]), order=parse_order(env["cmd"]),
+                     sequence=sequence)
     raise ValueError(f"unknown journal record kind {kind!r}")
 
 
@@ -245,6 +256,9 @@ def _feed(core: ServerCore, entries: Iterator[Entry], from_sequence: int,
                     handover.release(core, rid)
             elif e.kind == "adopted":
                 handover.adopt(core, handover.unpack(e.parcel))
+            elif e.kind == "operator":
+                assert e.order is not None and e.now_ns is not None
+                core.operate(e.order, e.now_ns)
             else:
                 core.set_alive(e.robot_id, e.alive)
         except Exception as exc:   # as live: one message's failure does not stop the rest

@@ -9,6 +9,10 @@ and events on their periods, and forgets robots that went silent.
 In a lockstep simulation the worker takes a step at a time (``server.lockstep``): it waits
 until every live robot's scan of the step is in, then hands the core the step's messages in
 robot order — scans, then tag sightings — so the run is the same every time.
+
+An operator's order (``operate``, from the console) goes ahead of every queued message: the
+worker journals it and hands it to the core next. A stop also holds the robots' commands at
+zero from the moment it is asked, so a scan being processed meanwhile cannot move them.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any
 
 import msgspec
@@ -33,6 +37,7 @@ from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter
 from server.lockstep import StepBarrier
+from server.operator import OperatorCommand
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
 from server.snapshot import Snapshots
 from server.writer import BackgroundWriter
@@ -83,6 +88,12 @@ class ServerNode:
             bus, cfg.cluster, self._on_give, self._on_handover)
         if self.cluster is not None:
             self.cluster.resumed = set(self.core.robots)
+        #: operator's orders waiting for the worker, each with the answer the asker waits on
+        self._orders: deque[tuple[OperatorCommand, Future[tuple[int, str]]]] = deque()
+        #: stops asked and not yet taken by the core ("*": every robot): commands are zero
+        self._stops_asked: set[str] = set()
+        #: the core's orders as the console shows them (replaced whole by the worker)
+        self.orders_view: dict[str, Any] = self.core.orders.view()
         self._held: dict[str, list[tuple[str, int, Any]]] = {}   # robots whose team is coming
         #: each robot's own stamp of the last scan the core took (a team that moves here
         #: brings the giver's: what it had not processed yet is taken from those held here)
@@ -183,8 +194,11 @@ class ServerNode:
     def _next(self, timeout_s: float) -> list[tuple[str, Any]]:
         """The next message (queue name, payload); in lockstep, the next step's messages."""
         with self._cv:
-            if not self._order and not self._cv.wait_for(lambda: bool(self._order), timeout_s):
+            if not self._order and not self._orders and not self._cv.wait_for(
+                    lambda: bool(self._order or self._orders), timeout_s):
                 return []
+            if self._orders:
+                return [("#operator", self._orders.popleft())]
             if self._lockstep:
                 return self._barrier.take(self._queues, self._order, self._cv,
                                           self._live_robots())
@@ -214,6 +228,8 @@ class ServerNode:
                         self._give(*payload)
                     elif rid.startswith("#adopt:"):
                         self._adopt(payload)
+                    elif rid == "#operator":
+                        self._operate(*payload)
                     elif rid.startswith("#tags:"):
                         if self.journal is not None:
                             self.journal.tags(payload[0])
@@ -232,6 +248,9 @@ class ServerNode:
                         self.core.matcher.pool = self._matcher_now()
                         cmd = self.core.on_scan(scan, now)
                         self._own_stamps[rid] = own_stamp_ns
+                        if self._stops_asked and (rid in self._stops_asked
+                                                  or "*" in self._stops_asked):
+                            cmd = msgspec.structs.replace(cmd, v_mps=0.0, omega_rps=0.0)
                         self.bus.publish(keys.robot_cmd_vel(rid),
                                          msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
                                          block=True)
@@ -294,6 +313,44 @@ class ServerNode:
         job = self.outputs(self)      # gathered here; written by the writer thread
         if job is not None:
             self._writer.submit("outputs", job)
+
+    def health(self) -> dict[str, Any]:
+        """For the console (any thread): per robot the scans accepted and dropped, and the
+        operator's orders."""
+        with self._cv:
+            scans = {rid: rec.accepted.get("scan", 0) for rid, rec in self.registry.robots.items()}
+        return {"scans": scans, "dropped": dict(self.dropped), "orders": self.orders_view}
+
+    # -- the operator's orders ---------------------------------------------------------------
+    def operate(self, cmd: OperatorCommand) -> Future[tuple[int, str]]:
+        """Queue an operator's order ahead of everything else (any thread); the future gives
+        the core's answer: (200, what it did), or a refusal's status and why
+        (``ServerCore.operate``)."""
+        answer: Future[tuple[int, str]] = Future()
+        with self._cv:
+            if cmd.action == "stop":
+                self._stops_asked.add(cmd.robot_id or "*")
+            self._orders.append((cmd, answer))
+            self._cv.notify()
+        return answer
+
+    def _operate(self, cmd: OperatorCommand, answer: Future[tuple[int, str]]) -> None:
+        """(the worker) Journal the order, then hand it to the core."""
+        try:
+            now = self.clock.now_ns()
+            if self.journal is not None:
+                self.journal.operator(cmd, now)
+            result = self.core.operate(cmd, now)
+        except Exception as e:
+            answer.set_exception(e)
+            raise
+        finally:
+            if cmd.action == "stop":
+                with self._cv:
+                    self._stops_asked.discard(cmd.robot_id or "*")
+            self.orders_view = self.core.orders.view()
+        answer.set_result(result)
+        log.warning("operator: %s", result[1])
 
     # -- a team moving between workers (the worker thread) ---------------------------------
     def _give(self, query: Any, robots: list[str]) -> None:

@@ -1,5 +1,6 @@
-"""A robot's velocity command: its lookout while it turns toward (or drives to) something that
-moves, its navigator otherwise."""
+"""A robot's velocity command: the operator's first (a held robot stands, whatever else
+would move it; a robot on an errand follows it), then its lookout while it turns toward (or
+drives to) something that moves, its navigator otherwise."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ from numpy.typing import NDArray
 from schemas import VelocityCommand
 from server.config import ServerConfig
 from server.control import Twist
+from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
+from server.operator import OperatorOrders
 
 F64 = NDArray[np.float64]
 
@@ -20,8 +23,9 @@ F64 = NDArray[np.float64]
 class Steering:
     """Commands for the fleet's robots (one thread)."""
 
-    def __init__(self, cfg: ServerConfig, fleet: Fleet) -> None:
-        self.cfg, self.fleet = cfg, fleet
+    def __init__(self, cfg: ServerConfig, fleet: Fleet, orders: OperatorOrders,
+                 events: EventLog) -> None:
+        self.cfg, self.fleet, self.orders, self.events = cfg, fleet, orders, events
         #: where navigators replan while their robots drive on (None: on the scan's path)
         self.planner: Executor | None = None
 
@@ -36,8 +40,11 @@ class Steering:
             ok = np.isfinite(ranges)
             pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])],
                            1)
-            look = self.look(r, stamp_ns * 1e-9, pts)
-            if look is not None:
+            ordered = self.orders.command(r, self.fleet, pts, self.events, stamp_ns)
+            look = None if ordered is not None else self.look(r, stamp_ns * 1e-9, pts)
+            if ordered is not None:
+                twist = ordered
+            elif look is not None:
                 twist = look
             elif r.meeting is not None:
                 twist = self.meet(r, pts)

@@ -36,7 +36,10 @@ def rss_mb(pid: int) -> float:
 class ServerProcess:
     """``mrslam server`` on a free loopback port; ``config`` is merged into the defaults."""
 
-    def __init__(self, folder: Path, config: dict[str, Any] | None = None) -> None:
+    def __init__(self, folder: Path, config: dict[str, Any] | None = None,
+                 args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+        """``args``: more command-line options (``--console PORT``); ``env``: more
+        environment variables."""
         self.endpoint = free_local_endpoint()
         self.folder = folder
         config = dict(config or {})
@@ -47,9 +50,9 @@ class ServerProcess:
         self.log_path = folder / "server.log"
         self._log = open(self.log_path, "wb")  # noqa: SIM115 (closed in stop)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mrslam", "server", "-c", str(folder / "server.yaml")],
-            cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
-            env={**os.environ, "PYTHONPATH": str(ROOT)})
+            [sys.executable, "-m", "mrslam", "server", "-c", str(folder / "server.yaml"),
+             *args], cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
+            env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
 
     def client(self, timeout_s: float = 60.0) -> Bus:
         """A client session, once the server is up (its liveliness token seen)."""

@@ -169,6 +169,10 @@ class PoseGraph:
         pos = np.searchsorted(all_keys, np.asarray(keys, dtype=np.uint64))
         return np.asarray(table[pos], dtype=np.float64)
 
+    def marginal_covariance(self, key: int) -> F64:
+        """The 3×3 marginal covariance of pose ``key`` (in its own frame: x, y, θ)."""
+        return np.asarray(self.isam.marginalCovariance(key), np.float64)
+
     def factor(self, index: int) -> gtsam.NonlinearFactor:
         return self.isam.getFactorsUnsafe().at(index)
 

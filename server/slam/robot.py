@@ -313,6 +313,13 @@ class RobotSlam:
         step = between(Pa, Pb)
         return a.keyframe, compose(a.T_kf_robot, step * f)
 
+    def pose_sigma(self) -> tuple[float, float, float]:
+        """σ of the newest keyframe's pose (x, y [m] and θ [rad], in its own frame), from
+        the graph's marginal covariance."""
+        cov = self.graph.marginal_covariance(self.trajectory.key(len(self.keyframes) - 1))
+        s = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return float(s[0]), float(s[1]), float(s[2])
+
     def keyframe_pose(self, index: int) -> F64:
         """The optimised pose of one keyframe."""
         return self.graph.pose(self.trajectory.key(index))

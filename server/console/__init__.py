@@ -1,0 +1,1 @@
+"""The operator console (``mrslam server --console PORT``; docs/console.md)."""
