@@ -7,6 +7,7 @@ through openings a robot fits through, so coverage can reach the cases' threshol
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from typing import Any
 
 import cv2
 import numpy as np
@@ -16,7 +17,7 @@ import yaml
 from schemas.occupancy import FREE
 from sim import floorplan
 from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
-from sim.grid import rasterise
+from sim.grid import OccupancyGrid, rasterise
 from sim.loader import load_world
 from sim.world import World
 from tests.conftest import DATA
@@ -58,6 +59,22 @@ def test_walls_have_the_dissertations_thickness_and_height_and_doors_fit_a_robot
     assert len(slanted) >= 2
 
 
+def assert_every_room_reachable(grid: OccupancyGrid, robots: dict[str, Any],
+                                resolution_m: float) -> None:
+    """A disc of 0.4 m fits everywhere it must go: the cells that far from any wall form one
+    region holding every robot, and that region grown back by 0.4 m covers the free space."""
+    free = (grid.cells == FREE).astype(np.uint8)
+    dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * resolution_m
+    roomy = (dist >= 0.4).astype(np.uint8)
+    _, labels = cv2.connectedComponents(roomy, connectivity=8)
+    cells = grid.world_to_cell(np.array([p[:2] for p in robots.values()]))
+    region = {int(labels[r, c]) for r, c in cells}
+    assert len(region) == 1 and 0 not in region
+    reach = (labels == region.pop()).astype(np.uint8)
+    grown = cv2.dilate(reach, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (17, 17)))
+    assert (grown & free).sum() >= 0.995 * free.sum()
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_each_case_spawns_in_free_space_of_a_closed_connected_house(case: str) -> None:
     world_path, robots = resolve_scene(SimConfig(scenario=case))
@@ -73,17 +90,7 @@ def test_each_case_spawns_in_free_space_of_a_closed_connected_house(case: str) -
     # closed: the enclosed free space is nearly the whole floor (a leak to the outside would
     # leave almost none of it)
     assert free.sum() * RESOLUTION_M**2 > 0.85 * size**2
-    # a disc of 0.4 m fits everywhere it must go: the cells that far from any wall form one
-    # region holding every robot, and that region grown back by 0.4 m covers the free space
-    dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * RESOLUTION_M
-    roomy = (dist >= 0.4).astype(np.uint8)
-    _, labels = cv2.connectedComponents(roomy, connectivity=8)
-    cells = grid.world_to_cell(np.array([p[:2] for p in robots.values()]))
-    region = {int(labels[r, c]) for r, c in cells}
-    assert len(region) == 1 and 0 not in region
-    reach = (labels == region.pop()).astype(np.uint8)
-    grown = cv2.dilate(reach, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (17, 17)))
-    assert (grown & free).sum() >= 0.995 * free.sum()
+    assert_every_room_reachable(grid, robots, RESOLUTION_M)
     for rid, (x, y, _) in robots.items():
         assert clearance_m(world, x, y) >= 0.4, f"{case} {rid} stands {clearance_m(world, x, y)}"
 

@@ -19,6 +19,7 @@ from sim.errors import WorldError
 from sim.grid import OccupancyGrid, rasterise
 from sim.loader import load_world
 from sim.world import World
+from tests.test_packaged_worlds import assert_every_room_reachable, clearance_m
 
 WORLD = floorplan.WORLDS_DIR / "ambiguous_wings.world"
 SCENARIOS = ["ambiguous-2", "ambiguous-3"]
@@ -138,13 +139,6 @@ def test_the_breaks_are_solid(world: World, grid: OccupancyGrid) -> None:
     assert plan.pillars and all(abs(px) > 0.3 for px, _, _ in plan.pillars)
 
 
-def clearance_m(world: World, x: float, y: float) -> float:
-    seg = world.segments
-    a, e = seg[:, :2], seg[:, 2:] - seg[:, :2]
-    t = np.clip(((np.array([x, y]) - a) * e).sum(axis=1) / (e * e).sum(axis=1), 0.0, 1.0)
-    return float(np.hypot(*(a + t[:, None] * e - (x, y)).T).min())
-
-
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_the_scenarios_spawn_in_free_space_of_one_connected_building(
         name: str, world: World, grid: OccupancyGrid) -> None:
@@ -152,17 +146,7 @@ def test_the_scenarios_spawn_in_free_space_of_one_connected_building(
     assert case["world"] == WORLD.name and case["coverage_threshold"] == 0.90
     path, robots = resolve_scene(SimConfig(scenario=name))
     assert path == WORLD and len(robots) == int(name.rsplit("-", 1)[1])
-    free = (grid.cells == FREE).astype(np.uint8)
-    dist = cv2.distanceTransform(free, cv2.DIST_L2, 5) * RES_M
-    roomy = (dist >= 0.4).astype(np.uint8)
-    _, labels = cv2.connectedComponents(roomy, connectivity=8)
-    cells = grid.world_to_cell(np.array([p[:2] for p in robots.values()]))
-    region = {int(labels[r, c]) for r, c in cells}
-    assert len(region) == 1 and 0 not in region
-    # every room is reachable by a robot: the roomy region grown back covers the floor
-    reach = (labels == region.pop()).astype(np.uint8)
-    grown = cv2.dilate(reach, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (17, 17)))
-    assert (grown & free).sum() >= 0.995 * free.sum()
+    assert_every_room_reachable(grid, robots, RES_M)
     for rid, (x, y, _) in robots.items():
         assert clearance_m(world, x, y) >= 0.9, f"{name} {rid}"
     xs = [p[0] for p in robots.values()]
