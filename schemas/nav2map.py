@@ -22,10 +22,11 @@ renamed), so a reader never sees half a map. Needs numpy and yaml only.
 
 from __future__ import annotations
 
+import itertools
 import os
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,18 +49,38 @@ def image(free: NDArray[np.bool_], occupied: NDArray[np.bool_]) -> NDArray[np.ui
     return np.ascontiguousarray(img[::-1])
 
 
+def _chunk(tag: bytes, data: bytes) -> bytes:
+    return (struct.pack(">I", len(data)) + tag + data
+            + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
+
+
+def png_stream(width: int, height: int, strips: Iterable[NDArray[np.uint8]]
+               ) -> Iterator[bytes]:
+    """An 8-bit greyscale PNG, in pieces, of the image made of ``strips`` (rows of ``width``
+    pixels each, top first): only one strip is held at a time."""
+    yield b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", width, height,
+                                                            8, 0, 0, 0, 0))
+    z = zlib.compressobj(6)
+    rows = 0
+    for strip in strips:
+        if strip.ndim != 2 or strip.shape[1] != width:
+            raise ValueError(f"a strip of shape {strip.shape} in an image {width} wide")
+        rows += strip.shape[0]
+        raw = np.concatenate([np.zeros((strip.shape[0], 1), dtype=np.uint8),
+                              strip.astype(np.uint8, copy=False)], axis=1).tobytes()
+        data = z.compress(raw)
+        if data:
+            yield _chunk(b"IDAT", data)
+    if rows != height:
+        raise ValueError(f"strips gave {rows} rows for an image {height} high")
+    yield _chunk(b"IDAT", z.flush())
+    yield _chunk(b"IEND", b"")
+
+
 def png_bytes(img: NDArray[np.uint8]) -> bytes:
     """An 8-bit greyscale PNG of ``img`` (first row at the top), with zlib only."""
     h, w = img.shape
-    raw = np.concatenate([np.zeros((h, 1), dtype=np.uint8), img], axis=1).tobytes()
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return (struct.pack(">I", len(data)) + tag + data
-                + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF))
-
-    header = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
-            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    return b"".join(png_stream(w, h, [img]))
 
 
 def pgm_bytes(img: NDArray[np.uint8]) -> bytes:
@@ -68,12 +89,14 @@ def pgm_bytes(img: NDArray[np.uint8]) -> bytes:
     return f"P5\n{w} {h}\n255\n".encode() + img.tobytes()
 
 
-def replace_file(path: Path, data: bytes) -> None:
-    """Write ``data`` beside ``path``, flush it to disk, then rename it over ``path``."""
+def replace_file(path: Path, data: bytes | Iterable[bytes]) -> None:
+    """Write ``data`` (bytes, or pieces of it) beside ``path``, flush it to disk, then rename
+    it over ``path``."""
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         with tmp.open("wb") as f:
-            f.write(data)
+            for piece in [data] if isinstance(data, bytes) else data:
+                f.write(piece)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -87,13 +110,28 @@ def write(out_dir: str | Path, name: str, free: NDArray[np.bool_],
     """Write ``name.<format>`` for each format and ``name.yaml`` (naming the first image) into
     ``out_dir``; returns the YAML's path. ``origin_xy``: the world position of the lower-left
     corner of cell (0, 0) [m]."""
+    img = image(free, occupied)
+    return write_strips(out_dir, name, img.shape[1], img.shape[0], lambda: iter([img]),
+                        resolution_m, origin_xy, formats)
+
+
+def write_strips(out_dir: str | Path, name: str, width: int, height: int,
+                 strips: Callable[[], Iterator[NDArray[np.uint8]]], resolution_m: float,
+                 origin_xy: Sequence[float], formats: Sequence[str] = ("png",)) -> Path:
+    """``write`` for an image too big to hold at once: ``strips()`` gives its trinary pixels a
+    strip of rows at a time, top first (called once per format)."""
     if not formats or any(f not in IMAGE_FORMATS for f in formats):
         raise ValueError(f"image formats must be among {IMAGE_FORMATS}, got {list(formats)}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    img = image(free, occupied)
     for fmt in formats:
-        replace_file(out / f"{name}.{fmt}", png_bytes(img) if fmt == "png" else pgm_bytes(img))
+        if fmt == "png":
+            replace_file(out / f"{name}.png", png_stream(width, height, strips()))
+        else:
+            head = f"P5\n{width} {height}\n255\n".encode()
+            replace_file(out / f"{name}.{fmt}",
+                         itertools.chain([head], (s.astype(np.uint8).tobytes()
+                                                  for s in strips())))
     meta = {"image": f"{name}.{formats[0]}", "mode": "trinary",
             "resolution": float(resolution_m),
             "origin": [float(origin_xy[0]), float(origin_xy[1]), 0.0], "negate": 0,

@@ -85,9 +85,8 @@ def test_the_server_team_map_round_trips(tmp_path: Path) -> None:
 
 def test_the_slam_map_round_trips(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
-    grid = SlamGrid(GridParams(resolution_m=0.05), (1.0, 2.0), (30, 40))
-    grid.log_odds[:] = rng.normal(0.0, 3.0, grid.log_odds.shape).astype(np.float32)
-    grid.observed[:] = rng.random(grid.observed.shape) < 0.7
+    grid = SlamGrid.from_dense(GridParams(resolution_m=0.05), (1.0, 2.0),
+                               rng.normal(0.0, 3.0, (30, 40)), rng.random((30, 40)) < 0.7)
     cells, _ = map_server_load(write_slam_map(grid, tmp_path, "map"))
     assert np.array_equal(cells, expected(grid.free_mask(), grid.occupied_mask()))
     assert (cells == UNKNOWN_C).any() and (cells == FREE_C).any() and (cells == OCC_C).any()

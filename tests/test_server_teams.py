@@ -94,11 +94,9 @@ def test_false_sightings_scattered_in_do_not_pass() -> None:
 def _grid(free: np.ndarray, occ: np.ndarray) -> object:
     from server.slam.grid import GridParams, OccupancyGrid
 
-    g = OccupancyGrid(GridParams(resolution_m=0.05), (0.0, 0.0), free.shape)
-    g.observed[:] = free | occ
-    g.log_odds[free] = -2.0
-    g.log_odds[occ] = 3.0
-    return g
+    log_odds = np.where(occ, 3.0, np.where(free, -1.9, 0.0))
+    return OccupancyGrid.from_dense(GridParams(resolution_m=0.05), (0.0, 0.0), log_odds,
+                                    free | occ)
 
 
 def test_map_check_ignores_grazed_walls_but_not_walls_in_a_room() -> None:

@@ -127,3 +127,51 @@ def test_ply_round_trip(tmp_path: Path) -> None:
     d = np.minimum.reduce([np.abs(back[:, 0] - x0), np.abs(back[:, 0] - x1),
                            np.abs(back[:, 1] - y0), np.abs(back[:, 1] - y1)])
     assert d.max() < 0.01
+
+
+def test_returns_past_the_useful_range_do_not_stretch_the_map() -> None:
+    """An 80 m laser's far returns clear their beams to max_ray_m and mark nothing."""
+    params = GridParams(resolution_m=0.05, max_ray_m=10.0, padding_m=1.0)
+    grid = OccupancyGrid(params)
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    hits = np.c_[np.cos(angles), np.sin(angles)] * 80.0
+    hits[:10] *= 0.05                              # ten walls at 4 m
+    for _ in range(3):
+        grid.insert_scan(np.zeros(3), hits)
+    h, w = grid.shape
+    assert max(h, w) * params.resolution_m <= 2 * (10.0 + 1.0) + 0.2
+    assert grid.occupied_mask().sum() >= 10         # the near walls are mapped
+    ix, iy = grid.cell_of(np.array([[9.5, 0.01]]))[0]
+    assert grid.free_mask()[iy, ix]                 # free up to max_ray_m
+
+
+def test_memory_follows_the_area_seen_not_its_bounding_box() -> None:
+    """A diagonal corridor 120 m long: the tiles hold about the strip the beams crossed."""
+    params = GridParams(resolution_m=0.05, max_ray_m=4.0)
+    grid = OccupancyGrid(params)
+    angles = np.linspace(-math.pi, math.pi, 180, endpoint=False)
+    ring = np.c_[np.cos(angles), np.sin(angles)] * 3.0
+    for d in np.arange(0.0, 120.0, 1.0):
+        grid.insert_scan(np.array([d * 0.7071, d * 0.7071, 0.0]), ring)
+    h, w = grid.shape
+    dense = h * w * 2                                   # int16 over the bounding box
+    assert grid.nbytes < 0.25 * dense, (grid.nbytes, dense)
+    strip_cells = 120.0 * 6.0 / params.resolution_m ** 2
+    assert grid.tiles * 64 * 64 < 4 * strip_cells      # tiles: at most 4 × the strip's cells
+    assert grid.observed.sum() > 0.9 * strip_cells
+
+
+def test_dense_copies_are_read_only_and_from_dense_round_trips() -> None:
+    rng = np.random.default_rng(1)
+    lo = rng.uniform(-1.9, 3.4, (70, 130))
+    obs = rng.random((70, 130)) < 0.6
+    grid = OccupancyGrid.from_dense(GridParams(), (0.25, -3.0), lo, obs)
+    np.testing.assert_array_equal(grid.observed, obs)
+    np.testing.assert_allclose(grid.log_odds[obs], lo[obs], atol=6e-4)   # thousandths
+    assert (grid.log_odds[~obs] == 0).all()
+    try:
+        grid.log_odds[0, 0] = 1.0
+    except ValueError:
+        pass
+    else:
+        raise AssertionError("a dense copy must not look writable")

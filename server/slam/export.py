@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,9 +18,15 @@ def nav2_image(grid: OccupancyGrid) -> NDArray[np.uint8]:
 
 
 def write_nav2(grid: OccupancyGrid, out_dir: Path, name: str = "map") -> Path:
-    """Write ``name.png`` and ``name.yaml`` (nav2 map_server, trinary mode); returns the YAML."""
-    return nav2map.write(out_dir, name, grid.free_mask(), grid.occupied_mask(),
-                         grid.resolution_m, grid.origin_pose[:2])
+    """Write ``name.png`` and ``name.yaml`` (nav2 map_server, trinary mode); returns the YAML.
+    The image is made and compressed a strip of tiles at a time, never whole."""
+    def strips() -> Iterator[NDArray[np.uint8]]:
+        for _, q in grid.bands(top_first=True):
+            yield nav2map.image(grid.free_of(q), grid.occupied_of(q))
+
+    h, w = grid.shape
+    return nav2map.write_strips(out_dir, name, w, h, strips, grid.resolution_m,
+                                grid.origin_pose[:2])
 
 
 def write_ply(path: Path, points_xy: NDArray[np.float64]) -> None:

@@ -30,8 +30,8 @@ class Keyframe:
     def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64) -> Keyframe:
         """A keyframe of ``scan``, whose arrays become read-only: a keyframe never changes
         (and a snapshot stores read-only arrays once, not again each time)."""
-        frozen = ScanPoints(*(_frozen(a) for a in (scan.points, scan.normals, scan.ranges_m,
-                                                   scan.hits, scan.misses)))
+        frozen = ScanPoints(*(_frozen(a) for a in (scan.points, scan.normals, scan.ranges_m)),
+                            *(_frozen(a, np.float32) for a in (scan.hits, scan.misses)))
         return cls(index, stamp_ns, frozen, _frozen(T_odom_robot), frozen.with_normals())
 
     def __reduce__(self) -> tuple[object, tuple[int, int, ScanPoints, F64]]:
@@ -39,8 +39,10 @@ class Keyframe:
         return (Keyframe.create, (self.index, self.stamp_ns, self.scan, self.T_odom_robot))
 
 
-def _frozen(a: F64) -> F64:
-    b = np.array(a, dtype=np.float64)
+def _frozen(a: F64, dtype: type[np.floating] = np.float64) -> F64:
+    """A read-only copy; the returns only the map is drawn from are kept in single precision
+    (a micrometre at 100 m), half the memory of a keyframe's largest arrays."""
+    b: F64 = np.array(a, dtype=dtype)
     b.flags.writeable = False
     return b
 
