@@ -117,6 +117,9 @@ class BlobStore:
         key = id(a)
         self._known[key] = (weakref.ref(a, lambda _r: self._known.pop(key, None)), digest)
 
+    def flush(self) -> None:
+        self._file.flush()
+
     def sync(self) -> None:
         self._file.flush()
         os.fsync(self._file.fileno())
@@ -203,6 +206,7 @@ class Snapshots:
         buf = io.BytesIO()
         before = self.blobs.appended_bytes
         _Pickler(buf, self.blobs).dump(core)
+        self.blobs.flush()       # whole records in the file (synced to disk by ``commit``)
         return Pending(sequence, buf.getvalue(), self.blobs.appended_bytes - before,
                        time.monotonic() - t0)
 
