@@ -28,7 +28,8 @@ from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
 F64 = NDArray[np.float64]
 I16 = NDArray[np.int16]
 
-TILE = 64                     # cells per tile side (3.2 m at 5 cm)
+_TILE_BITS = 6
+TILE = 1 << _TILE_BITS        # cells per tile side: 64 (3.2 m at 5 cm)
 SCALE = 1000.0                # int16 units per unit of log-odds
 UNKNOWN_Q = np.int16(-32768)  # a cell never observed
 _MARK_Q = np.int16(-32767)    # transient: a scan's endpoint while its free cells are chosen
@@ -180,17 +181,28 @@ class OccupancyGrid:
 
     def _slots(self, ix: NDArray[np.int64], iy: NDArray[np.int64]) -> NDArray[np.int64]:
         """Flat pool positions of extent cells (ix, iy), allocating the tiles they fall in."""
-        gx, gy = ix + self._ext[0], iy + self._ext[1]
-        tx, ty = gx // TILE - self._index_t0[0], gy // TILE - self._index_t0[1]
-        slot = self._index[ty, tx]
+        return self._slots_lattice(ix + self._ext[0], iy + self._ext[1])
+
+    def _slots_lattice(self, gx: NDArray[np.int64], gy: NDArray[np.int64]
+                       ) -> NDArray[np.int64]:
+        """``_slots`` of lattice cells (shifts and masks: TILE is a power of two)."""
+        iw = self._index.shape[1]
+        t0x, t0y = self._index_t0.tolist()
+        tile = (gy >> _TILE_BITS) - t0y
+        tile *= iw
+        tile += (gx >> _TILE_BITS) - t0x
+        index = self._index.reshape(-1)
+        slot = index[tile]
         missing = slot < 0
         if missing.any():
-            iw = self._index.shape[1]
-            new = np.unique(ty[missing] * iw + tx[missing])
+            new = np.unique(tile[missing])
             self._allocate(len(new))
-            self._index.reshape(-1)[new] = np.arange(self._tiles - len(new), self._tiles)
-            slot = self._index[ty, tx]
-        return (slot.astype(np.int64) * (TILE * TILE) + (gy % TILE) * TILE + gx % TILE)
+            index[new] = np.arange(self._tiles - len(new), self._tiles)
+            slot = index[tile]
+        out = slot.astype(np.int64) << (2 * _TILE_BITS)
+        out += (gy & (TILE - 1)) << _TILE_BITS
+        out += gx & (TILE - 1)
+        return out
 
     def _allocate(self, n: int) -> None:
         need = self._tiles + n
@@ -232,7 +244,6 @@ class OccupancyGrid:
         hi = np.maximum(rays.max(axis=0), T[:2])
         self.ensure_contains(lo, hi)
         res = self.resolution_m
-        origin = self.origin
         # sample each ray every 0.7 cell (a ray crossing a cell's corner may skip it; other
         # rays and scans fill it), stopping short of its end cell
         step = 0.7 * res
@@ -246,9 +257,9 @@ class OccupancyGrid:
             frac = (k * step) / np.maximum(lengths[ray_id], 1e-9)
             px = T[0] + frac * (rays[ray_id, 0] - T[0])
             py = T[1] + frac * (rays[ray_id, 1] - T[1])
-            ix = np.floor((px - origin[0]) / res).astype(np.int64)
-            iy = np.floor((py - origin[1]) / res).astype(np.int64)
-            free = self._slots(ix, iy)
+            gx = np.floor((px - self._anchor[0]) / res).astype(np.int64)
+            gy = np.floor((py - self._anchor[1]) / res).astype(np.int64)
+            free = self._slots_lattice(gx, gy)
         else:
             free = np.zeros(0, dtype=np.int64)
         hit_cells = self.cell_of(ends)
@@ -261,12 +272,15 @@ class OccupancyGrid:
         pool[hit] = _MARK_Q
         free = free[pool[free] != _MARK_Q]
         pool[hit] = kept
-        v = pool[free].astype(np.int32)
+        # within the clamps a step stays far inside int16; an unknown cell starts at 0
+        v = pool[free]
         v[v == UNKNOWN_Q] = 0
-        pool[free] = np.maximum(v + self._l_miss, self._l_min)
-        v = pool[hit].astype(np.int32)
+        v += self._l_miss
+        pool[free] = np.maximum(v, self._l_min)
+        v = pool[hit]
         v[v == UNKNOWN_Q] = 0
-        pool[hit] = np.minimum(v + self._l_hit, self._l_max)
+        v += self._l_hit
+        pool[hit] = np.minimum(v, self._l_max)
 
     # -- reading ---------------------------------------------------------------------------
 
