@@ -19,7 +19,8 @@ server's core on a long simulated mission; prints JSON (one line per part, then 
   against the first half's).
 
     python bench/memory.py [--only logs|mission] [--logs aces fr079 mit-csail]
-                           [--robots 3] [--sim-hours 2] [--every-s 60] [--out DIR]
+                           [--robots 3] [--sim-hours 2] [--every-s 60] [--no-reuse]
+                           [--scenario NAME] [--out DIR]
 """
 
 from __future__ import annotations
@@ -121,11 +122,14 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
 
 
 def child_mission(scenario: str, robots: int, sim_hours: float, every_s: float,
-                  out: Path) -> dict[str, Any]:
+                  out: Path, reuse: bool) -> dict[str, Any]:
     from bench.support.mission import scenario_mission
     from server.outputs import write_nav2_grid
 
-    mission = scenario_mission(scenario, robots)
+    def keyframes(data: dict[str, Any]) -> dict[str, Any]:
+        return {**data, "slam": {**data["slam"], "keyframes": {"reuse": reuse}}}
+
+    mission = scenario_mission(scenario, robots, config=keyframes)
     base = rss_mb()
     samples: list[list[float]] = []
     end_s = sim_hours * 3600.0
@@ -148,11 +152,12 @@ def child_mission(scenario: str, robots: int, sim_hours: float, every_s: float,
             write_nav2_grid(core.planning_grid(tid), out / tid)
 
     exp = export_rise(write)
-    keyframes = {rid: len(r.slam.keyframes) for rid, r in core.robots.items()}
+    kf = {rid: len(r.slam.keyframes) for rid, r in core.robots.items()}
+    reused = {rid: r.slam.stats.reused for rid, r in core.robots.items()}
     return {"base_mb": round(base, 1), "samples_t_s_rss_mb": samples,
             "wall_s": round(time.perf_counter() - t0, 1),
             "cpu_s": round(time.process_time() - cpu0, 1), "patrols": mission.patrols,
-            "teams": len(core.teams), "keyframes": keyframes, **exp,
+            "teams": len(core.teams), "keyframes": kf, "reused": reused, **exp,
             "peak_mb": round(peak_mb(), 1)}
 
 
@@ -191,11 +196,11 @@ def logs_part(names: list[str], every_s: float, out: Path) -> list[dict[str, Any
 
 
 def mission_part(scenario: str, robots: int, sim_hours: float, every_s: float,
-                 out: Path) -> dict[str, Any]:
+                 out: Path, reuse: bool) -> dict[str, Any]:
     res = run_child(["mission", scenario, str(robots), str(sim_hours), str(every_s),
-                     str(out / "mission")])
+                     str(out / "mission"), "reuse" if reuse else "no-reuse"])
     row: dict[str, Any] = {"part": "mission", "scenario": scenario, "robots": robots,
-                           "sim_hours": sim_hours, **res}
+                           "sim_hours": sim_hours, "keyframe_reuse": reuse, **res}
     if "error" not in res:
         s = res["samples_t_s_rss_mb"]
         per_robot = [[t, round((m - res["base_mb"]) / robots, 1)] for t, m in s]
@@ -224,7 +229,7 @@ def main() -> None:
             res = child_log(rest[0], Path(rest[1]), float(rest[2]))
         else:
             res = child_mission(rest[0], int(rest[1]), float(rest[2]), float(rest[3]),
-                                Path(rest[4]))
+                                Path(rest[4]), rest[5] == "reuse")
         print(json.dumps(res))
         return
     ap = argparse.ArgumentParser(description=__doc__,
@@ -235,6 +240,8 @@ def main() -> None:
     ap.add_argument("--robots", type=int, default=3)
     ap.add_argument("--sim-hours", type=float, default=2.0)
     ap.add_argument("--every-s", type=float, default=60.0)
+    ap.add_argument("--reuse", action=argparse.BooleanOptionalAction, default=True,
+                    help="slam.keyframes.reuse in the mission (default: on, as the server)")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
     out = a.out or Path(tempfile.mkdtemp(prefix="mrslam-memory-"))
@@ -246,7 +253,7 @@ def main() -> None:
         summary["logs_goal_met"] = bool(ok) and len(ok) == len(rows) and all(
             r["peak_goal_met"] and r["export_goal_met"] for r in ok)
     if a.only in (None, "mission"):
-        row = mission_part(a.scenario, a.robots, a.sim_hours, a.every_s, out)
+        row = mission_part(a.scenario, a.robots, a.sim_hours, a.every_s, out, a.reuse)
         summary["mission_per_robot_end_mb"] = row.get("per_robot_end_mb")
         summary["mission_goal_met"] = bool(row.get("robot_goal_met")) and bool(
             row.get("export_goal_met"))

@@ -112,6 +112,8 @@ class ServerCore:
         self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)
         if team.finished:
             r.nav.finish("team coverage reached")
+        # explored: where the robot passes again it re-uses keyframes rather than adds them
+        r.slam.reusing = team.finished and r.slam.cfg.keyframes.reuse
         # 5. the command: the lookout's, or the navigator's — or a stop, for a scan the
         #    server got to too late to steer by
         cmd = self.steering.command(r, scan.stamp_ns, ranges, angles, self.navigate)

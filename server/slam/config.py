@@ -68,6 +68,13 @@ class KeyframeConfig(ConfigModel):
     distance_m: float = Field(0.5, gt=0, description="a new keyframe after moving this far")
     angle_deg: float = Field(20.0, gt=0, description="... or after turning this much")
     max_interval_s: float = Field(10.0, gt=0, description="keyframe anyway after this long")
+    reuse: bool = Field(True, description=(
+        "once the robot's team has explored its area (the server's robots only), a scan "
+        "where a keyframe already is re-anchors the robot on that keyframe instead of adding "
+        "one, so memory stays flat while robots drive over mapped ground"))
+    reuse_m: float = Field(0.4, gt=0, description="... within this distance of the keyframe")
+    reuse_deg: float = Field(180.0, gt=0, le=180.0, description=(
+        "... and this heading (180: any, as a 360° scanner sees the same from every heading)"))
 
 
 class LocalMapConfig(ConfigModel):

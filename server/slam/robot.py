@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
-from schemas.se2 import between, compose, pose_distance
+from schemas.se2 import between, compose, pose_distance, wrap_angle
 from server.slam.backend import (
     FactorRecord,
     PoseGraph,
@@ -55,6 +55,7 @@ class SlamStats:
     matches: dict[str, int] = field(default_factory=lambda: {k.value: 0 for k in MatchKind})
     loop_closures: int = 0
     loop_closures_removed: int = 0
+    reused: int = 0   # scans re-anchored on a keyframe instead of adding one (``reuse``)
 
 
 @dataclass(frozen=True)
@@ -101,7 +102,9 @@ class RobotSlam:
         self._local_map: PointMap | None = None
         self._last_odom: F64 | None = None
         self._last_stamp_ns: int | None = None
-        self._T_kf_robot = IDENTITY.copy()  # the robot relative to the newest keyframe
+        self._T_kf_robot = IDENTITY.copy()  # the robot relative to its anchor keyframe
+        self._anchor = 0                    # the newest keyframe, or one re-used (``reuse``)
+        self.reusing = False                # re-use keyframes where the robot passes again
         self._T_kf_map_cache: F64 = self._T_map_start.copy()
         self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
 
@@ -129,11 +132,15 @@ class RobotSlam:
         self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         if self._is_keyframe(scan):                                    # 3. keyframe?
-            k = self._add_keyframe(stamp_ns, scan, odom, match)        # 4. optimise (ISAM2)
-            if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
-                self._close_loops(k)                                   # 5. loop closure
-            self._refresh_local_map()                                  # 6. maps follow poses
-        self._scan_poses.append(stamp_ns, self._T_kf_robot, tag=len(self.keyframes) - 1)
+            j = self._reusable(match.T_map_robot) if self.reusing else None
+            if j is not None:                                          # (or one re-used)
+                self._reanchor(j, match.T_map_robot)
+            else:
+                k = self._add_keyframe(stamp_ns, scan, odom, match)    # 4. optimise (ISAM2)
+                if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
+                    self._close_loops(k)                               # 5. loop closure
+                self._refresh_local_map()                              # 6. maps follow poses
+        self._scan_poses.append(stamp_ns, self._T_kf_robot, tag=self._anchor)
         self.stats.scans += 1
         return self.pose
 
@@ -210,13 +217,15 @@ class RobotSlam:
         floor = np.array([g.match_sigma_floor_m, g.match_sigma_floor_m,
                           math.radians(g.match_sigma_floor_deg)])
         scale = g.match_cov_scale if match.kind != MatchKind.ODOMETRY else 1.0
-        factor = scan_match_factor(tr.key(k - 1), tr.key(k), T_rel,
+        a = self._anchor
+        factor = scan_match_factor(tr.key(a), tr.key(k), T_rel,
                                    self._relative_information(match, T_rel), scale, floor)
         kind = "odometry" if match.kind == MatchKind.ODOMETRY else "match"
         extend_trajectory(self.graph, tr, factor, kind, match.T_map_robot)
         self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom))
         self.stats.keyframes = len(self.keyframes)
-        self._loops.add_edge(k - 1, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
+        self._loops.add_edge(a, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
+        self._anchor = k
         self._T_kf_robot = IDENTITY.copy()
         self._T_kf_map_cache = self.graph.pose(tr.key(k))
         return k
@@ -260,22 +269,50 @@ class RobotSlam:
                 kept += 1
         if removed:
             self.graph.iterate(g.extra_iterations_after_loop)
-        self._T_kf_map_cache = self.graph.pose(tr.key(len(self.keyframes) - 1))
+        self._T_kf_map_cache = self.graph.pose(tr.key(self._anchor))
         return kept
 
     def _refresh_local_map(self) -> None:
         n = self.cfg.local_map.keyframes
+        if self.reusing:   # the keyframes nearest the anchor: the recent ones may be far
+            poses = self.keyframe_poses()
+            d = np.hypot(*(poses[:, :2] - poses[self._anchor, :2]).T)
+            picked = np.sort(np.argsort(d, kind="stable")[:n])
+            kfs = [self.keyframes[i] for i in picked]
+            self._local_map = local_point_map(kfs, poses[picked], self.cfg.local_map.voxel_m)
+            return
         kfs = self.keyframes[-n:]
         keys = [self.trajectory.key(kf.index) for kf in kfs]
         self._local_map = local_point_map(kfs, self.graph.poses(keys),
                                           self.cfg.local_map.voxel_m)
+
+    def _reusable(self, T_map_robot: F64) -> int | None:
+        """A keyframe other than the anchor where the robot is now (``keyframes.reuse_m`` and
+        ``reuse_deg``), the nearest; None if there is none."""
+        k = self.cfg.keyframes
+        poses = self.keyframe_poses()
+        d = np.hypot(poses[:, 0] - T_map_robot[0], poses[:, 1] - T_map_robot[1])
+        turn = np.abs(wrap_angle(poses[:, 2] - T_map_robot[2]))
+        ok = (d <= k.reuse_m) & (turn <= math.radians(k.reuse_deg))
+        ok[self._anchor] = False
+        if not ok.any():
+            return None
+        return int(np.flatnonzero(ok)[np.argmin(d[ok])])
+
+    def _reanchor(self, j: int, T_map_robot: F64) -> None:
+        """Go on from keyframe ``j`` (the robot is where it was taken) instead of a new one."""
+        self._anchor = j
+        self._T_kf_map_cache = self.graph.pose(self.trajectory.key(j))
+        self._T_kf_robot = between(self._T_kf_map_cache, T_map_robot)
+        self.stats.reused += 1
+        self._refresh_local_map()
 
     def rebind(self, graph: PoseGraph) -> None:
         """Continue in ``graph`` (which now holds this robot's keys, e.g. a team's joint
         problem in the team's frame): cached map-frame poses and the local map follow."""
         self.graph = graph
         if self.keyframes:
-            self._T_kf_map_cache = graph.pose(self.trajectory.key(len(self.keyframes) - 1))
+            self._T_kf_map_cache = graph.pose(self.trajectory.key(self._anchor))
             self._refresh_local_map()
 
     def pose_at(self, stamp_ns: int, tolerance_ns: int = 150_000_000
