@@ -148,6 +148,7 @@ class Merger:
         ta.robot_ids = ta.robot_ids + merged_ids
         ta.links = [ln for ln in ta.links + tb.links + links if not ln.retired]
         tb.merged_into = ta.team_id
+        tb.mapper = None          # its map is the joint team's now: no grid kept for it
         fleet.retired_teams[tb.team_id] = fleet.teams.pop(tb.team_id)
         fleet.latest_grids.pop(tb.team_id, None)
         self.verifier.forget(tb.team_id)
