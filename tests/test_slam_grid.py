@@ -175,3 +175,14 @@ def test_dense_copies_are_read_only_and_from_dense_round_trips() -> None:
         pass
     else:
         raise AssertionError("a dense copy must not look writable")
+
+
+def test_a_pickled_grid_keeps_its_cells_and_not_its_spare_capacity() -> None:
+    import pickle
+
+    grid = render_grid(GridParams(resolution_m=0.05), room_keyframes(), POSES)
+    back = pickle.loads(pickle.dumps(grid))
+    np.testing.assert_array_equal(back.quantised(), grid.quantised())
+    assert len(back._pool) == back.tiles
+    back.insert_scan(POSES[0], room_keyframes()[0].scan.hits)   # and it grows again
+    assert back.tiles >= grid.tiles

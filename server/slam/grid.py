@@ -81,6 +81,11 @@ class OccupancyGrid:
         if shape_hw[0] * shape_hw[1]:
             self._cover_tiles()
 
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state["_pool"] = self._pool[:self._tiles].copy()   # not the spare capacity
+        return state
+
     # -- extent --------------------------------------------------------------------------
 
     @classmethod
