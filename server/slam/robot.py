@@ -104,6 +104,7 @@ class RobotSlam:
         self._last_stamp_ns: int | None = None
         self._T_kf_robot = IDENTITY.copy()  # the robot relative to its anchor keyframe
         self._anchor = 0                    # the newest keyframe, or one re-used (``reuse``)
+        self._T_kf_moved_from = IDENTITY.copy()   # where the anchor was last taken up
         self.reusing = False                # re-use keyframes where the robot passes again
         self._T_kf_map_cache: F64 = self._T_map_start.copy()
         self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
@@ -187,7 +188,8 @@ class RobotSlam:
         return m
 
     def _is_keyframe(self, scan: ScanPoints) -> bool:
-        d, a = pose_distance(self._T_kf_robot)
+        # motion since the anchor was taken up (a re-used keyframe may face elsewhere)
+        d, a = pose_distance(between(self._T_kf_moved_from, self._T_kf_robot))
         k = self.cfg.keyframes
         if d >= k.distance_m or a >= math.radians(k.angle_deg):
             return True
@@ -227,6 +229,7 @@ class RobotSlam:
         self._loops.add_edge(a, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
         self._anchor = k
         self._T_kf_robot = IDENTITY.copy()
+        self._T_kf_moved_from = IDENTITY.copy()
         self._T_kf_map_cache = self.graph.pose(tr.key(k))
         return k
 
@@ -304,6 +307,7 @@ class RobotSlam:
         self._anchor = j
         self._T_kf_map_cache = self.graph.pose(self.trajectory.key(j))
         self._T_kf_robot = between(self._T_kf_map_cache, T_map_robot)
+        self._T_kf_moved_from = self._T_kf_robot.copy()
         self.stats.reused += 1
         self._refresh_local_map()
 
