@@ -253,6 +253,17 @@ def test_a_trigger_that_never_fires_is_a_typed_error(
     assert getattr(TowerHomingError, "user_error", False)
     assert tower.counters["homing_failures"] == 1 and not tower.homed
     assert fake.state == "UNHOMED" and fake.homes == 0
+    assert tower._thread is not None and not tower._thread.is_alive()   # port released
+
+
+def test_frames_without_odometry_are_counted_and_used_as_if_standing(
+        rig: Callable[..., tuple[FakeTowerController, Tower]]) -> None:
+    pose = (0.3, 0.1, 0.2)
+    _, tower = rig(still(pose))
+    tower.odometry_at = lambda t_ns: None
+    err = wall_errors(tower.sweep(), pose)
+    assert tower.counters["no_odometry"] == 4
+    assert len(err) > 0.7 * BEAMS and err.max() < 0.03
 
 
 def test_garbage_replies_are_counted_and_do_not_crash(

@@ -161,7 +161,8 @@ class Tower:
 
     # -- lifetime ---------------------------------------------------------------------------
     def open(self) -> None:
-        """Open the port, start the reader and keep-alive, home the tower."""
+        """Open the port, start the reader and keep-alive, home the tower (on failure the port
+        is closed again and the error raised)."""
         try:
             self._serial = self.serial_factory(self.port, self.baud,
                                                timeout=self.keepalive_s / 2)
@@ -172,7 +173,11 @@ class Tower:
         self._last_valid = time.monotonic()
         self._thread = threading.Thread(target=self._run, daemon=True, name="tower")
         self._thread.start()
-        self.home()
+        try:
+            self.home()
+        except TowerError:
+            self.close()
+            raise
 
     def close(self) -> None:
         """Stop the tower where it is and close the port (the controller then de-energises on
