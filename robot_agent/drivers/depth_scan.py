@@ -8,6 +8,13 @@ the fan into the robot frame (``θ = yaw + α``), and the fans are merged onto f
 (nearest beam; the nearest obstacle wins where fans overlap). Depth 0 (no measurement) and
 ranges beyond ``max_range_m`` are no-returns: depth cameras are noisy far away (the D435i's
 error grows with z²), so the scan stops at a trusted range.
+
+Views taken while the robot moves (a camera on a turning tower takes a second or more for a
+full turn) carry ``origin``: the robot's pose at the view's capture in the robot frame of the
+scan's reference instant (from odometry: ``between(pose_ref, pose_capture)``). Each reading
+becomes a point ``r·(cos θ, sin θ)``, is moved by that pose, and is binned by its angle and
+distance from the reference robot's origin; a no-return keeps its direction, turned by the
+pose's heading. The default ``(0, 0, 0)`` leaves the fan as it was.
 """
 
 from __future__ import annotations
@@ -34,6 +41,8 @@ class DepthView:
     yaw_rad: float                 # heading of the optical axis in the robot frame
     depth: np.ndarray              # (H, W) depth along the optical axis, in units of ``scale_m``
     scale_m: float = 1.0           # metres per depth unit (RealSense z16: 0.001)
+    # robot pose (x [m], y [m], θ [rad]) at capture, in the robot frame of the reference instant
+    origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def fan(view: DepthView, fx: float, cx: float, rows: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -53,7 +62,20 @@ def fan(view: DepthView, fx: float, cx: float, rows: int = 1) -> tuple[np.ndarra
     alpha = np.arctan2(cx - np.arange(d.shape[1]), fx)
     r = z / np.cos(alpha)
     r[~np.isfinite(r)] = np.inf
-    return view.yaw_rad + alpha, r
+    theta = view.yaw_rad + alpha
+    ox, oy, oth = (float(v) for v in view.origin)
+    if (ox, oy, oth) == (0.0, 0.0, 0.0):
+        return theta, r
+    if not all(math.isfinite(v) for v in (ox, oy, oth)):
+        raise DepthScanError(f"view origin {view.origin} is not finite")
+    hit = np.isfinite(r)
+    t = theta + oth
+    with np.errstate(invalid="ignore"):
+        x = np.where(hit, r * np.cos(t) + ox, np.inf)
+        y = np.where(hit, r * np.sin(t) + oy, np.inf)
+    out_theta = np.where(hit, np.arctan2(y, x), t)
+    out_r = np.where(hit, np.hypot(x, y), np.inf)
+    return out_theta, out_r
 
 
 def merge_fans(fans: Sequence[tuple[np.ndarray, np.ndarray]], beams: int, max_range_m: float,
