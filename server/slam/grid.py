@@ -267,8 +267,8 @@ class OccupancyGrid:
             free = self._slots_lattice(gx, gy)
         else:
             free = np.zeros(0, dtype=np.int64)
-        hit_cells = self.cell_of(ends)
-        hit = self._slots(hit_cells[:, 0], hit_cells[:, 1])
+        hit_cells = self._lattice(ends)
+        hit = self._slots_lattice(hit_cells[:, 0], hit_cells[:, 1])
         pool = self._pool.reshape(-1)
         # a cell is updated once per scan however many rays cross it (assignment through
         # repeated indices writes the same value), and endpoints are not freed: they are
