@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from bench.support.fleet import RoomRobot
+from bench.support.mission import scan_of
 from robot_agent.aruco import TagDetector
 from schemas import Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
-from schemas.messages import quantise_ranges_mm
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server import handover
@@ -38,15 +38,7 @@ def worker_config(index: int) -> ServerConfig:
 def step_messages(sim: Simulator, detector: TagDetector, obs) -> tuple[dict[str, Scan],  # type: ignore[no-untyped-def]
                                                                         list[TagDetections]]:
     """A simulated step's scans (by robot) and tag messages, as agents would send them."""
-    lidar = sim.p.lidar
-    scans = {rid: Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
-                       odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
-                       angle_increment_rad=lidar.angle_increment_rad,
-                       range_min_mm=round(lidar.range_min_m * 1000),
-                       range_max_mm=round(lidar.range_max_m * 1000),
-                       ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
-                                                    lidar.range_max_m))
-             for rid in sim.robots}
+    scans = {rid: scan_of(sim, obs, rid) for rid in sim.robots}
     tags = []
     for rid, frame in obs.frames.items():
         found = detector.detect(frame.image, sim.p.camera.camera.K, rid)

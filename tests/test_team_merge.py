@@ -15,9 +15,9 @@ import gtsam
 import numpy as np
 import pytest
 
+from bench.support.mission import scan_of
 from robot_agent.aruco import TagDetector
-from schemas import Scan, TagDetection, TagDetections
-from schemas.messages import quantise_ranges_mm
+from schemas import TagDetection, TagDetections
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server.config import ServerConfig
@@ -52,7 +52,6 @@ def run(steps: int, falsify: bool = False, false_until: int = 0,
     sim = Simulator(load_world(WORLD), spawn, SimParams(), seed=3)
     core = ServerCore(cfg or config())
     detector = TagDetector(TagLayout(), CameraMount())
-    lidar = sim.p.lidar
     K = sim.p.camera.camera.K
     for step in range(steps):
         obs = sim.sense()
@@ -61,14 +60,7 @@ def run(steps: int, falsify: bool = False, false_until: int = 0,
             truth[obs.stamp_ns] = {rid: (p[0], p[1], p[2]) for rid, p in poses.items()}
         wrong = falsify or step < false_until
         for rid in spawn:
-            scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
-                        odom_pose=obs.odometry[rid][0], angle_min_rad=lidar.angle_min_rad,
-                        angle_increment_rad=lidar.angle_increment_rad,
-                        range_min_mm=round(lidar.range_min_m * 1000),
-                        range_max_mm=round(lidar.range_max_m * 1000),
-                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lidar.range_min_m,
-                                                     lidar.range_max_m))
-            cmd = core.on_scan(scan)
+            cmd = core.on_scan(scan_of(sim, obs, rid))
             sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
         for rid, frame in obs.frames.items():
             found = detector.detect(frame.image, K, rid)

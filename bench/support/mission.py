@@ -26,9 +26,21 @@ from server.core import ServerCore
 from server.operator import OperatorCommand
 from sim.config import DEFAULT_SCENARIOS, load_scenario
 from sim.loader import load_world
-from sim.simulator import SimParams, Simulator
+from sim.simulator import Observation, SimParams, Simulator
 
 PATROL_MODES = {"done", "idle", "waiting", "finished", "terminated"}
+
+
+def scan_of(sim: Simulator, obs: Observation, rid: str) -> Scan:
+    """Robot ``rid``'s scan of a simulated step, as its agent would send it."""
+    lid = sim.p.lidar
+    return Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
+                odom_pose=obs.odometry[rid][0], angle_min_rad=lid.angle_min_rad,
+                angle_increment_rad=lid.angle_increment_rad,
+                range_min_mm=round(lid.range_min_m * 1000),
+                range_max_mm=round(lid.range_max_m * 1000),
+                ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lid.range_min_m,
+                                             lid.range_max_m))
 
 
 @dataclass
@@ -49,16 +61,8 @@ class Mission:
 
     def step(self) -> None:
         obs = self.sim.sense()
-        lid = self.sim.p.lidar
         for rid in self.sim.robots:
-            scan = Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
-                        odom_pose=obs.odometry[rid][0], angle_min_rad=lid.angle_min_rad,
-                        angle_increment_rad=lid.angle_increment_rad,
-                        range_min_mm=round(lid.range_min_m * 1000),
-                        range_max_mm=round(lid.range_max_m * 1000),
-                        ranges_mm=quantise_ranges_mm(obs.ranges_m[rid], lid.range_min_m,
-                                                     lid.range_max_m))
-            cmd = self.core.on_scan(scan)
+            cmd = self.core.on_scan(scan_of(self.sim, obs, rid))
             self.sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
         self.sim.advance()
         self.steps += 1
