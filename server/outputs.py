@@ -123,7 +123,7 @@ def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Ou
         ms = r.nav.stats.decision_ms
         robots[rid] = {
             "team_id": r.team_id, "scans": r.scans, "late_scans": r.late_scans,
-            "keyframes": len(r.slam.keyframes),
+            "keyframes": len(r.slam.keyframes), "keyframes_reused": r.slam.stats.reused,
             "loop_closures": r.slam.stats.loop_closures, "distance_m": r.distance_m,
             "mode": r.nav.mode, "finished_reason": r.nav.finished_reason,
             "decisions": r.nav.stats.decisions, "targets_reached": r.nav.stats.targets_reached,
