@@ -25,15 +25,25 @@ def run() -> tuple[ServerCore, int]:
     return explore(ServerCore(config(map_match_meet=False)))
 
 
-def explore(core: ServerCore) -> tuple[ServerCore, int]:
-    """Up to 150 s of the two robots exploring, until the first merge."""
+def explore(core: ServerCore, max_lag_steps: int | None = None) -> tuple[ServerCore, int]:
+    """Up to 150 s of the two robots exploring, until the first merge. With a matcher
+    process, ``max_lag_steps`` bounds how many simulated steps a query may stay unanswered:
+    the simulator waits for it beyond that, so a slow or busy machine asks no fewer questions
+    in the 150 s than a quiet one."""
     sim = Simulator(load_world(WORLD), SPAWN, SimParams(), seed=5)
+    asked: tuple[object, int] | None = None
     for step in range(1500):
         obs = sim.sense()
         scans, _tags = step_messages(sim, _NoTags(), obs)   # tags never reach the server
         for rid, scan in scans.items():
             cmd = core.on_scan(scan)
             sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
+        job = core.matcher._job
+        if max_lag_steps is not None and job is not None and job.future is not None:
+            if asked is None or asked[0] is not job:
+                asked = (job, step)
+            elif step - asked[1] >= max_lag_steps:
+                job.future.result(timeout=120)
         sim.advance()
         if core.merges:
             return core, step
@@ -75,7 +85,7 @@ def test_queries_in_a_process_of_their_own_merge_too() -> None:
     try:
         core = ServerCore(config(map_match_meet=False))
         core.matcher.pool = pool
-        core, step = explore(core)
+        core, step = explore(core, max_lag_steps=30)
     finally:
         pool.shutdown(cancel_futures=True)
     assert step > 0 and core.merges[0].kind == "map"
