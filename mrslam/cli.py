@@ -260,8 +260,9 @@ def sim(
     scenario: Annotated[str | None, typer.Option(help="scenario, e.g. thesis-case-2")] = None,
     world: Annotated[Path | None, typer.Option(help="world file (.world/.sdf/nav2 .yaml)")] = None,
     robot: Annotated[list[str] | None, typer.Option(
-        help="robot spawn ID:X,Y[,YAW]: metres, yaw in radians (repeatable); replaces the "
-        "scenario's robots")] = None,
+        help="robot spawn ID:X,Y[,YAW][:SENSOR]: metres, yaw in radians, sensor lidar "
+        "(default), depth (a depth camera on a turning tower) or depth-fixed (repeatable); "
+        "replaces the scenario's robots")] = None,
     seed: Annotated[int | None, typer.Option(help="random seed")] = None,
     lockstep: Annotated[bool | None, typer.Option(
         "--lockstep/--real-time", help="wait for every agent each step, or run in real time")
@@ -283,7 +284,7 @@ def sim(
         check_out("sim", out)
 
     def body() -> Any:
-        from sim.config import parse_robot_spec
+        from sim.config import parse_robot_args
         from sim.process import run
 
         overrides: dict[str, Any] = {}
@@ -296,7 +297,7 @@ def sim(
         if out is not None:
             overrides["out"] = str(out)
         if robot:
-            overrides["robots"] = dict(parse_robot_spec(spec) for spec in robot)
+            overrides["robots"], overrides["sensors"] = parse_robot_args(robot)
         bus: dict[str, Any] = {}
         if listen:
             bus.update(mode="router", listen=list(listen), connect=list(connect or []))
@@ -318,7 +319,9 @@ def demo(
         help="scenario of scenarios.yaml (default thesis-case-2 unless --world is given)")] = None,
     world: Annotated[Path | None, typer.Option(help="world file instead of a scenario")] = None,
     robot: Annotated[list[str] | None, typer.Option(
-        help="robot spawn ID:X,Y[,YAW]: metres, yaw in radians (repeatable)")] = None,
+        help="robot spawn ID:X,Y[,YAW][:SENSOR]: metres, yaw in radians, sensor lidar "
+        "(default), depth (a depth camera on a turning tower) or depth-fixed (repeatable)"
+        )] = None,
     area: Annotated[float | None, typer.Option(
         help="area to cover [m²]: free space plus the wall faces bounding it; default: the "
         "world's")] = None,
@@ -355,7 +358,7 @@ def demo(
 
     def body() -> Any:
         from mrslam.demo import run
-        from sim.config import parse_robot_spec
+        from sim.config import parse_robot_args
 
         opts: dict[str, Any] = {"seed": seed, "lockstep": lockstep, "rtf": rtf,
                                 "explorer": explorer, "max_sim_time_s": max_sim_time,
@@ -368,7 +371,7 @@ def demo(
         elif scenario is not None:
             opts["scenario"] = scenario
         if robot:
-            opts["robots"] = dict(parse_robot_spec(spec) for spec in robot)
+            opts["robots"], opts["sensors"] = parse_robot_args(robot)
         for k, v in (("area_m2", area), ("coverage", coverage),
                      ("out", str(out) if out else None)):
             if v is not None:

@@ -23,6 +23,7 @@ from mrslam.launch import ProcessGroup
 from mrslam.supervise import Exit, RestartPolicy, Supervisor
 from schemas.config import ConfigModel, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
+from sim.config import SensorKind
 
 if TYPE_CHECKING:
     from mrslam.monitor import Monitor
@@ -46,6 +47,9 @@ class DemoConfig(ConfigModel):
     robots: dict[str, Pose] = Field(
         default_factory=dict, description="robot id -> spawn pose [x, y, yaw]; replaces the "
         "scenario's robots")
+    sensors: dict[str, SensorKind] = Field(
+        default_factory=dict, description="robot id -> range sensor (lidar, depth, "
+        "depth-fixed); replaces the scenario's for that robot; default lidar")
     area_m2: float | None = Field(
         None, gt=0, description="area to cover (free space and the wall faces bounding it, "
         "as coverage counts both); default: the world's, from its geometry")
@@ -141,12 +145,13 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
 
 def plan_run(cfg: DemoConfig) -> dict[str, Any]:
     """Resolve the scenario: world, robots, settings, and the world's true map."""
-    from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
+    from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene_sensors
     from sim.world_map import world_map
 
     scfg = SimConfig(scenario=cfg.scenario, world=cfg.world, robots=cfg.robots,
+                     sensors=cfg.sensors,
                      scenarios_file=cfg.scenarios_file or str(DEFAULT_SCENARIOS))
-    world, robots = resolve_scene(scfg)
+    world, robots, sensors = resolve_scene_sensors(scfg)
     case: dict[str, Any] = (load_scenario(Path(scfg.scenarios_file), cfg.scenario)
                             if cfg.scenario else {})
     cells = cfg.cells_per_m or float(case.get("grid_cells_per_m", 15))
@@ -156,6 +161,7 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
         "title": cfg.scenario or str(world),
         "world": str(world),
         "robots": {rid: list(p) for rid, p in robots.items()},
+        "sensors": sensors,
         "resolution_m": 1.0 / cells,
         "area_m2": area,
         "nominal_area_m2": case.get("total_area_m2"),
@@ -237,7 +243,9 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                         "--connect", endpoint, "--out", str(out / "sim"),
                         "--duration", str(cfg.max_sim_time_s)]
             for rid, p in plan["robots"].items():
-                sim_args += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}"]
+                kind = plan["sensors"].get(rid)
+                sim_args += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}"
+                             + (f":{kind}" if kind else "")]
             sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
             sim = procs.start("sim", *sim_args)
             supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
+from typing import Literal
 
 import yaml
 from pydantic import Field, model_validator
@@ -32,6 +33,41 @@ class LidarConfig(ConfigModel):
 
     @model_validator(mode="after")
     def _limits(self) -> LidarConfig:
+        if self.range_min_m >= self.range_max_m:
+            raise ValueError("range_min_m must be < range_max_m")
+        return self
+
+
+#: what a robot senses its surroundings with: the 360° LIDAR of ``lidar``, or the depth camera
+#: of ``depth`` turned on its tower (``depth``) or fixed looking forward (``depth-fixed``)
+SensorKind = Literal["lidar", "depth", "depth-fixed"]
+SENSOR_KINDS: tuple[str, ...] = ("lidar", "depth", "depth-fixed")
+
+
+class DepthConfig(ConfigModel):
+    """A depth camera's middle row as the agent's pseudo-scan makes it (defaults: a RealSense
+    D435i, its depth trusted to 3 m, on a tower that turns it to four headings)."""
+
+    beams: int = Field(
+        160, ge=2, le=4096, description="beams across the field of view (pixel columns binned)")
+    hfov_deg: float = Field(87.0, gt=1.0, lt=180.0, description="horizontal field of view")
+    range_min_m: float = Field(0.3, ge=0.0, description="nearer readings are no-returns")
+    range_max_m: float = Field(
+        3.0, gt=0.0, le=20.0, description="farther readings are no-returns (depth is "
+        "unreliable beyond)")
+    sigma_m: float = Field(0.002, ge=0.0, le=1.0, description="σ of the depth noise at 0 m")
+    sigma_per_m2: float = Field(
+        0.0036, ge=0.0, le=1.0, description="σ of the depth noise grows by this × depth² "
+        "[1/m]; a stereo camera's z² · subpixel / (focal length · baseline): 0.08 px / (447 px "
+        "· 0.05 m) for a D435i at 848 px")
+    tower_positions: int = Field(
+        4, ge=1, le=64, description="headings the tower turns the camera to (equally spaced)")
+    dwell_s: float = Field(0.5, ge=0.0, le=60.0, description="time at each heading")
+    turn_s: float = Field(
+        0.5, gt=0.0, le=60.0, description="time to turn from one heading to the next")
+
+    @model_validator(mode="after")
+    def _limits(self) -> DepthConfig:
         if self.range_min_m >= self.range_max_m:
             raise ValueError("range_min_m must be < range_max_m")
         return self
@@ -83,6 +119,9 @@ class SimConfig(ConfigModel):
     model_path: list[str] = Field(
         default_factory=list, description="folders searched for Gazebo models a world includes")
     robots: dict[str, Pose] = Field(default_factory=dict, description="robot id -> spawn pose")
+    sensors: dict[str, SensorKind] = Field(
+        default_factory=dict, description="robot id -> its range sensor (lidar, depth, "
+        "depth-fixed); robots not named have the LIDAR")
     seed: int = Field(
         0, ge=0, le=2**63 - 1, description="random seed (noise, spurious views): one seed, one "
         "run")
@@ -97,6 +136,7 @@ class SimConfig(ConfigModel):
     max_steps: int | None = Field(None, ge=1, description="stop after this many steps")
     out: str | None = Field(None, description="folder for truth.jsonl and summary.json")
     lidar: LidarConfig = LidarConfig()
+    depth: DepthConfig = DepthConfig()
     drive: DriveConfig = DriveConfig()
     odometry: OdometryConfig = OdometryConfig()
     camera: CameraConfig = CameraConfig()
@@ -113,18 +153,45 @@ class SimConfig(ConfigModel):
 
     @model_validator(mode="after")
     def _ids(self) -> SimConfig:
-        for rid in self.robots:
+        for rid in [*self.robots, *self.sensors]:
             if not re.match(ID_PATTERN, rid):
                 raise ValueError(f"robot id {rid!r} does not match {ID_PATTERN}")
         return self
 
 
 def parse_robot_spec(spec: str) -> tuple[str, Pose]:
-    """``r1:x,y,yaw`` -> ("r1", (x, y, yaw)); yaw in radians, optional (default 0)."""
-    m = re.match(r"^\s*([^:\s]+)\s*:\s*(.+)$", spec)
+    """``r1:x,y,yaw`` -> ("r1", (x, y, yaw)); yaw in radians, optional (default 0). A sensor
+    (``r1:x,y,yaw:depth``) is refused here; see ``parse_robot_arg``."""
+    rid, pose, sensor = parse_robot_arg(spec)
+    if sensor is not None:
+        raise SimError(f"--robot {spec!r}: a sensor is not expected here")
+    return rid, pose
+
+
+def parse_robot_args(specs: list[str]) -> tuple[dict[str, Pose], dict[str, str]]:
+    """Every ``--robot`` of a command line: spawn poses, and the sensors named."""
+    robots: dict[str, Pose] = {}
+    sensors: dict[str, str] = {}
+    for spec in specs:
+        rid, pose, sensor = parse_robot_arg(spec)
+        if rid in robots:
+            raise SimError(f"--robot {spec!r}: robot {rid} is given twice")
+        robots[rid] = pose
+        if sensor is not None:
+            sensors[rid] = sensor
+    return robots, sensors
+
+
+def parse_robot_arg(spec: str) -> tuple[str, Pose, str | None]:
+    """``r1:x,y[,yaw][:sensor]`` -> ("r1", (x, y, yaw), sensor or None); yaw in radians
+    (default 0), sensor one of ``SENSOR_KINDS``."""
+    m = re.match(r"^\s*([^:\s]+)\s*:\s*([^:]+?)\s*(?::\s*([^:\s]*)\s*)?$", spec)
     if m is None:
-        raise SimError(f"--robot {spec!r}: expected ID:X,Y[,YAW]")
-    rid, rest = m.group(1), m.group(2)
+        raise SimError(f"--robot {spec!r}: expected ID:X,Y[,YAW][:SENSOR]")
+    rid, rest, sensor = m.group(1), m.group(2), m.group(3)
+    if sensor is not None and sensor not in SENSOR_KINDS:
+        raise SimError(f"--robot {spec!r}: unknown sensor {sensor!r} "
+                       f"(known: {', '.join(SENSOR_KINDS)})")
     if not re.match(ID_PATTERN, rid):
         raise SimError(f"--robot {spec!r}: robot id {rid!r} does not match {ID_PATTERN}")
     try:
@@ -133,13 +200,21 @@ def parse_robot_spec(spec: str) -> tuple[str, Pose]:
         raise SimError(f"--robot {spec!r}: X,Y[,YAW] must be numbers") from None
     if len(v) not in (2, 3) or not all(math.isfinite(x) for x in v):
         raise SimError(f"--robot {spec!r}: expected 2 or 3 finite numbers")
-    return rid, (v[0], v[1], v[2] if len(v) == 3 else 0.0)
+    return rid, (v[0], v[1], v[2] if len(v) == 3 else 0.0), sensor
 
 
 def resolve_scene(cfg: SimConfig) -> tuple[Path, dict[str, Pose]]:
     """The world file and spawn poses: the scenario's, replaced by explicit ones."""
+    world, robots, _ = resolve_scene_sensors(cfg)
+    return world, robots
+
+
+def resolve_scene_sensors(cfg: SimConfig) -> tuple[Path, dict[str, Pose], dict[str, str]]:
+    """The world file, spawn poses and sensors: the scenario's, replaced by explicit ones (a
+    sensor given for a robot replaces the scenario's for that robot)."""
     world: Path | None = Path(cfg.world) if cfg.world else None
     robots = dict(cfg.robots)
+    sensors: dict[str, str] = {}
     if cfg.scenario:
         case = load_scenario(Path(cfg.scenarios_file), cfg.scenario)
         if world is None:
@@ -147,11 +222,24 @@ def resolve_scene(cfg: SimConfig) -> tuple[Path, dict[str, Pose]]:
         spawn = case["robots"]
         if not robots and isinstance(spawn, dict):
             robots = {str(k): _pose(v, cfg.scenario, str(k)) for k, v in spawn.items()}
+        sensors = _sensors(case.get("sensors"), cfg.scenario)
+    sensors.update(cfg.sensors)
     if world is None:
         raise SimError("no world: give --world PATH or --scenario NAME")
     if not robots:
         raise SimError("no robots: give --robot ID:X,Y,YAW or a --scenario")
-    return world, robots
+    if unknown := sorted(set(sensors) - set(robots)):
+        raise SimError(f"a sensor is given for {', '.join(unknown)}, which is not a robot here")
+    return world, robots, {rid: k for rid, k in sensors.items() if k != "lidar"}
+
+
+def _sensors(v: object, scenario: str) -> dict[str, str]:
+    if v is None:
+        return {}
+    if not isinstance(v, dict) or not all(k in SENSOR_KINDS for k in v.values()):
+        raise SimError(f"scenario {scenario}: sensors must map robot ids to one of "
+                       f"{', '.join(SENSOR_KINDS)}")
+    return {str(k): str(s) for k, s in v.items()}
 
 
 def load_scenario(path: Path, name: str) -> dict[str, object]:

@@ -46,19 +46,29 @@ from schemas.config_loading import load_config, write_resolved
 from schemas.messages import Message
 from schemas.ratelog import RateLimitedLog
 from sim.camera import PinholeCamera
-from sim.config import SimConfig, resolve_scene
+from sim.config import SimConfig, resolve_scene_sensors
 from sim.errors import SimError
 from sim.loader import load_world
 from sim.odometry import OdometryNoise
 from sim.robot import DriveLimits
-from sim.simulator import CameraSpec, LidarSpec, Observation, SimParams, Simulator
+from sim.simulator import (
+    CameraSpec,
+    LidarSpec,
+    Observation,
+    SimParams,
+    Simulator,
+    TowerSpec,
+)
 
 log = logging.getLogger(__name__)
 
 
-def params_from_config(cfg: SimConfig) -> SimParams:
+def params_from_config(cfg: SimConfig, sensors: Mapping[str, str] | None = None) -> SimParams:
+    """The simulation's parameters; ``sensors`` (robot id -> kind) default to ``cfg``'s."""
     lid, cam = cfg.lidar, cfg.camera
     step_s = 1.0 / lid.rate_hz
+    kinds = cfg.sensors if sensors is None else sensors
+    specs = {rid: depth_spec(cfg, kind) for rid, kind in kinds.items() if kind != "lidar"}
     return SimParams(
         step_ns=round(step_s * 1e9),
         substeps=max(1, round(cfg.physics_rate_hz * step_s)),
@@ -73,7 +83,17 @@ def params_from_config(cfg: SimConfig) -> SimParams:
             max_range_m=cam.max_range_m, min_facing_cos=cam.min_facing_cos,
             blur_sigma_px=cam.blur_sigma_px, noise_sigma=cam.noise_sigma,
             spurious_rate=cam.spurious_rate),
-        tags=cfg.tags, mount=cfg.camera_mount)
+        tags=cfg.tags, mount=cfg.camera_mount, sensors=specs)
+
+
+def depth_spec(cfg: SimConfig, kind: str) -> LidarSpec:
+    """The depth camera of ``cfg.depth``: on its tower (``depth``) or fixed forward
+    (``depth-fixed``)."""
+    d = cfg.depth
+    tower = (TowerSpec(d.tower_positions, round(d.dwell_s * 1e9), round(d.turn_s * 1e9))
+             if kind == "depth" else None)
+    return LidarSpec(d.beams, math.radians(d.hfov_deg), d.range_min_m, d.range_max_m, d.sigma_m,
+                     d.sigma_per_m2, depth=True, tower=tower)
 
 
 def step_messages(sim: Simulator, obs: Observation, world_name: str, lockstep: bool = False,
@@ -81,7 +101,6 @@ def step_messages(sim: Simulator, obs: Observation, world_name: str, lockstep: b
                   ) -> tuple[list[tuple[str, Message]], SimGroundTruth]:
     """Every message of one step, in publishing order, and the ground truth."""
     p = sim.p
-    lid = p.lidar
     msgs: list[tuple[str, Message]] = [(keys.SIM_CLOCK, SimClock(
         seq=obs.step, stamp_ns=obs.stamp_ns, step=obs.step, dt_ns=p.step_ns, lockstep=lockstep,
         real_time_factor=0.0 if lockstep else real_time_factor))]
@@ -102,6 +121,7 @@ def step_messages(sim: Simulator, obs: Observation, world_name: str, lockstep: b
         msgs.append((keys.sim_odom(rid), SimOdometry(
             robot_id=rid, seq=obs.step, stamp_ns=obs.stamp_ns, pose=pose, v_mps=v,
             omega_rps=w)))
+        lid = obs.beams[rid]
         msgs.append((keys.sim_lidar(rid), SimLidar(
             robot_id=rid, seq=obs.step, stamp_ns=obs.stamp_ns, angle_min_rad=lid.angle_min_rad,
             angle_increment_rad=lid.angle_increment_rad,
@@ -302,9 +322,11 @@ class SimNode:
 
 
 def build(cfg: SimConfig) -> tuple[Simulator, str]:
-    world_path, robots = resolve_scene(cfg)
+    world_path, robots, sensors = resolve_scene_sensors(cfg)
     world = load_world(world_path, list(cfg.model_path), cfg.lidar.height_m)
-    return Simulator(world, robots, params_from_config(cfg), cfg.seed), world.name
+    if sensors:
+        log.info("range sensors: %s", ", ".join(f"{r} {k}" for r, k in sorted(sensors.items())))
+    return Simulator(world, robots, params_from_config(cfg, sensors), cfg.seed), world.name
 
 
 def run(config: str | Path | None = None, overrides: Mapping[str, Any] | None = None,

@@ -49,21 +49,92 @@ CONTACT_MARGIN_M = 0.02
 
 
 @dataclass(frozen=True)
+class TowerSpec:
+    """A sensor turned in steps on a tower (Omni's depth camera): it rests ``dwell_ns`` at
+    each of ``positions`` headings (0, 360°/positions, ...) and takes ``turn_ns`` to turn to
+    the next one, round and round, from heading 0 at simulation time 0."""
+
+    positions: int = 4
+    dwell_ns: int = 500_000_000
+    turn_ns: int = 500_000_000
+
+    def yaw_at(self, t_ns: int) -> float:
+        """The sensor's heading in the robot frame at ``t_ns`` (turning at a constant rate)."""
+        period = self.dwell_ns + self.turn_ns
+        k, into = divmod(t_ns % (period * self.positions), period)
+        step = 2 * math.pi / self.positions
+        turned = 0.0 if into < self.dwell_ns else (into - self.dwell_ns) / max(self.turn_ns, 1)
+        return wrap_angle((k + turned) * step)
+
+
+@dataclass(frozen=True)
 class LidarSpec:
+    """A range sensor: a 360° LIDAR (the default), or a depth camera's middle row as the
+    agent's pseudo-scan makes it (``depth``: the noise is on the depth along the optical axis
+    and grows with its square, as a stereo camera's does; beams past ``range_max_m`` are
+    no-returns). A sensor narrower than 360° looks along the robot's heading, or along its
+    ``tower``'s."""
+
     beams: int = 400
     fov_rad: float = 2 * math.pi
     range_min_m: float = 0.05
     range_max_m: float = 10.0
     sigma_m: float = 0.008
+    #: added σ per square metre of range (depth: of depth along the optical axis)
+    sigma_per_m2: float = 0.0
+    depth: bool = False
+    tower: TowerSpec | None = None
+
+    @property
+    def full(self) -> bool:
+        return self.fov_rad >= 2 * math.pi - 1e-9
 
     @property
     def angle_min_rad(self) -> float:
-        return -self.fov_rad / 2 if self.fov_rad < 2 * math.pi - 1e-9 else -math.pi
+        return -math.pi if self.full else -self.fov_rad / 2
 
     @property
     def angle_increment_rad(self) -> float:
-        full = self.fov_rad >= 2 * math.pi - 1e-9
-        return self.fov_rad / (self.beams if full else max(self.beams - 1, 1))
+        return self.fov_rad / (self.beams if self.full else max(self.beams - 1, 1))
+
+    def heading_at(self, t_ns: int) -> float:
+        """Where the middle of the field of view looks at ``t_ns``, in the robot frame."""
+        return 0.0 if self.tower is None or self.full else self.tower.yaw_at(t_ns)
+
+    def angle_min_at(self, t_ns: int) -> float:
+        return wrap_angle(self.angle_min_rad + self.heading_at(t_ns))
+
+    def noisy(self, true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Readings of the true ranges (one per beam, from ``angle_min_rad``): Gaussian noise
+        growing with range, no-returns (inf) outside the limits."""
+        z = rng.standard_normal(len(true))
+        if self.depth:
+            alpha = self.angle_min_rad + self.angle_increment_rad * np.arange(len(true))
+            c = np.cos(alpha)
+            along = true * c
+            with np.errstate(invalid="ignore"):
+                out = (along + (self.sigma_m + self.sigma_per_m2 * along ** 2) * z) / c
+        else:
+            with np.errstate(invalid="ignore"):
+                out = true + (self.sigma_m + self.sigma_per_m2 * true ** 2) * z
+        out[~np.isfinite(out) | (out > self.range_max_m) | (out < self.range_min_m)] = np.inf
+        return out
+
+    @property
+    def cast_range_m(self) -> float:
+        """How far rays must be cast for every reading that can come out within range."""
+        far = self.range_max_m + 4 * (self.sigma_m + self.sigma_per_m2 * self.range_max_m ** 2)
+        return far / (math.cos(min(self.fov_rad / 2, 1.4)) if self.depth else 1.0)
+
+
+@dataclass(frozen=True)
+class BeamGeometry:
+    """Where one robot's sweep of a step looks: beam ``i`` at ``angle_min_rad + i * inc``."""
+
+    angle_min_rad: float
+    angle_increment_rad: float
+    range_min_m: float
+    range_max_m: float
 
 
 @dataclass(frozen=True)
@@ -88,6 +159,11 @@ class SimParams:
     tags: TagLayout = field(default_factory=TagLayout)
     mount: CameraMount = field(default_factory=CameraMount)
     command_ttl_ns: int | None = None   # None: a command holds until the next one
+    #: robots whose range sensor is not ``lidar`` (e.g. a depth camera)
+    sensors: dict[str, LidarSpec] = field(default_factory=dict)
+
+    def sensor(self, robot_id: str) -> LidarSpec:
+        return self.sensors.get(robot_id, self.lidar)
 
 
 @dataclass
@@ -130,6 +206,8 @@ class Observation:
     odometry: dict[str, tuple[Pose, float, float]]  # (pose, v, ω)
     frames: dict[str, Frame]
     truth: dict[str, RobotState]
+    #: where each robot's sweep looked (a turned or narrow sensor's moves with time)
+    beams: dict[str, BeamGeometry] = field(default_factory=dict)
 
 
 def robot_seed(seed: int, robot_id: str) -> np.random.SeedSequence:
@@ -196,23 +274,24 @@ class Simulator:
 
     # -- sensing ----------------------------------------------------------------------------
     def sense(self) -> Observation:
-        lid = self.p.lidar
-        ranges, odo, frames = {}, {}, {}
+        ranges, odo, frames, beams = {}, {}, {}, {}
         discs = {rid: (r.pose[0], r.pose[1], self.p.drive.radius_m)
                  for rid, r in self.robots.items()}
         for rid, r in self.robots.items():
+            lid = self.p.sensor(rid)
             others = np.array([d for k, d in discs.items() if k != rid]).reshape(-1, 3)
-            true = self.caster.cast(r.pose, lid.beams, lid.angle_min_rad,
-                                    lid.angle_increment_rad, lid.range_max_m + 4 * lid.sigma_m,
-                                    others)
-            noisy = true + lid.sigma_m * r.rng_lidar.standard_normal(lid.beams)
-            noisy[(noisy > lid.range_max_m) | (noisy < lid.range_min_m)] = np.inf
-            ranges[rid] = noisy
+            heading = lid.heading_at(self.stamp_ns)
+            sensor_pose = (r.pose[0], r.pose[1], r.pose[2] + heading)
+            true = self.caster.cast(sensor_pose, lid.beams, lid.angle_min_rad,
+                                    lid.angle_increment_rad, lid.cast_range_m, others)
+            ranges[rid] = lid.noisy(true, r.rng_lidar)
+            beams[rid] = BeamGeometry(lid.angle_min_at(self.stamp_ns), lid.angle_increment_rad,
+                                      lid.range_min_m, lid.range_max_m)
             odo[rid] = (r.odom, r.v, r.w)
         cam = self.p.camera
         if cam.every_steps and self.step % cam.every_steps == 0:
             frames = self._render(discs)
-        return Observation(self.step, self.stamp_ns, ranges, odo, frames, self.robots)
+        return Observation(self.step, self.stamp_ns, ranges, odo, frames, self.robots, beams)
 
     def _render(self, discs: dict[str, tuple[float, float, float]]) -> dict[str, Frame]:
         cam = self.p.camera

@@ -33,7 +33,7 @@ PATROL_MODES = {"done", "idle", "waiting", "finished", "terminated"}
 
 def scan_of(sim: Simulator, obs: Observation, rid: str) -> Scan:
     """Robot ``rid``'s scan of a simulated step, as its agent would send it."""
-    lid = sim.p.lidar
+    lid = obs.beams[rid]
     return Scan(robot_id=rid, seq=obs.step + 1, stamp_ns=obs.stamp_ns,
                 odom_pose=obs.odometry[rid][0], angle_min_rad=lid.angle_min_rad,
                 angle_increment_rad=lid.angle_increment_rad,

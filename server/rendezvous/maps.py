@@ -96,7 +96,7 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     tag sightings.
     Matches that moved the keyframe implausibly far, matched poorly or were degenerate are left
     out; ``tried[0]`` is increased for every keyframe that had a map to match against."""
-    from server.slam.frontend import icp_params
+    from server.slam.frontend import icp_params, min_points
     from server.slam.icp import icp
     from server.slam.keyframes import local_point_map
 
@@ -114,7 +114,7 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         d = np.hypot(pa[:, 0] - pb[kb, 0], pa[:, 1] - pb[kb, 1])
         near = np.flatnonzero(d <= radius_m)
         scan = b.keyframes[kb].matchable
-        if len(near) == 0 or len(scan) < a.cfg.matcher.min_points:
+        if len(near) == 0 or len(scan) < min_points(scan, a.cfg.matcher):
             continue
         target = local_point_map([a.keyframes[i] for i in near], pa[near],
                                  a.cfg.local_map.voxel_m)

@@ -59,6 +59,13 @@ class MatcherConfig(ConfigModel):
         0.5, gt=0, description="half-width of the correlative search around the last pose")
     fallback_window_deg: float = Field(
         45.0, gt=0, description="half-angle of the correlative search")
+    narrow_fov_deg: float = Field(
+        180.0, gt=0, le=360, description="a scan spanning less is narrow (a depth camera's): "
+        "it gets no correlative search, as it holds too little of a place to tell it from one "
+        "nearby, and needs only narrow_min_points")
+    narrow_min_points: int = Field(
+        10, ge=3, description="min_points for a narrow scan (a depth camera sees a few metres "
+        "of wall)")
     odometry_jump_m: float = Field(0.5, gt=0, description="larger step per scan: distrust odometry")
     odometry_jump_deg: float = Field(
         30.0, gt=0, description="larger turn per scan: distrust odometry")
@@ -68,6 +75,12 @@ class KeyframeConfig(ConfigModel):
     distance_m: float = Field(0.5, gt=0, description="a new keyframe after moving this far")
     angle_deg: float = Field(20.0, gt=0, description="... or after turning this much")
     max_interval_s: float = Field(10.0, gt=0, description="keyframe anyway after this long")
+    novel_fraction: float = Field(
+        0.3, gt=0, le=1, description="a narrow scan (matcher.narrow_fov_deg) becomes a keyframe "
+        "also when this share of its points is new to the local map, so a sensor that looks "
+        "one way at a time (a depth camera turned on a tower) maps what it sees")
+    novel_m: float = Field(0.3, gt=0, description="... a point is new farther than this from "
+                           "every local map point")
     reuse: bool = Field(True, description=(
         "once the robot's team has explored its area (the server's robots only), a scan "
         "where a keyframe already is re-anchors the robot on that keyframe instead of adding "

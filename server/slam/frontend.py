@@ -3,8 +3,9 @@ decide how far to trust the result.
 
 Order of attempts: point-to-line ICP from the prediction (plus, when the odometry step looks
 implausible, from a constant-velocity and a standstill guess); if no attempt explains enough of
-the scan, a correlative search in a wide window around the last pose; if that fails too, the
-odometry prediction. A match that is degenerate (a featureless corridor) keeps its result
+the scan, a correlative search in a wide window around the last pose (not for a narrow scan,
+which holds too little of the place to pick the right pose in such a window); if that fails
+too, the odometry prediction. A match that is degenerate (a featureless corridor) keeps its result
 across the corridor and takes the odometry along it.
 """
 
@@ -53,6 +54,16 @@ def icp_params(cfg: MatcherConfig) -> IcpParams:
                      converged_rad=math.radians(cfg.converged_deg))
 
 
+def is_narrow(scan: ScanPoints, cfg: MatcherConfig) -> bool:
+    """A scan of a sensor that sees less than ``narrow_fov_deg`` (a depth camera's)."""
+    return scan.fov_rad < math.radians(cfg.narrow_fov_deg)
+
+
+def min_points(scan: ScanPoints, cfg: MatcherConfig) -> int:
+    """Points a scan needs to be matched."""
+    return cfg.narrow_min_points if is_narrow(scan, cfg) else cfg.min_points
+
+
 def odometry_step_suspicious(step: F64, cfg: MatcherConfig) -> bool:
     d, a = pose_distance(step)
     return d > cfg.odometry_jump_m or a > math.radians(cfg.odometry_jump_deg)
@@ -84,7 +95,8 @@ def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
     suspicious)."""
     pts = scan.points
     nrm = scan.normals
-    if len(pts) < cfg.min_points or len(target) < cfg.min_points or not cfg.enabled:
+    n_min = min_points(scan, cfg)
+    if len(pts) < n_min or len(target) < cfg.min_points or not cfg.enabled:
         return FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0)
     guesses = [T_pred]
     prior: F64 | None = prior_info
@@ -98,7 +110,7 @@ def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
             best = res
     assert best is not None
     kind = MatchKind.ICP
-    if best.inlier_fraction < cfg.min_inlier_fraction:
+    if best.inlier_fraction < cfg.min_inlier_fraction and not is_narrow(scan, cfg):
         field = LikelihoodField(target.points, 0.1, sigma_m=0.1, margin_m=cfg.fallback_window_m,
                                 levels=4)
         coarse = search(field, pts, T_last, cfg.fallback_window_m,

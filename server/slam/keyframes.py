@@ -30,8 +30,9 @@ class Keyframe:
     def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64) -> Keyframe:
         """A keyframe of ``scan``, whose arrays become read-only: a keyframe never changes
         (and a snapshot stores read-only arrays once, not again each time)."""
-        frozen = ScanPoints(*(_frozen(a) for a in (scan.points, scan.normals, scan.ranges_m)),
-                            *(_frozen(a, np.float32) for a in (scan.hits, scan.misses)))
+        frozen = ScanPoints(_frozen(scan.points), _frozen(scan.normals), _frozen(scan.ranges_m),
+                            _frozen(scan.hits, np.float32), _frozen(scan.misses, np.float32),
+                            scan.fov_rad, scan.heading_rad)
         return cls(index, stamp_ns, frozen, _frozen(T_odom_robot), frozen.with_normals())
 
     def __reduce__(self) -> tuple[object, tuple[int, int, ScanPoints, F64]]:

@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
-from schemas.se2 import between, compose, pose_distance, wrap_angle
+from schemas.se2 import between, compose, pose_distance, transform_points, wrap_angle
 from server.slam.backend import (
     FactorRecord,
     PoseGraph,
@@ -27,7 +27,9 @@ from server.slam.frontend import (
     FrontendMatch,
     MatchKind,
     icp_params,
+    is_narrow,
     match_scan,
+    min_points,
     odometry_prior,
     odometry_step_suspicious,
 )
@@ -132,7 +134,7 @@ class RobotSlam:
         self._velocity = between(T_last, match.T_map_robot)
         self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
-        if self._is_keyframe(scan):                                    # 3. keyframe?
+        if self._is_keyframe(scan, match.T_map_robot):                 # 3. keyframe?
             j = self._reusable(match.T_map_robot) if self.reusing else None
             if j is not None:                                          # (or one re-used)
                 self._reanchor(j, match.T_map_robot)
@@ -187,15 +189,23 @@ class RobotSlam:
         self.stats.matches[m.kind.value] += 1
         return m
 
-    def _is_keyframe(self, scan: ScanPoints) -> bool:
+    def _is_keyframe(self, scan: ScanPoints, T_map_robot: F64) -> bool:
         # motion since the anchor was taken up (a re-used keyframe may face elsewhere)
         d, a = pose_distance(between(self._T_kf_moved_from, self._T_kf_robot))
         k = self.cfg.keyframes
         if d >= k.distance_m or a >= math.radians(k.angle_deg):
             return True
         # nothing to match against yet (e.g. the first scans had no returns): take this one
-        n = self.cfg.matcher.min_points
-        return self._local_map is not None and len(self._local_map) < n <= len(scan)
+        n = min_points(scan, self.cfg.matcher)
+        local = self._local_map
+        if local is not None and len(local) < n <= len(scan):
+            return True
+        # a narrow sensor looking where the local map has nothing yet
+        if local is None or len(scan) < n or not is_narrow(scan, self.cfg.matcher):
+            return False
+        d_near, _ = local.tree.query(transform_points(T_map_robot, scan.points),
+                                     distance_upper_bound=k.novel_m)
+        return float(np.mean(~np.isfinite(d_near))) >= k.novel_fraction
 
     def _relative_information(self, match: FrontendMatch, T_rel: F64) -> F64:
         """Information of the keyframe-to-keyframe measurement in the new keyframe's frame:

@@ -30,7 +30,8 @@ class ScanPoints:
     (N, 2) unit vectors facing the sensor, NaN where no line could be fitted; ``ranges_m`` (N,)
     their ranges; ``hits`` (M, 2): every valid return, for the occupancy grid; ``misses``
     (K, 2): for beams without a return, the point at the range up to which the sensor saw
-    nothing (free space only, never an obstacle).
+    nothing (free space only, never an obstacle); ``fov_rad``: the angle the beams span (a
+    depth camera's ~1.5 rad, a LIDAR's 2π).
     """
 
     points: F64
@@ -38,6 +39,8 @@ class ScanPoints:
     ranges_m: F64
     hits: F64
     misses: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    fov_rad: float = 2 * np.pi
+    heading_rad: float = 0.0   # the middle of the field of view (sensor frame)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -45,7 +48,7 @@ class ScanPoints:
     def with_normals(self) -> ScanPoints:
         ok = np.isfinite(self.normals[:, 0])
         return ScanPoints(self.points[ok], self.normals[ok], self.ranges_m[ok], self.hits,
-                          self.misses)
+                          self.misses, self.fov_rad, self.heading_rad)
 
 
 def valid_returns(ranges_m: F64, angles_rad: F64, min_range_m: float,
@@ -162,4 +165,16 @@ def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range
     gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
     keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
     normals = line_normals(pts, normal_window, gap, keep)
-    return ScanPoints(pts[keep], normals, r[keep], pts, misses)
+    return ScanPoints(pts[keep], normals, r[keep], pts, misses, *field_of_view(angles_rad))
+
+
+def field_of_view(angles_rad: F64) -> tuple[float, float]:
+    """The angle a scan's beams span, one beam's width included (at most 2π), and the
+    direction of its middle."""
+    a = np.asarray(angles_rad, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if len(a) < 2:
+        return 0.0, float(a[0]) if len(a) else 0.0
+    inc = abs(float(a[-1] - a[0])) / (len(a) - 1)
+    return min(abs(float(a[-1] - a[0])) + inc, 2 * np.pi), 0.5 * float(a[0] + a[-1])
+
