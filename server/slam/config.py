@@ -66,6 +66,14 @@ class MatcherConfig(ConfigModel):
     narrow_min_points: int = Field(
         10, ge=3, description="min_points for a narrow scan (a depth camera sees a few metres "
         "of wall)")
+    narrow_prior_sigma_m: float = Field(
+        0.01, gt=0, description="prior_sigma_m for a narrow scan: its match pins the pose "
+        "less well than a 360° scan's, so the prediction counts for more")
+    narrow_prior_sigma_deg: float = Field(
+        0.3, gt=0, description="prior_sigma_deg for a narrow scan")
+    narrow_smoothing: int = Field(
+        10, ge=1, description="a narrow scan's pose averages the latest this many matches, "
+        "each carried to it by odometry and weighed by its information (1: its own match)")
     odometry_jump_m: float = Field(0.5, gt=0, description="larger step per scan: distrust odometry")
     odometry_jump_deg: float = Field(
         30.0, gt=0, description="larger turn per scan: distrust odometry")

@@ -79,11 +79,14 @@ def along_odometry(res: MatchResult, T_pred: F64) -> F64:
     return T
 
 
-def odometry_prior(step: F64, cfg: MatcherConfig) -> F64:
-    """Information (3×3) of the odometry prediction of one scan step: σ grows with the step."""
+def odometry_prior(step: F64, cfg: MatcherConfig, narrow: bool = False) -> F64:
+    """Information (3×3) of the odometry prediction of one scan step: σ grows with the step
+    (from a smaller base for a narrow scan's)."""
     d, a = pose_distance(step)
-    s_xy = cfg.prior_sigma_m + cfg.prior_sigma_per_m * d
-    s_th = math.radians(cfg.prior_sigma_deg) + cfg.prior_sigma_per_rad * a
+    base_m, base_deg = ((cfg.narrow_prior_sigma_m, cfg.narrow_prior_sigma_deg) if narrow
+                        else (cfg.prior_sigma_m, cfg.prior_sigma_deg))
+    s_xy = base_m + cfg.prior_sigma_per_m * d
+    s_th = math.radians(base_deg) + cfg.prior_sigma_per_rad * a
     return np.diag([s_xy ** -2, s_xy ** -2, s_th ** -2])
 
 

@@ -110,6 +110,8 @@ class RobotSlam:
         self.reusing = False                # re-use keyframes where the robot passes again
         self._T_kf_map_cache: F64 = self._T_map_start.copy()
         self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
+        #: a narrow sensor's latest matches (pose, information, odometry), averaged
+        self._recent: list[tuple[F64, F64, F64]] = []
 
     # -- the method ----------------------------------------------------------------------
     def add_scan(self, stamp_ns: int, odom_pose_xyt: ArrayLike, ranges_m: ArrayLike,
@@ -131,6 +133,8 @@ class RobotSlam:
         step = between(self._last_odom, odom)
         T_pred = compose(T_last, step)                                 # 1. predict (odometry)
         match = self._match(scan, T_pred, T_last, step)                # 2. match the local map
+        if is_narrow(scan, self.cfg.matcher):                          # (a narrow sensor's
+            match = self._smoothed(match, odom)                        # matches, averaged)
         self._velocity = between(T_last, match.T_map_robot)
         self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
@@ -168,6 +172,35 @@ class RobotSlam:
                               s.max_range_m, s.normal_window, s.normal_max_gap_m,
                               s.min_point_spacing_m, free_m)
 
+    def _smoothed(self, match: FrontendMatch, odom: F64) -> FrontendMatch:
+        """A narrow scan's pose from every match since the last keyframe, each carried here by
+        odometry and weighed by its information (less the farther it was carried): one narrow
+        scan of a noisy depth camera pins the heading to a degree or so, and a keyframe placed
+        on one such match passes that error on to the whole map."""
+        g = self.cfg.graph
+        if match.kind in (MatchKind.ICP, MatchKind.DEGENERATE):
+            self._recent.append((match.T_map_robot, match.information, odom))
+        del self._recent[:-self.cfg.matcher.narrow_smoothing]
+        if match.kind == MatchKind.ODOMETRY or len(self._recent) < 2:
+            return match
+        T0 = match.T_map_robot
+        H, b = np.zeros((3, 3)), np.zeros(3)
+        for T_j, info_j, odom_j in self._recent:
+            carried = between(odom_j, odom)
+            d, a = pose_distance(carried)
+            s_xy = g.odometry_sigma_m_per_m * d + 1e-3
+            s_th = math.radians(g.odometry_sigma_deg_per_rad * a) + 1e-4
+            cov = np.linalg.inv(info_j + 1e-6 * np.eye(3))   # ~1e6 where the match says nothing
+            info = np.linalg.inv(cov + np.diag([s_xy ** 2, s_xy ** 2, s_th ** 2]))
+            T = compose(T_j, carried)
+            e = np.array([T[0] - T0[0], T[1] - T0[1], wrap_angle(T[2] - T0[2])])
+            H += info
+            b += info @ e
+        delta = np.linalg.solve(H + 1e-9 * np.eye(3), b)
+        T = T0 + delta
+        T[2] = wrap_angle(T[2])
+        return FrontendMatch(T, match.kind, match.information, match.inlier_fraction)
+
     def _first_keyframe(self, stamp_ns: int, scan: ScanPoints, odom: F64) -> None:
         g = self.cfg.graph
         prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
@@ -183,7 +216,7 @@ class RobotSlam:
     def _match(self, scan: ScanPoints, T_pred: F64, T_last: F64, step: F64) -> FrontendMatch:
         assert self._local_map is not None
         mc = self.cfg.matcher
-        prior = odometry_prior(step, mc) if mc.use_odometry_prior else None
+        prior = odometry_prior(step, mc, is_narrow(scan, mc)) if mc.use_odometry_prior else None
         m = match_scan(scan, self._local_map, T_pred, T_last, self._velocity,
                        odometry_step_suspicious(step, mc), mc, self._icp, prior)
         self.stats.matches[m.kind.value] += 1
