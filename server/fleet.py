@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,6 +31,9 @@ from server.slam.grid import OccupancyGrid
 from server.slam.mapping import GridMapper
 from server.slam.stamped import StampedRows
 from server.stages import Stages
+
+if TYPE_CHECKING:
+    from server.steering import ObstacleMemory
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +73,8 @@ class RobotContext:
     #: map frame (its first pose is the origin; a merge does not move it)
     online: StampedRows = field(default_factory=lambda: StampedRows(3))
     meeting: Meeting | None = None
+    #: a narrow sensor's recent obstacles, for the reactive layer (``server.steering``)
+    obstacles: ObstacleMemory | None = None
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first

@@ -4,6 +4,8 @@ drives to) something that moves, its navigator otherwise."""
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from concurrent.futures import Executor
 
 import numpy as np
@@ -16,8 +18,32 @@ from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
 from server.operator import OperatorOrders
+from server.slam.scan import field_of_view
 
 F64 = NDArray[np.float64]
+
+
+class ObstacleMemory:
+    """What a narrow sensor (a depth camera, turned or fixed) showed around its robot in the
+    last seconds, in the map frame: the reactive layer avoids a wall behind or beside the
+    robot that its latest scan, looking elsewhere, does not show."""
+
+    def __init__(self) -> None:
+        self.views: deque[tuple[int, F64]] = deque()
+
+    def around(self, stamp_ns: int, pose: F64, points_robot: F64, keep_s: float) -> F64:
+        """The latest scan's points and the kept ones, in the robot frame at ``pose``."""
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        R = np.array([[c, -s], [s, c]])
+        while self.views and (self.views[0][0] < stamp_ns - keep_s * 1e9
+                              or self.views[0][0] > stamp_ns):   # too old, or a clock step
+            self.views.popleft()
+        older = [v for _, v in self.views]
+        self.views.append((stamp_ns, points_robot @ R.T + pose[:2]))
+        if not older:
+            return points_robot
+        kept = (np.concatenate(older) - pose[:2]) @ R
+        return np.concatenate([points_robot, kept])
 
 
 class Steering:
@@ -40,6 +66,11 @@ class Steering:
             ok = np.isfinite(ranges)
             pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])],
                            1)
+            if field_of_view(angles)[0] < math.pi and self.cfg.control.obstacle_memory_s > 0:
+                if r.obstacles is None:
+                    r.obstacles = ObstacleMemory()
+                pts = r.obstacles.around(stamp_ns, r.pose, pts,
+                                         self.cfg.control.obstacle_memory_s)
             ordered = self.orders.command(r, self.fleet, pts, self.events, stamp_ns)
             look = None if ordered is not None else self.look(r, stamp_ns * 1e-9, pts)
             if ordered is not None:
