@@ -126,6 +126,9 @@ class ServerCore:
         prev = r.pose.copy()
         keyframes = len(r.slam.keyframes)
         unmatched = r.slam.stats.matches["odometry"]
+        team = self.fleet.team_of(r)
+        r.slam.guides = [self.fleet.robots[m].slam for m in team.robot_ids
+                         if m != r.robot_id] if len(team.robot_ids) > 1 else []
         r.pose = r.slam.add_scan(scan.stamp_ns, scan.odom_pose,
                                  self.fleet.without_teammates(r, ranges, angles), angles,
                                  scan.range_max_mm / 1000.0)

@@ -101,6 +101,10 @@ class KeyframeConfig(ConfigModel):
 class LocalMapConfig(ConfigModel):
     keyframes: int = Field(40, ge=1, description="recent keyframes matched against")
     voxel_m: float = Field(0.05, ge=0, description="points and normals averaged per cell")
+    guide_radius_m: float = Field(
+        6.0, ge=0, description="a narrow sensor's robot in a team also matches against its "
+        "teammates' keyframes within this distance, their walls in place of its own where "
+        "both have one (0: its own only)")
 
 
 class GraphConfig(ConfigModel):

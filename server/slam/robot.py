@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
 from schemas.se2 import between, compose, pose_distance, transform_points, wrap_angle
@@ -35,7 +36,7 @@ from server.slam.frontend import (
 )
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.icp import PointMap
-from server.slam.keyframes import Keyframe, local_point_map
+from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
 from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
 from server.slam.mapping import GridMapper, point_cloud
 from server.slam.scan import ScanPoints, scan_to_points
@@ -45,6 +46,8 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 IDENTITY = np.zeros(3)
+#: a point of the robot's own map this close to a teammate's is left to the teammate's
+GUIDE_OVERLAP_M = 0.15
 
 
 @dataclass
@@ -112,6 +115,16 @@ class RobotSlam:
         self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
         #: a narrow sensor's latest matches (pose, information, odometry), averaged
         self._recent: list[tuple[F64, F64, F64]] = []
+        self.narrow = False            # the latest scan was narrow (a depth camera's)
+        #: teammates sharing this graph, whose maps a narrow sensor matches against (set by
+        #: the server before each scan; not kept in a snapshot)
+        self.guides: list[RobotSlam] = []
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "guides": []}   # the teammates are the fleet's to keep
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update({"guides": [], "narrow": False, "_recent": [], **state})
 
     # -- the method ----------------------------------------------------------------------
     def add_scan(self, stamp_ns: int, odom_pose_xyt: ArrayLike, ranges_m: ArrayLike,
@@ -125,6 +138,7 @@ class RobotSlam:
         """
         odom = self._check_input(stamp_ns, odom_pose_xyt)
         scan = self._scan_points(ranges_m, angles_rad, sensor_max_range_m)
+        self.narrow = is_narrow(scan, self.cfg.matcher)
         if not self.keyframes:
             self._first_keyframe(stamp_ns, scan, odom)
             return self.pose
@@ -329,8 +343,39 @@ class RobotSlam:
             return
         kfs = self.keyframes[-n:]
         keys = [self.trajectory.key(kf.index) for kf in kfs]
-        self._local_map = local_point_map(kfs, self.graph.poses(keys),
-                                          self.cfg.local_map.voxel_m)
+        poses = self.graph.poses(keys)
+        guide = (self._guide_points(poses[-1])
+                 if self.narrow and self.guides and self.cfg.local_map.guide_radius_m > 0
+                 else None)
+        if guide is None:
+            self._local_map = local_point_map(kfs, poses, self.cfg.local_map.voxel_m)
+            return
+        pts, nrm = gather(kfs, poses)
+        if len(guide[0]) and len(pts):   # the teammates' walls where they have them
+            d, _ = cKDTree(guide[0]).query(pts, distance_upper_bound=GUIDE_OVERLAP_M)
+            pts, nrm = pts[~np.isfinite(d)], nrm[~np.isfinite(d)]
+        pts, nrm = np.concatenate([guide[0], pts]), np.concatenate([guide[1], nrm])
+        if self.cfg.local_map.voxel_m > 0:
+            pts, nrm = voxel_mean(pts, nrm, self.cfg.local_map.voxel_m)
+        self._local_map = PointMap(pts, nrm)
+
+    def _guide_points(self, T_map_robot: F64) -> tuple[F64, F64] | None:
+        """Points and normals of the teammates' keyframes (``guides``, in this graph) within
+        ``local_map.guide_radius_m`` of the robot: a narrow sensor matches against the map
+        its team's wide sensors drew where they drew it."""
+        r = self.cfg.local_map.guide_radius_m
+        kfs: list[Keyframe] = []
+        at: list[F64] = []
+        for g in self.guides:
+            if g is self or g.graph is not self.graph or not g.keyframes:
+                continue
+            poses = g.keyframe_poses()
+            near = np.flatnonzero(np.hypot(*(poses[:, :2] - T_map_robot[:2]).T) <= r)
+            kfs += [g.keyframes[i] for i in near]
+            at += [poses[i] for i in near]
+        if not kfs:
+            return None
+        return gather(kfs, np.array(at))
 
     def _reusable(self, T_map_robot: F64) -> int | None:
         """A keyframe other than the anchor where the robot is now (``keyframes.reuse_m`` and
