@@ -102,7 +102,8 @@ class LidarSpec:
         return 0.0 if self.tower is None or self.full else self.tower.yaw_at(t_ns)
 
     def angle_min_at(self, t_ns: int) -> float:
-        return wrap_angle(self.angle_min_rad + self.heading_at(t_ns))
+        heading = self.heading_at(t_ns)
+        return self.angle_min_rad if heading == 0.0 else wrap_angle(self.angle_min_rad + heading)
 
     def noisy(self, true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Readings of the true ranges (one per beam, from ``angle_min_rad``): Gaussian noise
