@@ -145,6 +145,10 @@ class TeamsConfig(ConfigModel):
     coordination: Literal["optimal", "thesis"] = Field(
         "optimal", description="team targets by optimal assignment on path costs, or the "
         "greedy rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
+    sensor_weight: float = Field(
+        2.0, ge=0.0, description="optimal assignment: a robot's cost of a target grows by "
+        "this × how much farther the nearest mapped wall is than its sensor sees, so the "
+        "long-range robots take open space and the short-range ones rooms (0: off)")
 
 
 class ClockConfig(ConfigModel):

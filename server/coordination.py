@@ -5,7 +5,9 @@ that robot needs a target, teammates still heading for an open target keep it (t
 reserved); the robot and every teammate without a target are assigned jointly:
 
 - ``optimal``: minimum total path cost over the team's cost matrix (Hungarian method), with
-  the robots' targets kept the reserve radius apart while each has another to go to;
+  the robots' targets kept the reserve radius apart while each has another to go to; a robot
+  whose sensor sees less far than a target's nearest mapped wall pays for the difference
+  (``walls_beyond_reach``), so open space goes to the long-range robots;
 - ``thesis``: the dissertation's rule — the robot takes its cheapest target at least the
   reserve radius (2 m) from the others' goals.
 
@@ -17,12 +19,15 @@ frontier can be a whole room, and the team is not done until its coverage is rea
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
+from schemas.occupancy import OCCUPIED_ABOVE
 from server.exploration import (
     Decision,
     Explorer,
@@ -45,19 +50,42 @@ class Member:
     pose: F64
     start_pose: F64
     nav: Navigator
+    #: how far its range sensor sees (a depth camera's few metres, a LIDAR's ten or more)
+    sensor_range_m: float = math.inf
+
+
+def walls_beyond_reach(grid: OccupancyGrid, targets_xy: F64, ranges_m: Sequence[float],
+                       weight: float) -> F64:
+    """Extra cost (R, K) for each robot at each target: ``weight`` × how much farther the
+    nearest mapped wall is from the target than the robot's sensor reaches. A robot that sees
+    a few metres must drive through open space to map it, where a long-range one sweeps it in
+    passing; in rooms and corridors (walls within reach of both) nothing changes."""
+    out = np.zeros((len(ranges_m), len(targets_xy)))
+    r = np.asarray(ranges_m, dtype=np.float64)
+    if not len(targets_xy) or weight <= 0 or np.all(r >= 1e3):
+        return out
+    rows, cols = np.nonzero(grid.data > OCCUPIED_ABOVE)
+    if len(rows) == 0:
+        return out
+    res = grid.resolution_m
+    walls = np.column_stack([grid.origin_xy[0] + (cols + 0.5) * res,
+                             grid.origin_xy[1] + (rows + 0.5) * res])
+    d, _ = cKDTree(walls).query(targets_xy)
+    return weight * np.maximum(0.0, d[None, :] - r[:, None])
 
 
 class TeamExplorer:
     """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
 
     def __init__(self, base: Explorer, robot_id: str, members: Callable[[], Sequence[Member]],
-                 mode: str = "optimal") -> None:
+                 mode: str = "optimal", sensor_weight: float = 2.0) -> None:
         if mode not in ("optimal", "thesis"):
             raise ValueError(f"unknown coordination {mode!r}")
         self.base = base
         self.robot_id = robot_id
         self.members = members
         self.mode = mode
+        self.sensor_weight = sensor_weight
         self.assignments = 0
 
     @property
@@ -88,7 +116,9 @@ class TeamExplorer:
                                   [team[i].start_pose for i in free], visited)
         if tc.cost.shape[1] == 0:
             return self._alone(grid, robot_pose, start_pose, visited, committed)
-        cost = tc.cost.copy()
+        cost = tc.cost + walls_beyond_reach(grid, tc.targets_xy,
+                                            [team[i].sensor_range_m for i in free],
+                                            self.sensor_weight)
         if len(committed):
             r = self.params.reserve_radius_m
             near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],

@@ -126,6 +126,7 @@ class ServerCore:
         prev = r.pose.copy()
         keyframes = len(r.slam.keyframes)
         unmatched = r.slam.stats.matches["odometry"]
+        r.sensor_range_m = scan.range_max_mm / 1000.0
         team = self.fleet.team_of(r)
         r.slam.guides = [self.fleet.robots[m].slam for m in team.robot_ids
                          if m != r.robot_id] if len(team.robot_ids) > 1 else []

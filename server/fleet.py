@@ -73,6 +73,7 @@ class RobotContext:
     #: map frame (its first pose is the origin; a merge does not move it)
     online: StampedRows = field(default_factory=lambda: StampedRows(3))
     meeting: Meeting | None = None
+    sensor_range_m: float = float("inf")   # its latest scan's maximum range
     #: a narrow sensor's recent obstacles, for the reactive layer (``server.steering``)
     obstacles: ObstacleMemory | None = None
 
@@ -236,7 +237,7 @@ class Fleet:
             if len(team.robot_ids) > 1:
                 team_explorer = TeamExplorer(
                     nav.own_explorer, rid, functools.partial(self.members, team.team_id),
-                    self.cfg.teams.coordination)
+                    self.cfg.teams.coordination, self.cfg.teams.sensor_weight)
                 nav.use_explorer(team_explorer)  # type: ignore[arg-type]
             else:
                 nav.use_explorer(nav.own_explorer)
@@ -247,7 +248,7 @@ class Fleet:
         if team is None:
             return []
         return [Member(rid, self.robots[rid].pose, self.robots[rid].start_pose,
-                       self.robots[rid].nav)
+                       self.robots[rid].nav, self.robots[rid].sensor_range_m)
                 for rid in team.robot_ids if self.robots[rid].alive]
 
     @property

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from server.control import PursuitParams, StuckDetector
-from server.coordination import Member, TeamExplorer
+from server.coordination import Member, TeamExplorer, walls_beyond_reach
 from server.exploration import (
     Decision,
     ExplorerParams,
@@ -94,3 +94,24 @@ def test_a_team_with_nothing_open_is_finished() -> None:
     members[0].nav.target_xy = (10.5, 3.75)
     got = ex.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets())
     assert isinstance(got, Finished)
+
+
+def test_open_space_goes_to_the_long_range_robot_and_the_room_to_the_short_range_one() -> None:
+    """A 20 m hall with a 2 × 3 m room in a corner; the two targets cost both robots the same
+    drive: the depth camera (3 m) gets the room, the LIDAR (10 m) the middle of the hall."""
+    data = np.zeros((200, 200), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100           # the hall's walls
+    data[:30, 20] = data[30, :21] = 100                 # the room's
+    grid = OccupancyGrid(data, 0.1, (0.0, 0.0))
+    targets = np.array([[10.0, 10.0], [1.0, 1.5]])      # the hall's middle, the room
+    extra = walls_beyond_reach(grid, targets, [10.0, 3.0], 2.0)
+    assert extra[0].tolist() == [0.0, 0.0]              # the LIDAR sees walls 10 m off
+    assert extra[1, 1] == 0.0                           # the room's walls: within 3 m
+    assert extra[1, 0] == pytest.approx(2.0 * (9.95 - 3.0), abs=0.1)
+    same = np.full((2, 2), 5.0)
+    for ranges, want in (([10.0, 3.0], [0, 1]), ([3.0, 10.0], [1, 0])):
+        cost = same + walls_beyond_reach(grid, targets, ranges, 2.0)
+        assert assign_optimal(cost) == want
+    # a team of LIDARs, or the weight at 0: nothing changes
+    assert not walls_beyond_reach(grid, targets, [10.0, 12.0], 2.0)[:, 0].any()
+    assert not walls_beyond_reach(grid, targets, [10.0, 3.0], 0.0).any()
