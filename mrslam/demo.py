@@ -176,6 +176,15 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
     }
 
 
+def robot_args(plan: dict[str, Any]) -> list[str]:
+    """The simulator's ``--robot ID:X,Y,YAW[:SENSOR]`` options for the plan's robots."""
+    out: list[str] = []
+    for rid, p in plan["robots"].items():
+        kind = plan["sensors"].get(rid)
+        out += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}" + (f":{kind}" if kind else "")]
+    return out
+
+
 def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) -> None:
     from sim.config import SimConfig
 
@@ -242,10 +251,7 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
                         "--seed", str(cfg.seed),
                         "--connect", endpoint, "--out", str(out / "sim"),
                         "--duration", str(cfg.max_sim_time_s)]
-            for rid, p in plan["robots"].items():
-                kind = plan["sensors"].get(rid)
-                sim_args += ["--robot", f"{rid}:{p[0]},{p[1]},{p[2]}"
-                             + (f":{kind}" if kind else "")]
+            sim_args += robot_args(plan)
             sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
             sim = procs.start("sim", *sim_args)
             supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,

@@ -236,3 +236,32 @@ def test_a_report_that_lacks_figures_or_is_not_json_is_a_failed_run(
     (tmp_path / spec.key / "report.json").write_text("{")
     res = multi.execute(spec, tmp_path, 10.0)
     assert res["status"] == "failed" and "not valid JSON" in res["error"]
+
+
+def test_mixed_cases_put_the_depth_camera_on_the_named_robot_and_judge_it() -> None:
+    specs = multi.plan_runs(["1", "1-depth", "2-mixed"], [0, 1], spurious=0.2,
+                            single_seed=True)
+    keys = [s.key for s in specs]
+    assert keys == ["case-1-seed0", "case-1-depth-seed0", "case-2-mixed-seed0",
+                    "case-1-depth-seed1", "case-2-mixed-seed1"]   # no false-view variants
+    cfg = next(s for s in specs if s.key == "case-2-mixed-seed1").demo_config(Path("/x"), 60.0)
+    assert cfg["scenario"] == "thesis-case-2" and cfg["sensors"] == {"r2": "depth"}
+    assert set(cfg["robots"]) == {"r1", "r2"} and "coverage" not in cfg
+    alone = next(s for s in specs if s.key == "case-1-depth-seed0").demo_config(Path("/x"), 9.0)
+    assert alone["sensors"] == {"r1": "depth"} and alone["coverage"] == 0.90
+    runs = keyed(run("1", 0, 200.0, robots=1),
+                 run("1-depth", 0, 700.0, robots=1, collisions=0,
+                     max_position_error_by_robot_m={"r1": 0.2}),
+                 run("2-mixed", 0, 160.0, robots=2, collisions=0,
+                     max_position_error_by_robot_m={"r1": 0.05, "r2": 0.12}),
+                 run("2-mixed", 1, 250.0, robots=2, collisions=1,
+                     max_position_error_by_robot_m={"r1": 0.05, "r2": 0.3}))
+    rep = multi.mixed_report(runs)
+    s0, s1 = rep["2-mixed"]["seeds"]["0"], rep["2-mixed"]["seeds"]["1"]
+    assert s0["speedup_over_lidar_alone"] == 1.25 and s0["goals_met"]
+    assert s0["max_position_error_r2_m"] == 0.12
+    # slower than the LIDAR alone (seed 1 has no case 1: the first seed's serves), off, and
+    # a collision
+    assert s1["lidar_alone_s"] == 200.0 and s1["speedup_over_lidar_alone"] == 0.8
+    assert not s1["goals_met"] and not rep["2-mixed"]["all_goals_met"]
+    assert rep["1-depth"]["seeds"]["0"]["goals_met"] and rep["1-depth"]["all_goals_met"]

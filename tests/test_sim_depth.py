@@ -134,3 +134,18 @@ def test_a_fixed_camera_has_no_tower() -> None:
     assert depth_spec(cfg, "depth-fixed").tower is None
     tower = depth_spec(cfg, "depth").tower
     assert tower is not None and tower.positions == cfg.depth.tower_positions
+
+
+def test_the_demo_hands_each_robots_sensor_to_the_simulator() -> None:
+    from mrslam.demo import DemoConfig, plan_run, robot_args
+
+    plan = plan_run(DemoConfig(scenario="mixed-2"))
+    assert plan["sensors"] == {"r2": "depth"}
+    assert robot_args(plan) == ["--robot", "r1:-8.0,9.0,0.0", "--robot", "r2:-3.0,9.0,4.7124:depth"]
+    _, sensors = parse_robot_args(["r1:-8,9,0:depth-fixed", "r2:-3,9,0"])
+    plan = plan_run(DemoConfig(scenario="mixed-2", robots={"r1": (-8.0, 9.0, 0.0),
+                                                           "r2": (-3.0, 9.0, 0.0)},
+                               sensors=sensors))
+    assert plan["sensors"] == {"r1": "depth-fixed", "r2": "depth"}   # r2's from the scenario
+    with pytest.raises(ValueError, match="sonar"):
+        DemoConfig(sensors={"r1": "sonar"})  # type: ignore[dict-item]
