@@ -131,6 +131,7 @@ class GraphSurgery:
         for r in robots:
             r.slam.rebind(graph)
             r.pose = r.slam.pose
+            r.obstacles = None   # kept in the frame the robot just left
 
     # -- map matches -----------------------------------------------------------------------
     def match_teammates(self, r: RobotContext) -> None:

@@ -113,8 +113,9 @@ class RobotSlam:
         self.reusing = False                # re-use keyframes where the robot passes again
         self._T_kf_map_cache: F64 = self._T_map_start.copy()
         self._velocity = IDENTITY.copy()  # last scan-to-scan motion (robot frame)
-        #: a narrow sensor's latest matches (pose, information, odometry), averaged
-        self._recent: list[tuple[F64, F64, F64]] = []
+        #: a narrow sensor's latest matches (anchor key, pose from it, information in the
+        #: robot frame, odometry), averaged
+        self._recent: list[tuple[int, F64, F64, F64]] = []
         self.narrow = False            # the latest scan was narrow (a depth camera's)
         #: teammates sharing this graph, whose maps a narrow sensor matches against (set by
         #: the server before each scan; not kept in a snapshot)
@@ -190,26 +191,35 @@ class RobotSlam:
         """A narrow scan's pose from every match since the last keyframe, each carried here by
         odometry and weighed by its information (less the farther it was carried): one narrow
         scan of a noisy depth camera pins the heading to a degree or so, and a keyframe placed
-        on one such match passes that error on to the whole map."""
+        on one such match passes that error on to the whole map. The matches are kept
+        relative to their anchor keyframe, so they follow it when the graph moves it."""
         g = self.cfg.graph
+        anchor = self.trajectory.key(self._anchor)
         if match.kind in (MatchKind.ICP, MatchKind.DEGENERATE):
-            self._recent.append((match.T_map_robot, match.information, odom))
+            T = match.T_map_robot
+            R = _rotation(T[2])
+            self._recent.append((anchor, between(self._T_kf_map_cache, T),
+                                 R.T @ match.information @ R, odom))
         del self._recent[:-self.cfg.matcher.narrow_smoothing]
         if match.kind == MatchKind.ODOMETRY or len(self._recent) < 2:
             return match
         T0 = match.T_map_robot
         H, b = np.zeros((3, 3)), np.zeros(3)
-        for T_j, info_j, odom_j in self._recent:
+        for key, T_kf_j, info_robot, odom_j in self._recent:
+            T_j = compose(self.graph.pose(key), T_kf_j)
+            R = _rotation(T_j[2])
             carried = between(odom_j, odom)
             d, a = pose_distance(carried)
             s_xy = g.odometry_sigma_m_per_m * d + 1e-3
             s_th = math.radians(g.odometry_sigma_deg_per_rad * a) + 1e-4
-            cov = np.linalg.inv(info_j + 1e-6 * np.eye(3))   # ~1e6 where the match says nothing
+            cov = np.linalg.inv(R @ info_robot @ R.T + 1e-6 * np.eye(3))  # ~1e6: unseen
             info = np.linalg.inv(cov + np.diag([s_xy ** 2, s_xy ** 2, s_th ** 2]))
             T = compose(T_j, carried)
             e = np.array([T[0] - T0[0], T[1] - T0[1], wrap_angle(T[2] - T0[2])])
             H += info
             b += info @ e
+        if not H.any():
+            return match
         delta = np.linalg.solve(H + 1e-9 * np.eye(3), b)
         T = T0 + delta
         T[2] = wrap_angle(T[2])
@@ -259,8 +269,7 @@ class RobotSlam:
         the match's (rotated from the map frame) plus odometry's, which keeps degenerate
         directions constrained."""
         g = self.cfg.graph
-        c, s = math.cos(match.T_map_robot[2]), math.sin(match.T_map_robot[2])
-        A = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        A = _rotation(match.T_map_robot[2])
         info = A.T @ match.information @ A if match.kind != MatchKind.ODOMETRY else np.zeros((3, 3))
         d, a = pose_distance(T_rel)
         s_xy = g.odometry_sigma_m_per_m * d + g.match_sigma_floor_m
@@ -487,3 +496,9 @@ class RobotSlam:
     def loop_stats(self) -> LoopStats:
         """Counters of the loop-closure search (candidates, rejections by reason...)."""
         return self._loops.stats
+
+
+def _rotation(theta: float) -> F64:
+    """The 3×3 rotation of (x, y, θ) vectors by ``theta``."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
