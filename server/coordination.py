@@ -57,12 +57,13 @@ class Member:
 def walls_beyond_reach(grid: OccupancyGrid, targets_xy: F64, ranges_m: Sequence[float],
                        weight: float) -> F64:
     """Extra cost (R, K) for each robot at each target: ``weight`` × how much farther the
-    nearest mapped wall is from the target than the robot's sensor reaches. A robot that sees
-    a few metres must drive through open space to map it, where a long-range one sweeps it in
-    passing; in rooms and corridors (walls within reach of both) nothing changes."""
+    nearest mapped wall is from the target than the robot's sensor reaches, beyond what the
+    team's longest-range sensor misses there too. A robot that sees a few metres must drive
+    through open space to map it, where a long-range one sweeps it in passing; in rooms and
+    corridors (walls within reach of both), and in a team of like sensors, nothing changes."""
     out = np.zeros((len(ranges_m), len(targets_xy)))
-    r = np.asarray(ranges_m, dtype=np.float64)
-    if not len(targets_xy) or weight <= 0 or np.all(r >= 1e3):
+    r = np.minimum(np.asarray(ranges_m, dtype=np.float64), 1e3)
+    if not len(targets_xy) or weight <= 0 or np.ptp(r) == 0:
         return out
     rows, cols = np.nonzero(grid.data > OCCUPIED_ABOVE)
     if len(rows) == 0:
@@ -71,7 +72,7 @@ def walls_beyond_reach(grid: OccupancyGrid, targets_xy: F64, ranges_m: Sequence[
     walls = np.column_stack([grid.origin_xy[0] + (cols + 0.5) * res,
                              grid.origin_xy[1] + (rows + 0.5) * res])
     d, _ = cKDTree(walls).query(targets_xy)
-    return weight * np.maximum(0.0, d[None, :] - r[:, None])
+    return weight * (np.maximum(0.0, d[None, :] - r[:, None]) - np.maximum(0.0, d - r.max()))
 
 
 class TeamExplorer:

@@ -112,6 +112,9 @@ def test_open_space_goes_to_the_long_range_robot_and_the_room_to_the_short_range
     for ranges, want in (([10.0, 3.0], [0, 1]), ([3.0, 10.0], [1, 0])):
         cost = same + walls_beyond_reach(grid, targets, ranges, 2.0)
         assert assign_optimal(cost) == want
-    # a team of LIDARs, or the weight at 0: nothing changes
-    assert not walls_beyond_reach(grid, targets, [10.0, 12.0], 2.0)[:, 0].any()
+    # a team of like sensors, or the weight at 0: nothing changes; the LIDARs differ only
+    # by what the longer one sees and the shorter does not
+    assert not walls_beyond_reach(grid, targets, [3.0, 3.0], 2.0).any()
+    assert walls_beyond_reach(grid, targets, [8.0, 12.0], 2.0)[:, 0].tolist() == \
+        pytest.approx([2 * 1.95, 0.0], abs=0.1)
     assert not walls_beyond_reach(grid, targets, [10.0, 3.0], 0.0).any()

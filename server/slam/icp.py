@@ -174,13 +174,10 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
         H = Jw @ J.T
         g = Jw @ r
         if prior_info is not None:
-            # MAP step: (H/σ² + Λ) δ = g/σ² + Λ (x − x_prior); σ no smaller than the
-            # residuals show (a noisy sensor's points weigh less against the prediction)
-            s2 = float(w @ (r * r)) / max(float(w.sum()) - 3.0, 1.0)
-            iv = min(inv_var, 1.0 / s2) if s2 > 0 else inv_var
+            # MAP step: (H/σ² + Λ) δ = g/σ² + Λ (x − x_prior)
             e = np.array([tx - prior_T[0], ty - prior_T[1],
                           wrap_angle(th - prior_T[2])])
-            delta = _solve3(H * iv + prior_info, g * iv + prior_info @ e)
+            delta = _solve3(H * inv_var + prior_info, g * inv_var + prior_info @ e)
         else:
             delta = _solve3(H, g)
         if delta is None:
