@@ -29,6 +29,8 @@ from sim.loader import load_world
 from sim.simulator import Observation, SimParams, Simulator
 
 PATROL_MODES = {"done", "idle", "waiting", "finished", "terminated"}
+#: a patrol goal not reached in this long [sim s] is replaced by another
+GOAL_TIMEOUT_S = 120.0
 
 
 def scan_of(sim: Simulator, obs: Observation, rid: str) -> Scan:
@@ -53,6 +55,7 @@ class Mission:
     patrol_after_s: float
     patrols: int = 0
     goals: dict[str, tuple[float, float]] = field(default_factory=dict)
+    goal_ns: dict[str, int] = field(default_factory=dict)   # when each goal was sent
     steps: int = 0
 
     @property
@@ -75,7 +78,8 @@ class Mission:
         for r in states.robots:
             goal = self.goals.get(r.robot_id)
             near = goal is not None and np.hypot(r.pose[0] - goal[0], r.pose[1] - goal[1]) < 1.0
-            if goal is not None and not near and r.mode not in PATROL_MODES:
+            stale = stamp_ns - self.goal_ns.get(r.robot_id, stamp_ns) > GOAL_TIMEOUT_S * 1e9
+            if goal is not None and not near and not stale and r.mode not in PATROL_MODES:
                 continue
             if goal is None and r.mode not in PATROL_MODES:
                 continue
@@ -90,6 +94,7 @@ class Mission:
             status, _ = self.core.operate(OperatorCommand("goto", r.robot_id, xy), stamp_ns)
             if status == 200:
                 self.goals[r.robot_id] = xy
+                self.goal_ns[r.robot_id] = stamp_ns
                 self.patrols += 1
 
 
