@@ -100,6 +100,9 @@ class KeyframeConfig(ConfigModel):
 
 class LocalMapConfig(ConfigModel):
     keyframes: int = Field(40, ge=1, description="recent keyframes matched against")
+    narrow_keyframes: int = Field(
+        150, ge=1, description="... by a narrow sensor (matcher.narrow_fov_deg), which takes "
+        "keyframes far more often for the little each shows")
     voxel_m: float = Field(0.05, ge=0, description="points and normals averaged per cell")
     guide_radius_m: float = Field(
         6.0, ge=0, description="a narrow sensor's robot in a team also matches against its "

@@ -342,7 +342,8 @@ class RobotSlam:
         return kept
 
     def _refresh_local_map(self) -> None:
-        n = self.cfg.local_map.keyframes
+        lm = self.cfg.local_map
+        n = lm.narrow_keyframes if self.narrow else lm.keyframes
         if self.reusing:   # the keyframes nearest the anchor: the recent ones may be far
             poses = self.keyframe_poses()
             d = np.hypot(*(poses[:, :2] - poses[self._anchor, :2]).T)
