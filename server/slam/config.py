@@ -144,6 +144,11 @@ class LoopClosureConfig(ConfigModel):
     angle_per_m_deg: float = Field(
         0.3, ge=0, description="drift allowance in heading per metre travelled")
     angle_max_deg: float = Field(30.0, gt=0, description="largest search half-angle")
+    narrow_radius_max_m: float = Field(
+        1.5, gt=0, description="largest search radius for a narrow sensor's keyframes "
+        "(matcher.narrow_fov_deg): a few metres of wall in view cannot tell a place from one "
+        "a door further on, and larger windows let such false closures in")
+    narrow_angle_max_deg: float = Field(10.0, gt=0, description="... and half-angle")
     max_candidates: int = Field(3, ge=1, description="submaps searched per query, nearest first")
     resolution_m: float = Field(0.1, gt=0, description="of the search; ICP refines after")
     search_voxel_m: float = Field(0.1, gt=0, description="query thinning for the search")

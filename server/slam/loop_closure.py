@@ -170,9 +170,15 @@ class LoopCloser:
         return f
 
     # -- search --------------------------------------------------------------------------
-    def candidates(self, k: int, poses: F64) -> list[tuple[int, float, float]]:
-        """Submaps to try for keyframe k: (submap index, window [m], window [rad])."""
+    def candidates(self, k: int, poses: F64, narrow: bool = False
+                   ) -> list[tuple[int, float, float]]:
+        """Submaps to try for keyframe k: (submap index, window [m], window [rad]); the window
+        no larger than ``narrow_radius_max_m`` and ``narrow_angle_max_deg`` for a narrow
+        sensor's keyframe."""
         c = self.cfg
+        r_max, a_max = ((min(c.radius_max_m, c.narrow_radius_max_m),
+                         min(c.angle_max_deg, c.narrow_angle_max_deg)) if narrow
+                        else (c.radius_max_m, c.angle_max_deg))
         if not self.submaps:
             return []
         dist = self._graph.distances_from(k, len(poses))
@@ -183,19 +189,21 @@ class LoopCloser:
                 continue
             if not math.isfinite(d_graph):  # not connected: nothing bounds the drift
                 d_graph = 1e9
-            radius = min(c.radius_max_m, c.radius_base_m + c.radius_per_m * d_graph)
-            angle = min(c.angle_max_deg, c.angle_base_deg + c.angle_per_m_deg * d_graph)
+            radius = min(r_max, c.radius_base_m + c.radius_per_m * d_graph)
+            angle = min(a_max, c.angle_base_deg + c.angle_per_m_deg * d_graph)
             gap = float(np.min(np.hypot(*(poses[sm.members, :2] - poses[k, :2]).T)))
             if gap <= radius + 1.0:
                 out.append((gap - radius, si, radius, math.radians(angle)))
         out.sort()
         return [(si, r, a) for _, si, r, a in out[: c.max_candidates]]
 
-    def search(self, k: int, keyframes: list[Keyframe], poses: F64) -> list[LoopClosure]:
-        """Verified closures for keyframe k (confirmed ones only; others may stay pending)."""
+    def search(self, k: int, keyframes: list[Keyframe], poses: F64, narrow: bool = False
+               ) -> list[LoopClosure]:
+        """Verified closures for keyframe k (confirmed ones only; others may stay pending).
+        ``narrow``: the keyframes are a narrow sensor's (see ``candidates``)."""
         c = self.cfg
         self.stats.searches += 1
-        cands = self.candidates(k, poses)
+        cands = self.candidates(k, poses, narrow)
         if not cands:
             return []
         q0 = max(0, k - c.query_keyframes + 1)

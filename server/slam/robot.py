@@ -302,7 +302,7 @@ class RobotSlam:
     def _close_loops(self, k: int) -> None:
         poses = self.keyframe_poses()
         self._loops.maybe_close_submap(self.keyframes, poses)
-        closures = self._loops.search(k, self.keyframes, poses)
+        closures = self._loops.search(k, self.keyframes, poses, self.narrow)
         if closures:
             self.apply_loop_closures(closures)
 
