@@ -156,3 +156,22 @@ def test_wrong_loop_factor_is_removed_and_does_not_bend_the_map() -> None:
     assert slam.stats.loop_closures_removed == 1
     assert np.abs(after[:, :2] - before[:, :2]).max() < 0.02
     assert not [r for r in slam.trajectory.factors if r.kind == "loop"]
+
+
+def test_a_narrow_sensors_keyframe_searches_a_small_window_only() -> None:
+    """Far along the path, a LIDAR's keyframe searches up to ``radius_max_m``; a depth
+    camera's, which shows a few metres of wall, no more than ``narrow_radius_max_m``."""
+    out_and_back = [0.15 * min(i, 39 - i) for i in range(40)]   # back where it began
+    poses = np.array([[1.0 + x, 2.0, 0.0] for x in out_and_back])
+    kfs = keyframes_from(room_world(), poses)
+    cfg = LoopClosureConfig(block_keyframes=6, min_graph_distance_m=2.0, radius_base_m=0.5,
+                            radius_per_m=0.5)
+    closer = LoopCloser(cfg, IcpParams())
+    chain(closer, poses)
+    closer.maybe_close_submap(kfs[:6], poses[:6])
+    wide = closer.candidates(39, poses)
+    narrow = closer.candidates(39, poses, narrow=True)
+    assert wide and narrow
+    assert max(r for _, r, _ in wide) > cfg.narrow_radius_max_m
+    assert all(r <= cfg.narrow_radius_max_m for _, r, _ in narrow)
+    assert all(a <= math.radians(cfg.narrow_angle_max_deg) + 1e-12 for _, _, a in narrow)
