@@ -87,7 +87,9 @@ def test_a_depth_robot_matches_against_its_lidar_teammates_map() -> None:
     d_mate, _ = cKDTree(mate).query(local.points)
     # walls only the LIDAR robot saw are in the depth robot's local map
     assert np.sum((d_own > 0.5) & (d_mate < 0.05)) > 50
-    assert worst["r2"] < 0.15, worst
+    # the depth robot drifts where its teammate has not been, but no more than it would
+    # alone (a map in the wrong frame, say, would throw it off by metres)
+    assert worst["r1"] < 0.05 and worst["r2"] < 0.4, worst
 
 
 def test_obstacle_memory_carries_what_was_seen_with_the_robot() -> None:
