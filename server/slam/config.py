@@ -18,6 +18,9 @@ class ScanConfig(ConfigModel):
     max_range_m: float = Field(40.0, gt=0, description="readings at or beyond: no return")
     min_point_spacing_m: float = Field(0.08, ge=0, description="thin points closer than this")
     normal_window: int = Field(2, ge=1, description="beams each side used for a normal")
+    narrow_normal_window: int = Field(
+        4, ge=1, description="... in a narrow scan (matcher.narrow_fov_deg): a depth camera's "
+        "beams lie closer together and its depth is noisier")
     normal_max_gap_m: float = Field(0.3, gt=0, description="max neighbour distance for normals")
     no_return_free_m: float = Field(
         5.0, ge=0, description="a beam without a return marks free space up to this range "
@@ -63,6 +66,9 @@ class MatcherConfig(ConfigModel):
         180.0, gt=0, le=360, description="a scan spanning less is narrow (a depth camera's): "
         "it gets no correlative search, as it holds too little of a place to tell it from one "
         "nearby, and needs only narrow_min_points")
+    narrow_min_normal_cos: float = Field(
+        0.8, ge=0, le=1, description="min_normal_cos for a narrow scan: with a few metres of "
+        "wall in view, a pairing across a corner pulls the pose further")
     narrow_min_points: int = Field(
         10, ge=3, description="min_points for a narrow scan (a depth camera sees a few metres "
         "of wall)")

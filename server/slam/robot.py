@@ -3,6 +3,7 @@ by the server daemon). Its pose graph may be shared with other robots (see ``bac
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
 from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
 from server.slam.mapping import GridMapper, point_cloud
-from server.slam.scan import ScanPoints, scan_to_points
+from server.slam.scan import ScanPoints, field_of_view, scan_to_points
 from server.slam.stamped import StampedRows
 
 log = logging.getLogger(__name__)
@@ -100,6 +101,8 @@ class RobotSlam:
         self.keyframes: list[Keyframe] = []
         self.stats = SlamStats()
         self._icp = icp_params(c.matcher)
+        self._icp_narrow = dataclasses.replace(
+            self._icp, min_normal_cos=c.matcher.narrow_min_normal_cos)
         self._loops = LoopCloser(c.loop, self._icp)
         self._mapper = GridMapper(GridParams(**c.grid.model_dump()))
         self._T_map_start = np.asarray(T_map_start, dtype=np.float64)
@@ -126,6 +129,9 @@ class RobotSlam:
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update({"guides": [], "narrow": False, "_recent": [], **state})
+        if "_icp_narrow" not in state:   # saved before narrow scans had their own
+            self._icp_narrow = dataclasses.replace(
+                self._icp, min_normal_cos=self.cfg.matcher.narrow_min_normal_cos)
 
     # -- the method ----------------------------------------------------------------------
     def add_scan(self, stamp_ns: int, odom_pose_xyt: ArrayLike, ranges_m: ArrayLike,
@@ -182,10 +188,11 @@ class RobotSlam:
         free_m = 0.0
         if sensor_max_range_m is not None and math.isfinite(sensor_max_range_m):
             free_m = max(0.0, min(s.no_return_free_m, sensor_max_range_m))
-        return scan_to_points(np.asarray(ranges_m, dtype=np.float64),
-                              np.asarray(angles_rad, dtype=np.float64), s.min_range_m,
-                              s.max_range_m, s.normal_window, s.normal_max_gap_m,
-                              s.min_point_spacing_m, free_m)
+        angles = np.asarray(angles_rad, dtype=np.float64)
+        narrow = field_of_view(angles)[0] < math.radians(self.cfg.matcher.narrow_fov_deg)
+        return scan_to_points(np.asarray(ranges_m, dtype=np.float64), angles, s.min_range_m,
+                              s.max_range_m, s.narrow_normal_window if narrow else s.normal_window,
+                              s.normal_max_gap_m, s.min_point_spacing_m, free_m)
 
     def _smoothed(self, match: FrontendMatch, odom: F64) -> FrontendMatch:
         """A narrow scan's pose from every match since the last keyframe, each carried here by
@@ -242,7 +249,8 @@ class RobotSlam:
         mc = self.cfg.matcher
         prior = odometry_prior(step, mc, is_narrow(scan, mc)) if mc.use_odometry_prior else None
         m = match_scan(scan, self._local_map, T_pred, T_last, self._velocity,
-                       odometry_step_suspicious(step, mc), mc, self._icp, prior)
+                       odometry_step_suspicious(step, mc), mc,
+                       self._icp_narrow if is_narrow(scan, mc) else self._icp, prior)
         self.stats.matches[m.kind.value] += 1
         return m
 
