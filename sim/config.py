@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import yaml
 from pydantic import Field, model_validator
@@ -41,7 +41,7 @@ class LidarConfig(ConfigModel):
 #: what a robot senses its surroundings with: the 360° LIDAR of ``lidar``, or the depth camera
 #: of ``depth`` turned on its tower (``depth``) or fixed looking forward (``depth-fixed``)
 SensorKind = Literal["lidar", "depth", "depth-fixed"]
-SENSOR_KINDS: tuple[str, ...] = ("lidar", "depth", "depth-fixed")
+SENSOR_KINDS: tuple[str, ...] = get_args(SensorKind)
 
 
 class DepthConfig(ConfigModel):
