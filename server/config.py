@@ -45,9 +45,10 @@ class ControlConfig(ConfigModel):
         0.5, gt=0.0, le=10.0, description="each velocity command holds this long; without a newer "
         "one the robot stops")
     obstacle_memory_s: float = Field(
-        5.0, ge=0.0, description="a robot whose sensor sees less than half around it (a depth "
-        "camera) avoids what its scans of this many seconds showed, carried along by its "
-        "pose, not only what the latest one shows (0: the latest only)")
+        5.0, ge=0.0, description="a robot whose latest scan was narrow "
+        "(slam.matcher.narrow_fov_deg: a depth camera's) avoids what its scans of this many "
+        "seconds showed, carried along by its pose, not only what the latest one shows (0: the "
+        "latest only)")
     max_scan_age_s: float = Field(
         0.5, gt=0.0, description="a scan the server gets to later than this after it was taken "
         "(the server is behind) is mapped as any other, but answered with a stop: a robot "

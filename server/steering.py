@@ -18,7 +18,6 @@ from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
 from server.operator import OperatorOrders
-from server.slam.scan import field_of_view
 
 F64 = NDArray[np.float64]
 
@@ -66,7 +65,7 @@ class Steering:
             ok = np.isfinite(ranges)
             pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])],
                            1)
-            if field_of_view(angles)[0] < math.pi and self.cfg.control.obstacle_memory_s > 0:
+            if r.slam.narrow and self.cfg.control.obstacle_memory_s > 0:   # its latest scan
                 if r.obstacles is None:
                     r.obstacles = ObstacleMemory()
                 pts = r.obstacles.around(stamp_ns, r.pose, pts,
