@@ -181,5 +181,5 @@ def test_readings_at_the_sensor_maximum_are_no_returns(tmp_path: Path) -> None:
     slam, stamps, rejected, _ = process(attach_odometry(select_stream(log), log.odometry),
                                         SlamConfig())
     assert len(stamps) == 5 and rejected == 0
-    hits = slam.keyframes[0].scan.hits
+    hits = slam.keyframes[0].hits
     assert np.hypot(hits[:, 0], hits[:, 1]).max() < 2.5

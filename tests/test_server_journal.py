@@ -205,7 +205,7 @@ def test_arrays_that_never_change_are_stored_once(tmp_path: Path) -> None:
     feed(live, msgs, None)
     kf = live.robots["r1"].slam.keyframes[-1]
     with pytest.raises(ValueError, match="read-only"):
-        kf.scan.points[0, 0] = 1.0
+        kf.matchable.points[0, 0] = 1.0
     snaps = Snapshots(tmp_path)
     snaps.write(live, 10)
     blobs = (tmp_path / "blobs.bin").stat().st_size
@@ -217,9 +217,10 @@ def test_arrays_that_never_change_are_stored_once(tmp_path: Path) -> None:
     loaded = Snapshots(tmp_path).load()        # a new server: reads the store's index
     assert loaded is not None and loaded[1] == 20
     back = loaded[0].robots["r1"].slam.keyframes[-1]
-    assert np.array_equal(back.scan.points, kf.scan.points)
+    assert np.array_equal(back.matchable.points, kf.matchable.points)
+    assert np.array_equal(back.hits, kf.hits) and np.array_equal(back.misses, kf.misses)
     assert np.array_equal(back.matchable.normals, kf.matchable.normals)
-    assert not back.scan.points.flags.writeable
+    assert not back.matchable.points.flags.writeable
 
 
 def test_a_torn_blob_store_falls_back_to_the_snapshot_it_still_serves(tmp_path: Path) -> None:

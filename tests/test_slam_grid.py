@@ -184,5 +184,5 @@ def test_a_pickled_grid_keeps_its_cells_and_not_its_spare_capacity() -> None:
     back = pickle.loads(pickle.dumps(grid))
     np.testing.assert_array_equal(back.quantised(), grid.quantised())
     assert len(back._pool) == back.tiles
-    back.insert_scan(POSES[0], room_keyframes()[0].scan.hits)   # and it grows again
+    back.insert_scan(POSES[0], room_keyframes()[0].hits)   # and it grows again
     assert back.tiles >= grid.tiles

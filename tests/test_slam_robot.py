@@ -45,7 +45,7 @@ def test_live_lidar_run_tracks_the_truth_and_maps_the_room(room_drive: object) -
     kf = slam.keyframes
     assert 20 < len(kf) < len(truth)
     assert slam.keyframe_poses().shape == (len(kf), 3)
-    assert all(k.scan.points.shape[1] == 2 for k in kf)
+    assert all(k.matchable.points.shape[1] == 2 and k.hits.shape[1] == 2 for k in kf)
     grid = slam.occupancy_grid()
     nav = grid.to_nav2()
     assert (nav == -1).any() and (nav == 0).sum() + (nav < 40).sum() > 0

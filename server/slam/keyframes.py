@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from schemas.se2 import between
 from server.slam.icp import PointMap
+from server.slam.render_store import RenderScan
 from server.slam.scan import ScanPoints
 
 F64 = NDArray[np.float64]
@@ -17,33 +18,46 @@ F64 = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Keyframe:
-    """A scan kept in the graph: key index k, stamp, points/normals in the robot frame
-    (``scan``: all; ``matchable``: those with a normal), and its odometry pose."""
+    """A scan kept in the graph: key index k, stamp, its odometry pose, the points with a
+    normal it is matched by (``matchable``, robot frame, double precision) and what only
+    drawing the map needs (``render``: every return and the ends of empty beams, as int16
+    steps, on disk by default: ``server.slam.render_store``)."""
 
     index: int
     stamp_ns: int
-    scan: ScanPoints
     T_odom_robot: F64
     matchable: ScanPoints
+    render: RenderScan
 
     @classmethod
-    def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64) -> Keyframe:
+    def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64,
+               spill: bool = True) -> Keyframe:
         """A keyframe of ``scan``, whose arrays become read-only: a keyframe never changes
-        (and a snapshot stores read-only arrays once, not again each time)."""
-        frozen = ScanPoints(_frozen(scan.points), _frozen(scan.normals), _frozen(scan.ranges_m),
-                            _frozen(scan.hits, np.float32), _frozen(scan.misses, np.float32),
-                            scan.fov_rad, scan.heading_rad)
-        return cls(index, stamp_ns, frozen, _frozen(T_odom_robot), frozen.with_normals())
+        (and a snapshot stores read-only arrays once, not again each time). The points
+        without a normal are not kept: only the map drew from them, and it draws from
+        ``render``."""
+        ok = np.isfinite(scan.normals[:, 0])
+        empty = _frozen(np.zeros((0, 2)))
+        matchable = ScanPoints(_frozen(scan.points[ok]), _frozen(scan.normals[ok]),
+                               _frozen(scan.ranges_m[ok]), empty, empty, scan.fov_rad,
+                               scan.heading_rad)
+        return cls(index, stamp_ns, _frozen(T_odom_robot), matchable,
+                   RenderScan.of(scan.hits, scan.misses, spill))
 
-    def __reduce__(self) -> tuple[object, tuple[int, int, ScanPoints, F64]]:
-        # ``matchable`` is derived from ``scan``: pickled once, rebuilt on loading
-        return (Keyframe.create, (self.index, self.stamp_ns, self.scan, self.T_odom_robot))
+    @property
+    def hits(self) -> F64:
+        """Every return, robot frame (N, 2)."""
+        return self.render.hits
+
+    @property
+    def misses(self) -> F64:
+        """The ends of beams without a return, robot frame (K, 2)."""
+        return self.render.misses
 
 
-def _frozen(a: F64, dtype: type[np.floating] = np.float64) -> F64:
-    """A read-only copy; the returns only the map is drawn from are kept in single precision
-    (a micrometre at 100 m), half the memory of a keyframe's largest arrays."""
-    b: F64 = np.array(a, dtype=dtype)
+def _frozen(a: F64) -> F64:
+    """A read-only copy."""
+    b: F64 = np.array(a, dtype=np.float64)
     b.flags.writeable = False
     return b
 

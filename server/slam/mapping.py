@@ -20,7 +20,7 @@ def hits_in_map(keyframes: Sequence[Keyframe], poses: F64) -> F64:
     """Every return of the keyframes, in the map frame (N, 2)."""
     if len(keyframes) == 0:
         return np.zeros((0, 2))
-    return np.concatenate([transform_points(T, kf.scan.hits)
+    return np.concatenate([transform_points(T, kf.hits)
                            for kf, T in zip(keyframes, poses, strict=True)])
 
 
@@ -28,11 +28,15 @@ def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -
     """A fresh grid from all keyframes at ``poses`` (K, 3)."""
     if len(keyframes) == 0:
         return OccupancyGrid(params)
-    pts = hits_in_map(keyframes, poses)
-    both = np.concatenate([pts, poses[:, :2]]) if len(pts) else poses[:, :2]
-    grid = OccupancyGrid.covering(params, both.min(axis=0), both.max(axis=0))
-    for kf, T in zip(keyframes, poses, strict=True):
-        grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
+    scans = [kf.render.points() for kf in keyframes]    # read once (they may be on disk)
+    lo, hi = poses[:, :2].min(axis=0), poses[:, :2].max(axis=0)
+    for (hits, _), T in zip(scans, poses, strict=True):
+        if len(hits):
+            pts = transform_points(T, hits)
+            lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+    grid = OccupancyGrid.covering(params, lo, hi)
+    for (hits, misses), T in zip(scans, poses, strict=True):
+        grid.insert_scan(T, hits, misses)
     return grid
 
 
@@ -85,7 +89,7 @@ class GridMapper:
             for m, (kfs, poses) in members.items():
                 n = len(self._inserted.get(m, ()))
                 for kf, T in zip(kfs[n:], poses[n:], strict=True):
-                    self.grid.insert_scan(T, kf.scan.hits, kf.scan.misses)
+                    self.grid.insert_scan(T, *kf.render.points())
         self._inserted = {m: np.array(p, dtype=np.float64).reshape(-1, 3)
                           for m, (_, p) in members.items()}
         return self.grid

@@ -236,7 +236,8 @@ class RobotSlam:
         g = self.cfg.graph
         prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
         start_trajectory(self.graph, self.trajectory, self._T_map_start, prior)
-        self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom))
+        self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom,
+                                              self.cfg.keyframes.render_on_disk))
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         self._T_kf_map_cache = self._T_map_start.copy()
         self._scan_poses.append(stamp_ns, IDENTITY, tag=0)
@@ -298,7 +299,8 @@ class RobotSlam:
                                    self._relative_information(match, T_rel), scale, floor)
         kind = "odometry" if match.kind == MatchKind.ODOMETRY else "match"
         extend_trajectory(self.graph, tr, factor, kind, match.T_map_robot)
-        self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom))
+        self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom,
+                                              self.cfg.keyframes.render_on_disk))
         self.stats.keyframes = len(self.keyframes)
         self._loops.add_edge(a, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
         self._anchor = k

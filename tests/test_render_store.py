@@ -1,0 +1,114 @@
+"""What a keyframe keeps only to draw the map: 16-bit steps, on disk, carried whole when
+pickled, and in memory where no file can be made."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from server.slam import render_store
+from server.slam.keyframes import Keyframe
+from server.slam.render_store import RenderScan, quantise
+from server.slam.scan import ScanPoints
+
+
+def scan_points(reach_m: float = 10.0, n: int = 360, seed: int = 0) -> ScanPoints:
+    rng = np.random.default_rng(seed)
+    a = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    r = rng.uniform(0.2, reach_m, n)
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    normals = -pts / r[:, None]
+    normals[::7] = np.nan                                  # some points without a normal
+    misses = pts[:20] * 1.5
+    return ScanPoints(pts, normals, r, pts, misses)
+
+
+def test_steps_are_a_millimetre_and_coarser_only_past_32_m() -> None:
+    sc = scan_points(10.0)
+    q, step = quantise(sc.hits, sc.misses)
+    assert q.dtype == np.int16 and step == pytest.approx(1e-3)
+    back = q.astype(float) * step
+    assert np.abs(back - np.concatenate([sc.hits, sc.misses])).max() <= 0.5e-3 + 1e-12
+    far = scan_points(80.0)                                # an 80 m laser: 2.5 mm at most
+    q, step = quantise(far.hits, far.misses)
+    assert 1e-3 < step <= 80.0 * 1.5 / 32767 + 1e-12
+    assert np.abs(q.astype(float) * step - np.concatenate([far.hits, far.misses])).max() \
+        <= step / 2 + 1e-9
+
+
+def test_a_keyframe_keeps_its_map_points_on_disk_not_in_memory(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("MRSLAM_RENDER_DIR", str(tmp_path))
+    monkeypatch.setattr(render_store, "_store", None)
+    sc = scan_points()
+    kf = Keyframe.create(3, 7, sc, np.zeros(3))
+    assert kf.render.on_disk and kf.render.nbytes == 0
+    assert list(tmp_path.iterdir()) == []                  # unlinked: never left behind
+    assert np.abs(kf.hits - sc.hits).max() <= 0.5e-3 + 1e-12
+    assert np.abs(kf.misses - sc.misses).max() <= 0.5e-3 + 1e-12
+    # matching keeps only the points with a normal, in double precision, read-only
+    ok = np.isfinite(sc.normals[:, 0])
+    assert np.array_equal(kf.matchable.points, sc.points[ok])
+    assert not kf.matchable.points.flags.writeable
+    off = Keyframe.create(4, 8, sc, np.zeros(3), spill=False)
+    assert not off.render.on_disk and off.render.nbytes == (len(sc.hits) + 20) * 4
+    assert np.array_equal(off.hits, kf.hits)
+
+
+def test_a_pickled_keyframe_carries_its_points_not_a_place_in_a_file() -> None:
+    kf = Keyframe.create(1, 2, scan_points(), np.array([1.0, 2.0, 0.3]))
+    blob = pickle.dumps(kf)
+    # another process has no such file: it must read the points from the pickle alone
+    code = ("import pickle, sys, numpy as np; kf = pickle.load(sys.stdin.buffer); "
+            "print(len(kf.hits), float(np.abs(kf.hits).sum()), kf.render.on_disk)")
+    out = subprocess.run([sys.executable, "-c", code], input=blob, capture_output=True,
+                         check=True, cwd=Path(__file__).resolve().parents[1]).stdout.split()
+    assert int(out[0]) == len(kf.hits)
+    assert float(out[1]) == pytest.approx(float(np.abs(kf.hits).sum()))
+    assert out[2] == b"True"
+    back = pickle.loads(blob)
+    assert np.array_equal(back.hits, kf.hits) and np.array_equal(back.misses, kf.misses)
+    assert back.render.quantised().flags.writeable is False     # a snapshot stores it once
+
+
+def test_a_forked_child_reads_its_parents_keyframes_and_writes_its_own() -> None:
+    parent = Keyframe.create(1, 2, scan_points(seed=1), np.zeros(3))
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                           # the child
+        ok = np.array_equal(parent.hits, parent.hits)
+        mine = Keyframe.create(2, 3, scan_points(seed=2), np.zeros(3))
+        ok = ok and mine.render._store is not parent.render._store
+        ok = ok and np.allclose(mine.hits, scan_points(seed=2).hits, atol=1e-3)
+        os.write(w, b"1" if ok else b"0")
+        os._exit(0)
+    os.close(w)
+    assert os.read(r, 1) == b"1"
+    os.waitpid(pid, 0)
+    # the parent's file was not written over by the child
+    assert np.allclose(parent.hits, scan_points(seed=1).hits, atol=1e-3)
+
+
+def test_no_file_keeps_the_points_in_memory(monkeypatch: pytest.MonkeyPatch,
+                                            tmp_path: Path, caplog: pytest.LogCaptureFixture
+                                            ) -> None:
+    monkeypatch.setenv("MRSLAM_RENDER_DIR", str(tmp_path / "missing"))
+    monkeypatch.setattr(render_store, "_store", None)
+    monkeypatch.setattr(render_store, "_store_failed", False)
+    sc = scan_points()
+    kf = Keyframe.create(0, 0, sc, np.zeros(3))
+    assert not kf.render.on_disk and kf.render.nbytes > 0
+    assert np.abs(kf.hits - sc.hits).max() <= 0.5e-3 + 1e-12
+    assert "stay in memory" in caplog.text
+
+
+def test_non_finite_points_are_not_drawn() -> None:
+    hits = np.array([[1.0, 2.0], [np.nan, 1.0], [3.0, -4.0]])
+    rs = RenderScan.of(hits, np.zeros((0, 2)))
+    assert rs.n_hits == 2 and np.allclose(rs.hits, [[1.0, 2.0], [3.0, -4.0]])
