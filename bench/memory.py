@@ -81,6 +81,19 @@ def export_rise(write: Any) -> dict[str, float]:
 # children
 
 
+def keyframe_bytes(keyframes: Any) -> dict[str, float]:
+    """What keyframes hold in memory (matching points, normals, ranges; map points kept in
+    memory) and what they keep on disk (``server.slam.render_store``) [MB]."""
+    mem = disk = 0
+    for kf in keyframes:
+        m = kf.matchable
+        mem += m.points.nbytes + m.normals.nbytes + m.ranges_m.nbytes + kf.render.nbytes
+        if kf.render.on_disk:
+            disk += 4 * (kf.render.n_hits + kf.render.n_misses)
+    return {"keyframes_in_memory_mb": round(mem / 2**20, 2),
+            "keyframes_on_disk_mb": round(disk / 2**20, 2)}
+
+
 def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
     from server.slam.export import write_nav2, write_ply
     from server.slam_log import SlamLogConfig, _read, process
@@ -116,6 +129,7 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
     exp = export_rise(write)
     return {"rss_after_read_mb": round(after_read, 1), "samples_t_s_rss_mb": samples,
             "slam_cpu_s": round(cpu, 1), "scans": len(scans), "keyframes": len(slam.keyframes),
+            **keyframe_bytes(slam.keyframes),
             "map_cells": grid.shape, "map_tiles": getattr(grid, "tiles", None),
             "map_mb": round(getattr(grid, "nbytes", 6 * grid.shape[0] * grid.shape[1]) / 2**20,
                             2), **exp, "peak_mb": round(peak_mb(), 1)}
@@ -157,7 +171,8 @@ def child_mission(scenario: str, robots: int, sim_hours: float, every_s: float,
     return {"base_mb": round(base, 1), "samples_t_s_rss_mb": samples,
             "wall_s": round(time.perf_counter() - t0, 1),
             "cpu_s": round(time.process_time() - cpu0, 1), "patrols": mission.patrols,
-            "teams": len(core.teams), "keyframes": kf, "reused": reused, **exp,
+            "teams": len(core.teams), "keyframes": kf, "reused": reused,
+            **keyframe_bytes(kf for r in core.robots.values() for kf in r.slam.keyframes), **exp,
             "peak_mb": round(peak_mb(), 1)}
 
 

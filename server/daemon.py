@@ -17,6 +17,7 @@ from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter, replay
 from server.node import ServerNode
+from server.slam import render_store
 from server.snapshot import Snapshots
 
 log = logging.getLogger(__name__)
@@ -130,6 +131,7 @@ def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[s
     state = cfg.resolved_state_dir()
     if state is None:
         return ServerCore(cfg), None, {}
+    render_store.use_folder(state)          # keyframes' map points beside the journal
     t0 = time.monotonic()
     loaded = Snapshots(state).load()
     core, since = loaded if loaded is not None else (ServerCore(cfg), 0)

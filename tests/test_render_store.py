@@ -95,17 +95,45 @@ def test_a_forked_child_reads_its_parents_keyframes_and_writes_its_own() -> None
     assert np.allclose(parent.hits, scan_points(seed=1).hits, atol=1e-3)
 
 
-def test_no_file_keeps_the_points_in_memory(monkeypatch: pytest.MonkeyPatch,
-                                            tmp_path: Path, caplog: pytest.LogCaptureFixture
-                                            ) -> None:
+def test_a_folder_that_cannot_hold_the_file_falls_back_to_temp_then_to_memory(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path, caplog: pytest.LogCaptureFixture
+        ) -> None:
+    import tempfile
+
     monkeypatch.setenv("MRSLAM_RENDER_DIR", str(tmp_path / "missing"))
     monkeypatch.setattr(render_store, "_store", None)
     monkeypatch.setattr(render_store, "_store_failed", False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     sc = scan_points()
     kf = Keyframe.create(0, 0, sc, np.zeros(3))
+    assert kf.render.on_disk and "go to" in caplog.text and "missing" in caplog.text
+    # nowhere to write at all: in memory, said once
+    monkeypatch.setattr(render_store, "_store", None)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "also-missing"))
+    kf = Keyframe.create(1, 0, sc, np.zeros(3))
     assert not kf.render.on_disk and kf.render.nbytes > 0
     assert np.abs(kf.hits - sc.hits).max() <= 0.5e-3 + 1e-12
     assert "stay in memory" in caplog.text
+    assert not Keyframe.create(2, 0, sc, np.zeros(3)).render.on_disk
+    assert caplog.text.count("stay in memory") == 1
+
+
+def test_the_server_puts_the_file_in_its_state_folder(monkeypatch: pytest.MonkeyPatch,
+                                                     tmp_path: Path) -> None:
+    from server.config import ServerConfig
+    from server.daemon import _resume
+
+    monkeypatch.delenv("MRSLAM_RENDER_DIR", raising=False)
+    monkeypatch.setattr(render_store, "_store", None)
+    monkeypatch.setattr(render_store, "_folder", None)
+    state = tmp_path / "state"
+    state.mkdir()
+    cfg = ServerConfig.model_validate({"state_dir": str(state)})
+    _resume(cfg)
+    assert render_store._folder == str(state)
+    store = render_store.store()
+    assert store is not None
+    assert os.readlink(f"/proc/self/fd/{store._fd}").startswith(str(state))
 
 
 def test_non_finite_points_are_not_drawn() -> None:

@@ -8,11 +8,11 @@ at most 2.5 mm for an 80 m laser, a twentieth of a grid cell) and written to a f
 being held in memory. A render reads them back; the operating system keeps a file it reads
 often in its cache, outside the process's own memory.
 
-The file (``RenderStore``) is created in ``MRSLAM_RENDER_DIR``, or the system's temporary folder,
-and unlinked at once: it lives while the process has it open and never outlives the process,
-however it ends. A process that cannot create it (a read-only or full disk) keeps the arrays in
-memory and says so once. A keyframe pickled (snapshots, other processes) carries its arrays, not
-a place in the file.
+The file (``RenderStore``) is created in ``MRSLAM_RENDER_DIR``, or the server's state folder, or
+the system's temporary folder, and unlinked at once: it lives while the process has it open and
+never outlives the process, however it ends. A process that cannot create it anywhere (a
+read-only or full disk) keeps the arrays in memory and says so once. A keyframe pickled
+(snapshots, other processes) carries its arrays, not a place in the file.
 """
 
 from __future__ import annotations
@@ -83,6 +83,14 @@ _store: RenderStore | None = None
 _store_failed = False
 _store_lock = threading.Lock()
 _store_pid = 0
+_folder: str | None = None
+
+
+def use_folder(folder: str | os.PathLike[str]) -> None:
+    """Make the store in ``folder`` unless ``MRSLAM_RENDER_DIR`` says otherwise (the server
+    uses its state folder); no effect once the store is made."""
+    global _folder
+    _folder = os.fspath(folder)
 
 
 def store() -> RenderStore | None:
@@ -94,15 +102,22 @@ def store() -> RenderStore | None:
         return None
     with _store_lock:
         if _store is None or _store_pid != os.getpid():
-            folder = os.environ.get("MRSLAM_RENDER_DIR") or None
-            try:
-                _store = RenderStore(folder)
-                _store_pid = os.getpid()
-            except OSError as e:
+            folder = os.environ.get("MRSLAM_RENDER_DIR") or _folder
+            tried = []
+            for where in dict.fromkeys([folder, None]):      # then the temporary folder
+                try:
+                    _store = RenderStore(where)
+                    _store_pid = os.getpid()
+                    break
+                except OSError as e:
+                    tried.append(f"{where or tempfile.gettempdir()}: {e}")
+            else:
                 _store_failed = True
-                log.warning("keyframes' map data stay in memory: no file for them in %s (%s)",
-                            folder or tempfile.gettempdir(), e)
+                log.warning("keyframes' map data stay in memory: no file for them (%s)",
+                            "; ".join(tried))
                 return None
+            if tried:
+                log.warning("keyframes' map data go to %s: %s", tempfile.gettempdir(), tried[0])
         return _store
 
 
