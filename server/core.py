@@ -40,6 +40,7 @@ from schemas import (
     VelocityCommand,
 )
 from schemas.se2 import compose, inverse
+from server import heap
 from server.config import ServerConfig
 from server.events import EventLog
 from server.fleet import Fleet, MergeRecord, RobotContext, Team
@@ -92,6 +93,7 @@ class ServerCore:
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
+        heap.maybe_trim()        # freed memory back to the system, twice a minute at most
         r = self.fleet.robots.get(scan.robot_id) or self.fleet.add_robot(scan.robot_id)
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         # 1. SLAM on the scan without teammates' bodies; a new keyframe is matched against

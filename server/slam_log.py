@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 
 from schemas.config import ConfigModel
+from server.heap import HeapTrimmer
 from server.logs import (
     CarmenError,
     CarmenLog,
@@ -64,6 +65,7 @@ def process(scans: list[OdometryScan], cfg: SlamConfig,
     rejected = 0
     plan = plan_stamps([s.record.stamp_s for s in scans])
     _log_stamp_plan(plan, scans)
+    heap = HeapTrimmer(every_s=5.0)
     for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
         s = scans[i]
         rec = s.record
@@ -77,6 +79,7 @@ def process(scans: list[OdometryScan], cfg: SlamConfig,
             log.warning("line %d: scan skipped: %s", rec.line_no, e)
             continue
         accepted.append(rec.stamp_text)
+        heap.maybe()
         if progress is not None and n % 25 == 0:
             progress(i)
     return slam, accepted, rejected, plan
