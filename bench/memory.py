@@ -89,7 +89,7 @@ def keyframe_bytes(keyframes: Any) -> dict[str, float]:
         m = kf.matchable
         mem += m.points.nbytes + m.normals.nbytes + m.ranges_m.nbytes + kf.render.nbytes
         if kf.render.on_disk:
-            disk += 4 * (kf.render.n_hits + kf.render.n_misses)
+            disk += 8 * (kf.render.n_hits + kf.render.n_misses)
     return {"keyframes_in_memory_mb": round(mem / 2**20, 2),
             "keyframes_on_disk_mb": round(disk / 2**20, 2)}
 

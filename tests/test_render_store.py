@@ -1,5 +1,5 @@
-"""What a keyframe keeps only to draw the map: 16-bit steps, on disk, carried whole when
-pickled, and in memory where no file can be made."""
+"""What a keyframe keeps only to draw the map: on disk, carried whole when pickled, and in
+memory where no file can be made."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from server.slam import render_store
 from server.slam.keyframes import Keyframe
-from server.slam.render_store import RenderScan, quantise
+from server.slam.render_store import RenderScan
 from server.slam.scan import ScanPoints
 
 
@@ -29,17 +29,13 @@ def scan_points(reach_m: float = 10.0, n: int = 360, seed: int = 0) -> ScanPoint
     return ScanPoints(pts, normals, r, pts, misses)
 
 
-def test_steps_are_a_millimetre_and_coarser_only_past_32_m() -> None:
-    sc = scan_points(10.0)
-    q, step = quantise(sc.hits, sc.misses)
-    assert q.dtype == np.int16 and step == pytest.approx(1e-3)
-    back = q.astype(float) * step
-    assert np.abs(back - np.concatenate([sc.hits, sc.misses])).max() <= 0.5e-3 + 1e-12
-    far = scan_points(80.0)                                # an 80 m laser: 2.5 mm at most
-    q, step = quantise(far.hits, far.misses)
-    assert 1e-3 < step <= 80.0 * 1.5 / 32767 + 1e-12
-    assert np.abs(q.astype(float) * step - np.concatenate([far.hits, far.misses])).max() \
-        <= step / 2 + 1e-9
+def test_the_map_points_are_kept_in_single_precision_as_before() -> None:
+    sc = scan_points(80.0)                                  # an 80 m laser
+    kf = Keyframe.create(0, 0, sc, np.zeros(3))
+    assert kf.hits.dtype == np.float32 and kf.misses.dtype == np.float32
+    assert np.array_equal(kf.hits, sc.hits.astype(np.float32))
+    assert np.array_equal(kf.misses, sc.misses.astype(np.float32))
+    assert not kf.hits.flags.writeable
 
 
 def test_a_keyframe_keeps_its_map_points_on_disk_not_in_memory(
@@ -50,14 +46,14 @@ def test_a_keyframe_keeps_its_map_points_on_disk_not_in_memory(
     kf = Keyframe.create(3, 7, sc, np.zeros(3))
     assert kf.render.on_disk and kf.render.nbytes == 0
     assert list(tmp_path.iterdir()) == []                  # unlinked: never left behind
-    assert np.abs(kf.hits - sc.hits).max() <= 0.5e-3 + 1e-12
-    assert np.abs(kf.misses - sc.misses).max() <= 0.5e-3 + 1e-12
+    assert np.array_equal(kf.hits, sc.hits.astype(np.float32))
+    assert np.array_equal(kf.misses, sc.misses.astype(np.float32))
     # matching keeps only the points with a normal, in double precision, read-only
     ok = np.isfinite(sc.normals[:, 0])
     assert np.array_equal(kf.matchable.points, sc.points[ok])
     assert not kf.matchable.points.flags.writeable
     off = Keyframe.create(4, 8, sc, np.zeros(3), spill=False)
-    assert not off.render.on_disk and off.render.nbytes == (len(sc.hits) + 20) * 4
+    assert not off.render.on_disk and off.render.nbytes == (len(sc.hits) + 20) * 8
     assert np.array_equal(off.hits, kf.hits)
 
 
@@ -74,7 +70,7 @@ def test_a_pickled_keyframe_carries_its_points_not_a_place_in_a_file() -> None:
     assert out[2] == b"True"
     back = pickle.loads(blob)
     assert np.array_equal(back.hits, kf.hits) and np.array_equal(back.misses, kf.misses)
-    assert back.render.quantised().flags.writeable is False     # a snapshot stores it once
+    assert back.render.stored().flags.writeable is False     # a snapshot stores it once
 
 
 def test_a_forked_child_reads_its_parents_keyframes_and_writes_its_own() -> None:
@@ -112,7 +108,7 @@ def test_a_folder_that_cannot_hold_the_file_falls_back_to_temp_then_to_memory(
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "also-missing"))
     kf = Keyframe.create(1, 0, sc, np.zeros(3))
     assert not kf.render.on_disk and kf.render.nbytes > 0
-    assert np.abs(kf.hits - sc.hits).max() <= 0.5e-3 + 1e-12
+    assert np.array_equal(kf.hits, sc.hits.astype(np.float32))
     assert "stay in memory" in caplog.text
     assert not Keyframe.create(2, 0, sc, np.zeros(3)).render.on_disk
     assert caplog.text.count("stay in memory") == 1

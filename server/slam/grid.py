@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,6 +27,7 @@ from numpy.typing import NDArray
 from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
 
 F64 = NDArray[np.float64]
+Points = NDArray[np.floating[Any]]   # (N, 2), single or double precision
 I16 = NDArray[np.int16]
 
 _TILE_BITS = 6
@@ -220,8 +222,8 @@ class OccupancyGrid:
 
     # -- updates ---------------------------------------------------------------------------
 
-    def insert_scan(self, T_world_sensor: F64, hits_sensor: F64,
-                    misses_sensor: F64 | None = None) -> None:
+    def insert_scan(self, T_world_sensor: F64, hits_sensor: Points,
+                    misses_sensor: Points | None = None) -> None:
         """Update with one scan: ``hits_sensor`` (N, 2) endpoints in the sensor frame;
         ``misses_sensor`` (M, 2) optional points of beams without a return, only cleared to.
         Returns beyond ``max_ray_m`` only clear their beam up to that range."""

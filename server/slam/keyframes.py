@@ -14,6 +14,7 @@ from server.slam.render_store import RenderScan
 from server.slam.scan import ScanPoints
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 
 
 @dataclass(frozen=True)
@@ -45,12 +46,12 @@ class Keyframe:
                    RenderScan.of(scan.hits, scan.misses, spill))
 
     @property
-    def hits(self) -> F64:
+    def hits(self) -> F32:
         """Every return, robot frame (N, 2)."""
         return self.render.hits
 
     @property
-    def misses(self) -> F64:
+    def misses(self) -> F32:
         """The ends of beams without a return, robot frame (K, 2)."""
         return self.render.misses
 

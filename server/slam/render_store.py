@@ -1,12 +1,11 @@
 """What a keyframe keeps only to draw the map: its returns and the ends of its empty beams,
-compact and, by default, on disk.
+on disk by default.
 
 The grid is drawn from these when a keyframe is added and again, from all keyframes, when an
-optimisation moves them; matching never reads them. So they are kept as 16-bit integers in the
-robot frame (a step of 1 mm, or coarser for a scan reaching past 32 m: a step of range/32767,
-at most 2.5 mm for an 80 m laser, a twentieth of a grid cell) and written to a file instead of
-being held in memory. A render reads them back; the operating system keeps a file it reads
-often in its cache, outside the process's own memory.
+optimisation moves them; matching never reads them. So they are written to a file (in single
+precision, a micrometre at 100 m) instead of being held in memory. A render reads them back;
+the operating system keeps a file it reads often in its cache, outside the process's own
+memory.
 
 The file (``RenderStore``) is created in ``MRSLAM_RENDER_DIR``, or the server's state folder, or
 the system's temporary folder, and unlinked at once: it lives while the process has it open and
@@ -26,28 +25,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
-I16 = NDArray[np.int16]
 
 log = logging.getLogger(__name__)
 
-STEP_M = 1e-3        # the finest step; coarser for scans reaching past 32.767 m
-_QMAX = 32767
+F32 = NDArray[np.float32]
 
 
-def quantise(hits: F64, misses: F64) -> tuple[I16, float]:
-    """Both point sets (N, 2) and (K, 2) stacked as int16 steps, and the step [m]."""
-    both = np.concatenate([np.asarray(hits, dtype=np.float64).reshape(-1, 2),
-                           np.asarray(misses, dtype=np.float64).reshape(-1, 2)])
-    finite = np.isfinite(both).all(axis=1)
-    both = both[finite]
-    reach = float(np.abs(both).max()) if len(both) else 0.0
-    step = max(STEP_M, reach / _QMAX)
-    q = np.clip(np.rint(both / step), -_QMAX, _QMAX).astype(np.int16)
-    return q, step
+def stacked(hits: F64, misses: F64) -> F32:
+    """Both point sets (N, 2) and (K, 2) stacked in single precision, without non-finite rows."""
+    both = np.concatenate([np.asarray(hits, dtype=np.float32).reshape(-1, 2),
+                           np.asarray(misses, dtype=np.float32).reshape(-1, 2)])
+    return both[np.isfinite(both).all(axis=1)]
 
 
 class RenderStore:
-    """An append-only, unlinked file of int16 arrays, read back by offset (thread-safe)."""
+    """An append-only, unlinked file of float32 (N, 2) arrays, read back by offset
+    (thread-safe)."""
 
     def __init__(self, folder: str | None = None) -> None:
         fd, path = tempfile.mkstemp(prefix="mrslam-render-", dir=folder)
@@ -57,8 +50,8 @@ class RenderStore:
         self._lock = threading.Lock()
         self.bytes = 0
 
-    def put(self, q: I16) -> int:
-        raw = np.ascontiguousarray(q, dtype=np.int16).tobytes()
+    def put(self, q: F32) -> int:
+        raw = np.ascontiguousarray(q, dtype=np.float32).tobytes()
         with self._lock:
             at = self._end
             self._end += len(raw)
@@ -68,12 +61,12 @@ class RenderStore:
         self.bytes += len(raw)
         return at
 
-    def get(self, at: int, rows: int) -> I16:
-        n = rows * 2 * 2
+    def get(self, at: int, rows: int) -> F32:
+        n = rows * 2 * 4
         raw = os.pread(self._fd, n, at)
         if len(raw) != n:
             raise OSError(f"render store: read {len(raw)} of {n} bytes at {at}")
-        return np.frombuffer(raw, dtype=np.int16).reshape(rows, 2)
+        return np.frombuffer(raw, dtype=np.float32).reshape(rows, 2)
 
     def close(self) -> None:
         os.close(self._fd)
@@ -123,17 +116,16 @@ def store() -> RenderStore | None:
 
 class RenderScan:
     """A keyframe's returns (``hits``) and the ends of its beams without one (``misses``), in
-    the robot frame, as int16 steps on disk (or in memory where no file can be made)."""
+    the robot frame, in single precision, on disk (or in memory where no file can be made)."""
 
-    __slots__ = ("_at", "_q", "_store", "n_hits", "n_misses", "step_m")
+    __slots__ = ("_at", "_q", "_store", "n_hits", "n_misses")
 
-    def __init__(self, q: I16, step_m: float, n_hits: int, spill: bool = True) -> None:
-        self.step_m = float(step_m)
+    def __init__(self, q: F32, n_hits: int, spill: bool = True) -> None:
         self.n_hits = int(n_hits)
         self.n_misses = len(q) - self.n_hits
         self._store = store() if spill and len(q) else None
         self._at = -1
-        self._q: I16 | None = None
+        self._q: F32 | None = None
         if self._store is not None:
             try:
                 self._at = self._store.put(q)
@@ -141,16 +133,15 @@ class RenderScan:
                 log.warning("keyframe map data kept in memory: %s", e)
                 self._store = None
         if self._store is None:
-            kept = np.array(q, dtype=np.int16)
+            kept = np.array(q, dtype=np.float32)
             kept.flags.writeable = False
             self._q = kept
 
     @classmethod
     def of(cls, hits: F64, misses: F64, spill: bool = True) -> RenderScan:
-        q, step = quantise(hits, misses)
-        n_hits = int(np.isfinite(np.asarray(hits, dtype=np.float64).reshape(-1, 2)).all(axis=1)
+        n_hits = int(np.isfinite(np.asarray(hits, dtype=np.float32).reshape(-1, 2)).all(axis=1)
                      .sum())
-        return cls(q, step, n_hits, spill)
+        return cls(stacked(hits, misses), n_hits, spill)
 
     @property
     def on_disk(self) -> bool:
@@ -161,8 +152,8 @@ class RenderScan:
         """Bytes held in memory for the points (0 when they are on disk)."""
         return 0 if self._q is None else self._q.nbytes
 
-    def quantised(self) -> I16:
-        """The int16 steps, hits then misses (N + K, 2), read-only."""
+    def stored(self) -> F32:
+        """Hits then misses (N + K, 2), single precision, read-only."""
         if self._q is not None:
             return self._q
         assert self._store is not None
@@ -170,18 +161,18 @@ class RenderScan:
         q.flags.writeable = False
         return q
 
-    def points(self) -> tuple[F64, F64]:
-        """``(hits, misses)`` in metres, float64."""
-        p = self.quantised().astype(np.float64) * self.step_m
+    def points(self) -> tuple[F32, F32]:
+        """``(hits, misses)`` in metres, single precision, read-only."""
+        p = self.stored()
         return p[:self.n_hits], p[self.n_hits:]
 
     @property
-    def hits(self) -> F64:
+    def hits(self) -> F32:
         return self.points()[0]
 
     @property
-    def misses(self) -> F64:
+    def misses(self) -> F32:
         return self.points()[1]
 
-    def __reduce__(self) -> tuple[object, tuple[I16, float, int]]:
-        return (RenderScan, (self.quantised(), self.step_m, self.n_hits))
+    def __reduce__(self) -> tuple[object, tuple[F32, int]]:
+        return (RenderScan, (self.stored(), self.n_hits))
