@@ -95,8 +95,39 @@ class CameraConfig(ConfigModel):
         None, gt=0, description="capture height [px]; null: the calibration's or the device's")
 
 
+class TowerConfig(ConfigModel):
+    """A depth camera (RealSense, through the optional pyrealsense2 package) turned by a
+    stepper on a tower, homed on an optical trigger: one 360° pseudo-scan per turn
+    (protocol: robot_agent/drivers/tower_protocol.py)."""
+
+    port: str = Field("/dev/mrslam-tower", description="serial port of the stepper controller")
+    baud: int = Field(115200, description="serial baud rate")
+    steps_per_rev: int = Field(6400, ge=4, description="microsteps per turn of the tower "
+                               "(motor full steps × microstepping × gear ratio)")
+    zero_offset_steps: int = Field(
+        0, description="microsteps from the trigger's edge to the camera looking along the "
+        "robot's x axis")
+    headings_deg: list[float] = Field(
+        [0.0, 90.0, 180.0, 270.0], min_length=1, description="camera headings of a sweep")
+    settle_s: float = Field(0.15, ge=0.0, le=5.0, description="wait after each move")
+    beams: int = Field(360, ge=8, le=8192, description="fixed beams of the pseudo-scan")
+    range_min_m: float = Field(0.2, ge=0.0, description="nearer depths are no-returns")
+    range_max_m: float = Field(3.0, gt=0.0, le=20.0,
+                               description="farther depths are no-returns (unreliable)")
+    rows: int = Field(1, ge=1, le=64, description="image rows around the middle, nearest wins")
+    reconnect_s: float = Field(1.0, gt=0.0, description="retry period after the tower is lost")
+    camera_width: int = Field(848, gt=0, description="depth stream width [px]")
+    camera_height: int = Field(480, gt=0, description="depth stream height [px]")
+    camera_fps: int = Field(30, gt=0, le=300, description="depth stream rate")
+    camera_serial: str | None = Field(None, description="the camera's serial number (null: any)")
+
+
 class HardwareConfig(ConfigModel):
+    range_sensor: Literal["lidar", "depth-tower"] = Field(
+        "lidar", description="lidar: the RPLIDAR of hardware.lidar; depth-tower: the depth "
+        "camera on the turning tower of hardware.tower")
     lidar: RplidarConfig = RplidarConfig()
+    tower: TowerConfig = TowerConfig()
     base: MotorBaseConfig = MotorBaseConfig()
     camera: CameraConfig = CameraConfig()
 

@@ -388,3 +388,80 @@ class Tower:
         n = self.counters["bad_replies"]
         if n <= 10 or n % 100 == 0:
             log.warning("tower: bad reply (%d so far): %s", n, why)
+
+
+class TowerSource:
+    """The tower as the agent's range sensor (``LidarSource``): pseudo-scans one after another
+    in a thread of its own.
+
+    The tower is opened (and homed) when the thread starts. A tower that fails (port lost,
+    controller silent, homing failed, a heading not reached, the camera's frame source raising
+    ``OSError`` or ``RuntimeError``) is closed, the failure counted (``tower_<Error>``) and
+    logged once per new problem, and opened again every ``reconnect_s``: the agent keeps
+    running, with no range sensor until the tower is back. ``open_camera`` and
+    ``close_camera``, if given, go with each opening and closing of the tower (a camera
+    unplugged with it is opened again with it)."""
+
+    def __init__(self, tower: Tower, reconnect_s: float = 1.0,
+                 open_camera: Callable[[], None] | None = None,
+                 close_camera: Callable[[], None] | None = None) -> None:
+        self.tower = tower
+        self.reconnect_s = reconnect_s
+        self.open_camera, self.close_camera = open_camera, close_camera
+        self.counters: Counter[str] = Counter()
+        self.connected = threading.Event()
+        self.last_error = ""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, on_sweep: Callable[[Sweep], None]) -> None:
+        self._thread = threading.Thread(target=self._run, args=(on_sweep,), daemon=True,
+                                        name="tower-source")
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+
+    def all_counters(self) -> dict[str, int]:
+        return {**self.tower.counters, **self.counters}
+
+    def _run(self, on_sweep: Callable[[Sweep], None]) -> None:
+        while not self._stop.is_set():
+            try:
+                self._session(on_sweep)
+            except (TowerError, OSError, RuntimeError) as e:
+                self.counters[f"tower_{type(e).__name__}"] += 1
+                if str(e) != self.last_error:      # each new problem once, not every retry
+                    log.warning("tower: %s; retrying every %g s", e, self.reconnect_s)
+                    self.last_error = str(e)
+            finally:
+                self.connected.clear()
+                self._shutdown()
+            self._stop.wait(self.reconnect_s)
+
+    def _session(self, on_sweep: Callable[[Sweep], None]) -> None:
+        if self.open_camera is not None:
+            self.open_camera()
+        self.tower.open()
+        self.connected.set()
+        self.counters["connects"] += 1
+        if self.last_error:
+            log.info("tower on %s back", self.tower.port)
+            self.last_error = ""
+        while not self._stop.is_set():
+            sweep = self.tower.sweep()
+            self.counters["sweeps"] += 1
+            on_sweep(sweep)
+
+    def _shutdown(self) -> None:
+        try:
+            self.tower.close()
+        except (TowerError, OSError) as e:        # the port may be gone already
+            log.debug("tower: close: %s", e)
+        if self.close_camera is not None:
+            try:
+                self.close_camera()
+            except (OSError, RuntimeError) as e:
+                log.debug("depth camera: close: %s", e)
