@@ -16,7 +16,7 @@ from robot_agent.drivers.base import SerialBase
 from robot_agent.drivers.camera import CalibrationError, OpenCVCamera, load_calibration
 from robot_agent.drivers.realsense import RealSenseDepth
 from robot_agent.drivers.rplidar import RplidarSource
-from robot_agent.drivers.tower import Tower, TowerSource
+from robot_agent.drivers.tower import DepthCamera, Tower, TowerSource
 
 
 def hardware_backend(cfg: HardwareConfig) -> Backend:
@@ -62,11 +62,10 @@ def hardware_backend(cfg: HardwareConfig) -> Backend:
                    counters=counters)
 
 
-def depth_tower(tc: TowerConfig, base: Base,
-                frames: RealSenseDepth | None = None) -> TowerSource:
+def depth_tower(tc: TowerConfig, base: Base, frames: DepthCamera | None = None) -> TowerSource:
     """The tower of ``tc`` with its depth camera (``frames``; a RealSense by default), the
     views placed by ``base``'s odometry at each frame's capture time."""
-    cam = frames or RealSenseDepth(tc.camera_width, tc.camera_height, tc.camera_fps,
+    cam: DepthCamera = frames or RealSenseDepth(tc.camera_width, tc.camera_height, tc.camera_fps,
                                    tc.camera_serial)
 
     def odometry_at(stamp_ns: int) -> Pose | None:

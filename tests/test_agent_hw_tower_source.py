@@ -170,7 +170,7 @@ def test_the_backend_wiring_takes_the_intrinsics_when_the_camera_opens(tmp_path:
     cam = RoomCamera()
     cam.fake = fake_at(tmp_path / "tower")
     base = StillBase()
-    src = depth_tower(cfg.hardware.tower, base, frames=cam)  # type: ignore[arg-type]
+    src = depth_tower(cfg.hardware.tower, base, frames=cam)
     assert math.isnan(src.tower.fx)               # not known before the camera is open
     got = Sweeps()
     try:

@@ -41,7 +41,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import serial
@@ -81,6 +81,19 @@ class DepthFrame:
     depth: np.ndarray          # (H, W) depth along the optical axis, in units of ``scale_m``
     stamp_ns: int              # capture time on the host clock (time.time_ns)
     scale_m: float = 0.001     # RealSense z16: millimetres
+
+
+class DepthCamera(Protocol):
+    """A depth camera as the tower's source of frames: its intrinsics are known once open."""
+
+    fx: float
+    cx: float
+
+    def open(self) -> None: ...
+
+    def grab(self) -> DepthFrame: ...
+
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)

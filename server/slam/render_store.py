@@ -31,11 +31,10 @@ log = logging.getLogger(__name__)
 F32 = NDArray[np.float32]
 
 
-def stacked(hits: F64, misses: F64) -> F32:
-    """Both point sets (N, 2) and (K, 2) stacked in single precision, without non-finite rows."""
-    both = np.concatenate([np.asarray(hits, dtype=np.float32).reshape(-1, 2),
-                           np.asarray(misses, dtype=np.float32).reshape(-1, 2)])
-    return both[np.isfinite(both).all(axis=1)]
+def finite32(points: F64) -> F32:
+    """Points (N, 2) in single precision, without non-finite rows."""
+    p = np.asarray(points, dtype=np.float32).reshape(-1, 2)
+    return p[np.isfinite(p).all(axis=1)]
 
 
 class RenderStore:
@@ -139,9 +138,8 @@ class RenderScan:
 
     @classmethod
     def of(cls, hits: F64, misses: F64, spill: bool = True) -> RenderScan:
-        n_hits = int(np.isfinite(np.asarray(hits, dtype=np.float32).reshape(-1, 2)).all(axis=1)
-                     .sum())
-        return cls(stacked(hits, misses), n_hits, spill)
+        h = finite32(hits)
+        return cls(np.concatenate([h, finite32(misses)]), len(h), spill)
 
     @property
     def on_disk(self) -> bool:
