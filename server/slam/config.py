@@ -103,9 +103,9 @@ class KeyframeConfig(ConfigModel):
     reuse_deg: float = Field(180.0, gt=0, le=180.0, description=(
         "... and this heading (180: any, as a 360° scanner sees the same from every heading)"))
     render_on_disk: bool = Field(True, description=(
-        "keep what only drawing the map needs (every return of a keyframe, as 16-bit steps of "
-        "1 mm) in an unlinked file in MRSLAM_RENDER_DIR or the temporary folder instead of in "
-        "memory; off: in memory"))
+        "keep what only drawing the map needs (every return of a keyframe, single precision) "
+        "in an unlinked file in MRSLAM_RENDER_DIR, the server's state folder or the temporary "
+        "folder instead of in memory; off: in memory"))
 
 
 class LocalMapConfig(ConfigModel):

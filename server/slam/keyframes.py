@@ -21,8 +21,8 @@ F32 = NDArray[np.float32]
 class Keyframe:
     """A scan kept in the graph: key index k, stamp, its odometry pose, the points with a
     normal it is matched by (``matchable``, robot frame, double precision) and what only
-    drawing the map needs (``render``: every return and the ends of empty beams, as int16
-    steps, on disk by default: ``server.slam.render_store``)."""
+    drawing the map needs (``render``: every return and the ends of empty beams, single
+    precision, on disk by default: ``server.slam.render_store``)."""
 
     index: int
     stamp_ns: int

@@ -25,10 +25,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
 
 log = logging.getLogger(__name__)
-
-F32 = NDArray[np.float32]
 
 
 def finite32(points: F64) -> F32:
@@ -47,7 +46,6 @@ class RenderStore:
         self._fd = fd
         self._end = 0
         self._lock = threading.Lock()
-        self.bytes = 0
 
     def put(self, q: F32) -> int:
         raw = np.ascontiguousarray(q, dtype=np.float32).tobytes()
@@ -57,7 +55,6 @@ class RenderStore:
         written = os.pwrite(self._fd, raw, at)
         if written != len(raw):
             raise OSError(f"render store: wrote {written} of {len(raw)} bytes")
-        self.bytes += len(raw)
         return at
 
     def get(self, at: int, rows: int) -> F32:
