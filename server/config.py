@@ -130,6 +130,15 @@ class TeamsConfig(ConfigModel):
     approach_range_m: float = Field(10.0, ge=0.0, description="a moving thing the LIDAR sees "
                                     "farther than a tag can be read, up to this range, is "
                                     "approached until its tag can be (0: never)")
+    refusals_to_pause: int = Field(3, ge=0, description="two teams whose merge the maps "
+                                   "refused this many times within refusal_pause_s stop "
+                                   "seeking each other (tag calls, approaches of movers, "
+                                   "planned meetings) until fewer refusals are that recent: "
+                                   "robots that keep reading each other's tags but cannot "
+                                   "merge go back to exploring. Sightings are still tried "
+                                   "(0: never pause)")
+    refusal_pause_s: float = Field(60.0, gt=0.0, description="... the window of those "
+                                   "refusals [s]")
     max_map_turn_sigmas: float = Field(3.0, gt=0.0, description="a merge is refused when "
                                        "its maps, matched where they overlap, turn its "
                                        "transform by more than this many σ of its rotation, "

@@ -131,6 +131,10 @@ class Team:
     merged_into: str | None = None
 
 
+def _pair(team_a: str, team_b: str) -> tuple[str, str]:
+    return (team_a, team_b) if team_a <= team_b else (team_b, team_a)
+
+
 class Fleet:
     """Robots, teams, merges and team grids; one thread uses it."""
 
@@ -142,11 +146,44 @@ class Fleet:
         self.merges: list[MergeRecord] = []
         #: each team's planning grid as of the last coverage update (``server.progress``)
         self.latest_grids: dict[str, PlanningGrid] = {}
+        #: refused merges of two teams (ids in order): the stamps of the latest refusals
+        self.refusals: dict[tuple[str, str], list[int]] = {}
         self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
         #: a worker of a split server numbers its robots n·64 + its worker number, so that
         #: graphs moved between workers never share keys
         w = cfg.cluster.worker
         self._key_stride, self._key_offset = (1, 0) if w is None else (64, w)
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self.__dict__.setdefault("refusals", {})   # saved before refusals paused seeking
+
+    # -- refused merges --------------------------------------------------------------------
+    def refused(self, team_a: str, team_b: str, stamp_ns: int) -> None:
+        """The maps refused a merge of two teams (see ``seeking_paused``)."""
+        n = self.cfg.teams.refusals_to_pause
+        stamps = self.refusals.setdefault(_pair(team_a, team_b), [])
+        stamps.append(stamp_ns)
+        del stamps[:-max(n, 1)]
+        # pairs of teams that are gone (merged) are forgotten
+        self.refusals = {k: v for k, v in self.refusals.items()
+                         if k[0] in self.teams and k[1] in self.teams}
+
+    def seeking_paused(self, team_a: str, team_b: str, now_ns: int) -> bool:
+        """Two teams whose merge the maps refused ``teams.refusals_to_pause`` times within
+        the last ``teams.refusal_pause_s``: their robots do not seek each other out (calls,
+        approaches, meetings). Robots that read each other's tags but whose maps disagree
+        would otherwise follow each other instead of exploring."""
+        t = self.cfg.teams
+        stamps = self.refusals.get(_pair(team_a, team_b), [])
+        return 0 < t.refusals_to_pause <= len(stamps) and \
+            now_ns - stamps[-t.refusals_to_pause] < t.refusal_pause_s * 1e9
+
+    def others_paused(self, r: RobotContext, now_ns: int) -> bool:
+        """Every team but ``r``'s is one it does not seek out now (see ``seeking_paused``)."""
+        others = [tid for tid in self.teams if tid != r.team_id]
+        return bool(others) and all(self.seeking_paused(r.team_id, tid, now_ns)
+                                    for tid in others)
 
     # -- robots ----------------------------------------------------------------------------
     def add_robot(self, robot_id: str) -> RobotContext:

@@ -115,6 +115,12 @@ class Steering:
             return None
         if len(self.fleet.teams) < 2 and not r.look.active:
             return None
+        if self.fleet.others_paused(r, r.last_stamp_ns):
+            # every other team is one whose merge the maps keep refusing: nobody to seek
+            if r.look.active:
+                r.look.reset()
+                r.nav.drop_target()
+            return None
         twist = r.look.step(now_s, r.pose, points_robot, self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))
         if twist is None:

@@ -31,6 +31,7 @@ class RendezvousCounters:
     map_merges: int = 0         # merges on the maps alone
     meetings: int = 0           # planned to settle a transform the maps left open
     meetings_refuted: int = 0   # ... whose robots did not meet
+    calls_paused: int = 0       # tag calls not passed on: the two teams' maps keep refusing a merge
 
     def as_dict(self) -> dict[str, int]:
         """The counters by their names in the run's outputs."""

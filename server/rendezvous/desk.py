@@ -88,6 +88,10 @@ class SightingDesk:
             return
         if not all(math.isfinite(v) for v in (det.range_m, det.bearing_rad, det.yaw_rad)):
             return   # counted as bad where the sighting itself is refused
+        if self.fleet.seeking_paused(a.team_id, b.team_id, max(a.last_stamp_ns,
+                                                               b.last_stamp_ns)):
+            self.counters.calls_paused += 1
+            return   # their maps keep refusing the merge: both go on exploring
         rel = np.array([det.range_m * math.cos(det.bearing_rad),
                         det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
         now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9

@@ -300,6 +300,8 @@ class MapMatchDesk:
         fleet, t = self.fleet, self.cfg.teams
         if e.status != "pending":
             return      # refuted, refused, merged, or already being met
+        if fleet.seeking_paused(e.team_a, e.team_b, now_ns):
+            return      # their maps keep refusing a merge (see Fleet.seeking_paused)
         busy = any(fleet.robots[r].meeting is not None
                    for tm in (e.team_a, e.team_b) for r in fleet.teams[tm].robot_ids)
         if busy:

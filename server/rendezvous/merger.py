@@ -171,6 +171,7 @@ class Merger:
     def _refuse(self, p: MergeProposal, why: str, stamp: int) -> None:
         ta, tb = self.fleet.teams[p.team_a], self.fleet.teams[p.team_b]
         self.verifier.reject(p)
+        self.fleet.refused(ta.team_id, tb.team_id, stamp)
         self.counters.merges_rejected += 1
         log.info("%s not merged into %s: %s (T %s from %d sightings)", tb.team_id, ta.team_id,
                  why, np.asarray(p.T_ab).round(3), len(p.records))
