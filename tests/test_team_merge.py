@@ -473,3 +473,55 @@ def test_a_team_merged_on_sightings_snapshots_and_comes_back(tmp_path: Path) -> 
     for rid, r in core.robots.items():
         assert np.allclose(back.robots[rid].slam.keyframe_poses(), r.slam.keyframe_poses(),
                            atol=1e-4)
+
+
+def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> None:
+    """Robots that keep reading each other's tags while their maps refuse the merge would
+    follow each other instead of exploring: after ``refusals_to_pause`` refusals within
+    ``refusal_pause_s``, sightings still count but call nobody, no approach goes on, and
+    the calls come back once the refusals are older than that."""
+    from server.rendezvous.evidence import MergeProposal
+
+    core, _ = run(60, cfg=config(min_sightings=1000, max_conflict_ratio=1.0))
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert len(core.teams) == 2
+    T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
+    meet = r2.pose                     # turned 4° about r2's place: the maps refuse it
+    at_meet = compose(T_true, meet)
+    T_bad = compose(compose(at_meet, np.array([0.0, 0.0, math.radians(4.0)])),
+                    between(meet, np.zeros(3)))
+    C = np.diag([0.02 ** 2, 0.02 ** 2, math.radians(0.8) ** 2])
+    now = r1.last_stamp_ns
+    far = TagDetection(tag_id=2, observed_robot_id="r2", range_m=3.0, bearing_rad=0.3,
+                       yaw_rad=math.pi, sigma_range_m=0.05, sigma_bearing_rad=0.02,
+                       sigma_yaw_rad=0.5)
+
+    def sighting() -> None:
+        r1.look.call = r2.look.call = None
+        core.desk._call("r1", far)
+
+    for i in range(core.cfg.teams.refusals_to_pause):
+        assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
+        sighting()
+        assert r1.look.call is not None and r2.look.call is not None   # still seeking
+        core.merger.try_merge(MergeProposal("team-r1", "team-r2", (), T_bad, C, T_bad),
+                              now - 1000 * (2 - i))
+    assert core.tag_counters["merges_rejected"] == core.cfg.teams.refusals_to_pause
+    assert core.fleet.seeking_paused("team-r2", "team-r1", now)          # either order
+    sighting()
+    assert r1.look.call is None and r2.look.call is None
+    assert core.tag_counters["calls_paused"] == 1
+    # an approach under way is dropped, and nobody is looked for
+    r1.look.approaching, r1.look.track = True, r1.pose[:2] + 1.0
+    assert r1.look.active
+    assert core.steering.look(r1, now * 1e-9, np.zeros((0, 2))) is None
+    assert not r1.look.active
+    # the refusals age: the robots seek each other again
+    later = now + int(core.cfg.teams.refusal_pause_s * 1e9) + 1
+    assert not core.fleet.seeking_paused("team-r1", "team-r2", later)
+    r1.last_stamp_ns = r2.last_stamp_ns = later
+    sighting()
+    assert r1.look.call is not None and r2.look.call is not None
+    # and with refusals_to_pause 0 nothing ever pauses
+    core.cfg.teams.refusals_to_pause = 0
+    assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
