@@ -131,8 +131,7 @@ class TeamsConfig(ConfigModel):
                                     "farther than a tag can be read, up to this range, is "
                                     "approached until its tag can be (0: never)")
     refusals_to_pause: int = Field(3, ge=0, description="two teams whose merge the maps "
-                                   "contradicted (they disagree, or turn the transform) "
-                                   "this many times within refusal_pause_s stop "
+                                   "refused this many times within refusal_pause_s stop "
                                    "seeking each other (tag calls, approaches of movers, "
                                    "planned meetings) until fewer refusals are that recent: "
                                    "robots that keep reading each other's tags but cannot "

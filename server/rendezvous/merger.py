@@ -39,13 +39,7 @@ MAP_KIND_MIN_INLIERS = 0.3
 
 
 class MergeRefused(Exception):
-    """The maps say no: the proposal's evidence is dropped. ``contradicted``: the maps
-    contradict the transform (they disagree, or turn it), rather than not yet overlapping
-    enough to confirm it."""
-
-    def __init__(self, message: str, contradicted: bool = False) -> None:
-        super().__init__(message)
-        self.contradicted = contradicted
+    """The maps say no: the proposal's evidence is dropped."""
 
 
 class MergeDeferred(Exception):
@@ -79,7 +73,7 @@ class Merger:
             self.counters.merges_deferred += 1
             return None
         except MergeRefused as e:
-            self._refuse(p, str(e), stamp, e.contradicted)
+            self._refuse(p, str(e), stamp)
             return None
         return self.commit(p, stamp, info, extra_links, kind)
 
@@ -95,7 +89,7 @@ class Merger:
         if agree.occupied_checked >= t.min_checked_cells and \
                 agree.conflict_ratio > t.max_conflict_ratio:
             raise MergeRefused(f"maps disagree ({agree.conflicts} of {agree.occupied_checked} "
-                               "wall cells)", contradicted=True)
+                               "wall cells)")
         tried = [0]
         robots = self.fleet.robots
         # a map-matched transform comes from places where the maps overlap, and it is at their
@@ -122,7 +116,7 @@ class Merger:
             if abs(turn) > bound:
                 raise MergeRefused(f"the maps turn the transform by {math.degrees(turn):.2f}° "
                                    f"({found} matches), beyond its uncertainty "
-                                   f"({math.degrees(bound):.2f}°)", contradicted=True)
+                                   f"({math.degrees(bound):.2f}°)")
         far = max((r.sighting.range_m for r in p.records), default=0.0)
         if far > t.max_sighting_range_m and found == 0 and kind == "tags":
             # sightings from afar (located by the LIDAR): a small error across the line of
@@ -174,11 +168,10 @@ class Merger:
                          covariance=[float(v) for v in p.cov_ab.reshape(-1)])
         return rec
 
-    def _refuse(self, p: MergeProposal, why: str, stamp: int, contradicted: bool) -> None:
+    def _refuse(self, p: MergeProposal, why: str, stamp: int) -> None:
         ta, tb = self.fleet.teams[p.team_a], self.fleet.teams[p.team_b]
         self.verifier.reject(p)
-        if contradicted:    # (maps that do not overlap enough yet: the robots seek on)
-            self.fleet.refused(ta.team_id, tb.team_id, stamp)
+        self.fleet.refused(ta.team_id, tb.team_id, stamp)
         self.counters.merges_rejected += 1
         log.info("%s not merged into %s: %s (T %s from %d sightings)", tb.team_id, ta.team_id,
                  why, np.asarray(p.T_ab).round(3), len(p.records))
