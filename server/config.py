@@ -131,14 +131,17 @@ class TeamsConfig(ConfigModel):
                                     "farther than a tag can be read, up to this range, is "
                                     "approached until its tag can be (0: never)")
     refusals_to_pause: int = Field(3, ge=0, description="two teams whose merge the maps "
-                                   "refused this many times within refusal_pause_s stop "
-                                   "seeking each other (tag calls, approaches of movers, "
-                                   "planned meetings) until fewer refusals are that recent: "
-                                   "robots that keep reading each other's tags but cannot "
-                                   "merge go back to exploring. Sightings are still tried "
-                                   "(0: never pause)")
-    refusal_pause_s: float = Field(60.0, gt=0.0, description="... the window of those "
-                                   "refusals [s]")
+                                   "refused at least this many times, over at least "
+                                   "refusal_streak_s, the latest within refusal_pause_s, "
+                                   "stop seeking each other (tag calls, approaches of "
+                                   "movers, planned meetings): robots that keep reading each "
+                                   "other's tags but cannot merge go back to exploring. "
+                                   "Sightings are still tried (0: never pause)")
+    refusal_streak_s: float = Field(20.0, ge=0.0, description="... the refusals spread over "
+                                    "at least this long [s] (a burst while two robots face "
+                                    "each other is not a reason to stop)")
+    refusal_pause_s: float = Field(60.0, gt=0.0, description="... and the latest this "
+                                   "recent [s]; a gap this long also starts the count again")
     max_map_turn_sigmas: float = Field(3.0, gt=0.0, description="a merge is refused when "
                                        "its maps, matched where they overlap, turn its "
                                        "transform by more than this many σ of its rotation, "

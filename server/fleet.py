@@ -146,8 +146,9 @@ class Fleet:
         self.merges: list[MergeRecord] = []
         #: each team's planning grid as of the last coverage update (``server.progress``)
         self.latest_grids: dict[str, PlanningGrid] = {}
-        #: refused merges of two teams (ids in order): the stamps of the latest refusals
-        self.refusals: dict[tuple[str, str], list[int]] = {}
+        #: refused merges of two teams (ids in order): the current run of refusals, none
+        #: more than ``teams.refusal_pause_s`` after the one before (first, latest, how many)
+        self.refusals: dict[tuple[str, str], tuple[int, int, int]] = {}
         self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
         #: a worker of a split server numbers its robots n·64 + its worker number, so that
         #: graphs moved between workers never share keys
@@ -161,23 +162,29 @@ class Fleet:
     # -- refused merges --------------------------------------------------------------------
     def refused(self, team_a: str, team_b: str, stamp_ns: int) -> None:
         """The maps refused a merge of two teams (see ``seeking_paused``)."""
-        n = self.cfg.teams.refusals_to_pause
-        stamps = self.refusals.setdefault(_pair(team_a, team_b), [])
-        stamps.append(stamp_ns)
-        del stamps[:-max(n, 1)]
+        key = _pair(team_a, team_b)
+        run = self.refusals.get(key)
+        if run is None or stamp_ns - run[1] > self.cfg.teams.refusal_pause_s * 1e9:
+            run = (stamp_ns, stamp_ns, 0)
+        self.refusals[key] = (run[0], max(run[1], stamp_ns), run[2] + 1)
         # pairs of teams that are gone (merged) are forgotten
         self.refusals = {k: v for k, v in self.refusals.items()
                          if k[0] in self.teams and k[1] in self.teams}
 
     def seeking_paused(self, team_a: str, team_b: str, now_ns: int) -> bool:
-        """Two teams whose merge the maps refused ``teams.refusals_to_pause`` times within
-        the last ``teams.refusal_pause_s``: their robots do not seek each other out (calls,
-        approaches, meetings). Robots that read each other's tags but whose maps disagree
-        would otherwise follow each other instead of exploring."""
+        """Two teams whose merge the maps have kept refusing: at least
+        ``teams.refusals_to_pause`` refusals, spread over ``teams.refusal_streak_s`` or more,
+        the latest within ``teams.refusal_pause_s``. Their robots do not seek each other out
+        (calls, approaches, meetings): robots that read each other's tags but whose maps
+        disagree would otherwise follow each other instead of exploring. A burst of refusals
+        while two robots face each other at a meeting is not such a run."""
         t = self.cfg.teams
-        stamps = self.refusals.get(_pair(team_a, team_b), [])
-        return 0 < t.refusals_to_pause <= len(stamps) and \
-            now_ns - stamps[-t.refusals_to_pause] < t.refusal_pause_s * 1e9
+        run = self.refusals.get(_pair(team_a, team_b))
+        if run is None or t.refusals_to_pause <= 0:
+            return False
+        first, last, count = run
+        return count >= t.refusals_to_pause and last - first >= t.refusal_streak_s * 1e9 \
+            and now_ns - last < t.refusal_pause_s * 1e9
 
     def others_paused(self, r: RobotContext, now_ns: int) -> bool:
         """Every team but ``r``'s is one it does not seek out now (see ``seeking_paused``)."""

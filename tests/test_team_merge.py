@@ -477,14 +477,16 @@ def test_a_team_merged_on_sightings_snapshots_and_comes_back(tmp_path: Path) -> 
 
 def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> None:
     """Robots that keep reading each other's tags while their maps refuse the merge would
-    follow each other instead of exploring: after ``refusals_to_pause`` refusals within
-    ``refusal_pause_s``, sightings still count but call nobody, no approach goes on, and
-    the calls come back once the refusals are older than that."""
+    follow each other instead of exploring: after ``refusals_to_pause`` refusals spread over
+    ``refusal_streak_s``, sightings still count but call nobody, no approach goes on, and
+    the calls come back once the latest refusal is ``refusal_pause_s`` old. A burst of
+    refusals (two robots facing each other) does not pause them."""
     from server.rendezvous.evidence import MergeProposal
 
     core, _ = run(60, cfg=config(min_sightings=1000, max_conflict_ratio=1.0))
     r1, r2 = core.robots["r1"], core.robots["r2"]
-    assert len(core.teams) == 2
+    t = core.cfg.teams
+    assert len(core.teams) == 2 and t.refusals_to_pause == 3
     T_true = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))
     meet = r2.pose                     # turned 4° about r2's place: the maps refuse it
     at_meet = compose(T_true, meet)
@@ -500,13 +502,20 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
         r1.look.call = r2.look.call = None
         core.desk._call("r1", far)
 
-    for i in range(core.cfg.teams.refusals_to_pause):
-        assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
-        sighting()
-        assert r1.look.call is not None and r2.look.call is not None   # still seeking
+    def refuse(stamp_ns: int) -> None:
         core.merger.try_merge(MergeProposal("team-r1", "team-r2", (), T_bad, C, T_bad),
-                              now - 1000 * (2 - i))
-    assert core.tag_counters["merges_rejected"] == core.cfg.teams.refusals_to_pause
+                              stamp_ns)
+
+    s = int(1e9)
+    streak = int(t.refusal_streak_s * s)
+    for dt in (0, s // 10, s // 5):                 # a burst: three refusals within 0.2 s
+        refuse(now - streak - 5 * s + dt)
+    refuse(now - streak // 2)                       # four, over half the streak
+    assert core.tag_counters["merges_rejected"] == 4
+    assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
+    sighting()
+    assert r1.look.call is not None and r2.look.call is not None   # still seeking
+    refuse(now)                                     # five, over more than the streak
     assert core.fleet.seeking_paused("team-r2", "team-r1", now)          # either order
     sighting()
     assert r1.look.call is None and r2.look.call is None
