@@ -131,17 +131,14 @@ class TeamsConfig(ConfigModel):
                                     "farther than a tag can be read, up to this range, is "
                                     "approached until its tag can be (0: never)")
     refusals_to_pause: int = Field(3, ge=0, description="two teams whose merge the maps "
-                                   "refused at least this many times, over at least "
-                                   "refusal_streak_s, the latest within refusal_pause_s, "
-                                   "stop seeking each other (tag calls, approaches of "
-                                   "movers, planned meetings): robots that keep reading each "
-                                   "other's tags but cannot merge go back to exploring. "
-                                   "Sightings are still tried (0: never pause)")
-    refusal_streak_s: float = Field(20.0, ge=0.0, description="... the refusals spread over "
-                                    "at least this long [s] (a burst while two robots face "
-                                    "each other is not a reason to stop)")
-    refusal_pause_s: float = Field(60.0, gt=0.0, description="... and the latest this "
-                                   "recent [s]; a gap this long also starts the count again")
+                                   "refused this many times, none refusal_pause_s after the "
+                                   "one before and the latest within it, stop seeking each "
+                                   "other (tag calls, approaches of movers, planned "
+                                   "meetings) while neither has finished: robots that keep "
+                                   "reading each other's tags but cannot merge go back to "
+                                   "exploring. Sightings are still tried (0: never pause)")
+    refusal_pause_s: float = Field(60.0, gt=0.0, description="... that time [s]; a gap this "
+                                   "long also starts the count again")
     max_map_turn_sigmas: float = Field(3.0, gt=0.0, description="a merge is refused when "
                                        "its maps, matched where they overlap, turn its "
                                        "transform by more than this many σ of its rotation, "

@@ -172,22 +172,25 @@ class Fleet:
                          if k[0] in self.teams and k[1] in self.teams}
 
     def seeking_paused(self, team_a: str, team_b: str, now_ns: int) -> bool:
-        """Two teams whose merge the maps have kept refusing: at least
-        ``teams.refusals_to_pause`` refusals, spread over ``teams.refusal_streak_s`` or more,
-        the latest within ``teams.refusal_pause_s``. Their robots do not seek each other out
-        (calls, approaches, meetings): robots that read each other's tags but whose maps
-        disagree would otherwise follow each other instead of exploring. A burst of refusals
-        while two robots face each other at a meeting is not such a run."""
+        """Two teams whose merge the maps have kept refusing: ``teams.refusals_to_pause``
+        refusals or more, none ``teams.refusal_pause_s`` after the one before, the latest
+        within that time. Their robots do not seek each other out (calls, approaches,
+        meetings): robots that read each other's tags but whose maps disagree would
+        otherwise follow each other instead of exploring. A team that has finished
+        exploring has nothing better to do, and seeks on."""
         t = self.cfg.teams
         run = self.refusals.get(_pair(team_a, team_b))
         if run is None or t.refusals_to_pause <= 0:
             return False
-        first, last, count = run
-        return count >= t.refusals_to_pause and last - first >= t.refusal_streak_s * 1e9 \
-            and now_ns - last < t.refusal_pause_s * 1e9
+        if any(tid in self.teams and self.teams[tid].finished for tid in (team_a, team_b)):
+            return False
+        _, last, count = run
+        return count >= t.refusals_to_pause and now_ns - last < t.refusal_pause_s * 1e9
 
     def others_paused(self, r: RobotContext, now_ns: int) -> bool:
         """Every team but ``r``'s is one it does not seek out now (see ``seeking_paused``)."""
+        if r.meeting is not None:
+            return False        # a meeting planned before the refusals: it goes on
         others = [tid for tid in self.teams if tid != r.team_id]
         return bool(others) and all(self.seeking_paused(r.team_id, tid, now_ns)
                                     for tid in others)

@@ -477,10 +477,9 @@ def test_a_team_merged_on_sightings_snapshots_and_comes_back(tmp_path: Path) -> 
 
 def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> None:
     """Robots that keep reading each other's tags while their maps refuse the merge would
-    follow each other instead of exploring: after ``refusals_to_pause`` refusals spread over
-    ``refusal_streak_s``, sightings still count but call nobody, no approach goes on, and
-    the calls come back once the latest refusal is ``refusal_pause_s`` old. A burst of
-    refusals (two robots facing each other) does not pause them."""
+    follow each other instead of exploring: after ``refusals_to_pause`` refusals without a
+    ``refusal_pause_s`` gap, sightings still count but call nobody, no approach goes on,
+    and the calls come back once the latest refusal is that old, or once a team is done."""
     from server.rendezvous.evidence import MergeProposal
 
     core, _ = run(60, cfg=config(min_sightings=1000, max_conflict_ratio=1.0))
@@ -507,15 +506,15 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
                               stamp_ns)
 
     s = int(1e9)
-    streak = int(t.refusal_streak_s * s)
-    for dt in (0, s // 10, s // 5):                 # a burst: three refusals within 0.2 s
-        refuse(now - streak - 5 * s + dt)
-    refuse(now - streak // 2)                       # four, over half the streak
-    assert core.tag_counters["merges_rejected"] == 4
+    pause = int(t.refusal_pause_s * s)
+    refuse(now - 3 * pause)                         # long ago: a count of its own
+    refuse(now - pause // 2)
+    refuse(now - pause // 4)                        # two in this run
+    assert core.tag_counters["merges_rejected"] == 3
     assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
     sighting()
     assert r1.look.call is not None and r2.look.call is not None   # still seeking
-    refuse(now)                                     # five, over more than the streak
+    refuse(now)                                     # three
     assert core.fleet.seeking_paused("team-r2", "team-r1", now)          # either order
     sighting()
     assert r1.look.call is None and r2.look.call is None
@@ -525,6 +524,18 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
     assert r1.look.active
     assert core.steering.look(r1, now * 1e-9, np.zeros((0, 2))) is None
     assert not r1.look.active
+    # a robot on its way to a meeting planned before goes on with it
+    from server.fleet import Meeting
+
+    r1.meeting = Meeting("go", "r2", 0, now * 1e-9 + 60.0)
+    assert not core.fleet.others_paused(r1, now)
+    sighting()
+    assert r1.look.call is not None
+    r1.meeting = None
+    # a team that has finished exploring seeks the other again
+    core.teams["team-r1"].finished = True
+    assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
+    core.teams["team-r1"].finished = False
     # the refusals age: the robots seek each other again
     later = now + int(core.cfg.teams.refusal_pause_s * 1e9) + 1
     assert not core.fleet.seeking_paused("team-r1", "team-r2", later)

@@ -88,8 +88,8 @@ class SightingDesk:
             return
         if not all(math.isfinite(v) for v in (det.range_m, det.bearing_rad, det.yaw_rad)):
             return   # counted as bad where the sighting itself is refused
-        if self.fleet.seeking_paused(a.team_id, b.team_id, max(a.last_stamp_ns,
-                                                               b.last_stamp_ns)):
+        if a.meeting is None and b.meeting is None and self.fleet.seeking_paused(
+                a.team_id, b.team_id, max(a.last_stamp_ns, b.last_stamp_ns)):
             self.counters.calls_paused += 1
             return   # their maps keep refusing the merge: both go on exploring
         rel = np.array([det.range_m * math.cos(det.bearing_rad),
