@@ -147,8 +147,8 @@ class Fleet:
         #: each team's planning grid as of the last coverage update (``server.progress``)
         self.latest_grids: dict[str, PlanningGrid] = {}
         #: refused merges of two teams (ids in order): the current run of refusals, none
-        #: more than ``teams.refusal_pause_s`` after the one before (first, latest, how many)
-        self.refusals: dict[tuple[str, str], tuple[int, int, int]] = {}
+        #: more than ``teams.refusal_pause_s`` after the one before (latest, how many)
+        self.refusals: dict[tuple[str, str], tuple[int, int]] = {}
         self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
         #: a worker of a split server numbers its robots n·64 + its worker number, so that
         #: graphs moved between workers never share keys
@@ -163,10 +163,10 @@ class Fleet:
     def refused(self, team_a: str, team_b: str, stamp_ns: int) -> None:
         """The maps refused a merge of two teams (see ``seeking_paused``)."""
         key = _pair(team_a, team_b)
-        run = self.refusals.get(key)
-        if run is None or stamp_ns - run[1] > self.cfg.teams.refusal_pause_s * 1e9:
-            run = (stamp_ns, stamp_ns, 0)
-        self.refusals[key] = (run[0], max(run[1], stamp_ns), run[2] + 1)
+        last, count = self.refusals.get(key, (stamp_ns, 0))
+        if stamp_ns - last > self.cfg.teams.refusal_pause_s * 1e9:
+            count = 0
+        self.refusals[key] = (max(last, stamp_ns), count + 1)
         # pairs of teams that are gone (merged) are forgotten
         self.refusals = {k: v for k, v in self.refusals.items()
                          if k[0] in self.teams and k[1] in self.teams}
@@ -184,7 +184,7 @@ class Fleet:
             return False
         if any(tid in self.teams and self.teams[tid].finished for tid in (team_a, team_b)):
             return False
-        _, last, count = run
+        last, count = run
         return count >= t.refusals_to_pause and now_ns - last < t.refusal_pause_s * 1e9
 
     def others_paused(self, r: RobotContext, now_ns: int) -> bool:
