@@ -185,7 +185,8 @@ class Fleet:
         if any(tid in self.teams and self.teams[tid].finished for tid in (team_a, team_b)):
             return False
         last, count = run
-        return count >= t.refusals_to_pause and now_ns - last < t.refusal_pause_s * 1e9
+        # (a clock stepped back before the latest refusal: seek, rather than wait for it)
+        return count >= t.refusals_to_pause and 0 <= now_ns - last < t.refusal_pause_s * 1e9
 
     def others_paused(self, r: RobotContext, now_ns: int) -> bool:
         """Every team but ``r``'s is one it does not seek out now (see ``seeking_paused``)."""

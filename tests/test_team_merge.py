@@ -524,6 +524,8 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
     assert r1.look.active
     assert core.steering.look(r1, now * 1e-9, np.zeros((0, 2))) is None
     assert not r1.look.active
+    # a clock stepped back before the latest refusal does not hold the pause for that long
+    assert not core.fleet.seeking_paused("team-r1", "team-r2", now - 1)
     # a robot on its way to a meeting planned before goes on with it
     from server.fleet import Meeting
 
