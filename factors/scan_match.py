@@ -52,6 +52,19 @@ def loop_closure_factor(key_i: int, key_j: int, T_i_j: ArrayLike, information: A
     return gtsam.BetweenFactorPose2(key_i, key_j, pose2(T_i_j), robust(gaussian(cov), kernel, k))
 
 
+#: σ of the position part of a heading-only tie: large enough to say nothing about it
+FREE_SIGMA_M = 1e3
+
+
+def heading_factor(key_i: int, key_j: int, T_i_j: ArrayLike, sigma_rad: float,
+                   huber_k: float = LOOP_HUBER_K) -> gtsam.BetweenFactorPose2:
+    """Between-factor that ties only the heading of key j relative to key i (``T_i_j[2]``):
+    its position part (``T_i_j[:2]``, the current estimate) has a σ of ``FREE_SIGMA_M``.
+    Under a Huber kernel."""
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([FREE_SIGMA_M, FREE_SIGMA_M, sigma_rad]))
+    return gtsam.BetweenFactorPose2(key_i, key_j, pose2(T_i_j), robust(noise, "huber", huber_k))
+
+
 def odometry_factor(key_i: int, key_j: int, T_i_j: ArrayLike, sigma_xy_m: float,
                     sigma_theta_rad: float) -> gtsam.BetweenFactorPose2:
     """Between-factor from wheel odometry alone (when no scan match could be trusted)."""

@@ -182,6 +182,37 @@ class LoopClosureConfig(ConfigModel):
     max_chi2: float = Field(16.0, gt=0, description="loop factors more inconsistent: removed")
 
 
+class SquareWallsConfig(ConfigModel):
+    """Headings held by square walls (``server.slam.heading``): where a robot's keyframes show
+    walls along two perpendicular directions, each such keyframe's heading is tied, modulo
+    90°, to the first one's."""
+
+    enabled: bool = Field(True, description="False: never")
+    narrow_only: bool = Field(
+        True, description="only for a narrow sensor (matcher.narrow_fov_deg), whose heading "
+        "drifts where it sees a few metres of wall; a 360° scan holds its own")
+    min_points: int = Field(20, ge=3, description="points with a normal a keyframe needs")
+    min_alignment: float = Field(
+        0.85, gt=0, le=1, description="a keyframe's normals must lie this close to one square "
+        "grid (|mean(exp(4iα))|; 1: all on it)")
+    agree_deg: float = Field(
+        3.0, gt=0, description="a keyframe agrees with the rule when its walls put its heading "
+        "within this of the estimate")
+    min_checked: int = Field(10, ge=1, description="keyframes checked before the rule is used")
+    min_agreement: float = Field(
+        0.7, gt=0, le=1, description="... of which this share must agree (walls that are not "
+        "square agree by chance about one time in fifteen)")
+    max_correction_deg: float = Field(
+        8.0, gt=0, lt=45, description="a keyframe whose walls say more is not tied (a wall off "
+        "the square grid)")
+    partners: int = Field(
+        4, ge=1, description="earlier keyframes a keyframe is tied to: the first that saw "
+        "square walls and others spread over the run")
+    sigma_deg: float = Field(
+        1.0, gt=0, description="σ of a keyframe's ties in heading, taken together")
+    huber_k: float = Field(1.345, gt=0, description="robust kernel on the tie")
+
+
 class GridConfig(ConfigModel):
     """Log-odds occupancy grid (probabilities, not log-odds, here)."""
 
@@ -214,4 +245,5 @@ class SlamConfig(ConfigModel):
     local_map: LocalMapConfig = LocalMapConfig()
     graph: GraphConfig = GraphConfig()
     loop: LoopClosureConfig = LoopClosureConfig()
+    square_walls: SquareWallsConfig = SquareWallsConfig()
     grid: GridConfig = GridConfig()

@@ -12,7 +12,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from factors.scan_match import loop_closure_factor, scan_match_factor, whitened_chi2
+from factors.scan_match import (
+    heading_factor,
+    loop_closure_factor,
+    scan_match_factor,
+    whitened_chi2,
+)
 from schemas.se2 import between, compose, pose_distance, transform_points, wrap_angle
 from server.slam.backend import (
     FactorRecord,
@@ -36,6 +41,7 @@ from server.slam.frontend import (
     odometry_step_suspicious,
 )
 from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.heading import SquareWalls
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
 from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
@@ -62,6 +68,7 @@ class SlamStats:
     loop_closures: int = 0
     loop_closures_removed: int = 0
     reused: int = 0   # scans re-anchored on a keyframe instead of adding one (``reuse``)
+    heading_ties: int = 0   # keyframes whose heading square walls tied (``square_walls``)
 
 
 @dataclass(frozen=True)
@@ -123,12 +130,20 @@ class RobotSlam:
         #: teammates sharing this graph, whose maps a narrow sensor matches against (set by
         #: the server before each scan; not kept in a snapshot)
         self.guides: list[RobotSlam] = []
+        self._square = self._square_walls()
+
+    def _square_walls(self) -> SquareWalls:
+        c = self.cfg.square_walls
+        return SquareWalls(c.min_points, c.min_alignment, c.agree_deg, c.max_correction_deg,
+                           c.min_checked, c.min_agreement, c.partners)
 
     def __getstate__(self) -> dict[str, object]:
         return {**self.__dict__, "guides": []}   # the teammates are the fleet's to keep
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update({"guides": [], "narrow": False, "_recent": [], **state})
+        if "_square" not in state:        # saved before square walls held the heading
+            self._square = self._square_walls()
         if "_icp_narrow" not in state:   # saved before narrow scans had their own
             self._icp_narrow = dataclasses.replace(
                 self._icp, min_normal_cos=self.cfg.matcher.narrow_min_normal_cos)
@@ -302,12 +317,34 @@ class RobotSlam:
         self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom,
                                               self.cfg.keyframes.render_on_disk))
         self.stats.keyframes = len(self.keyframes)
+        self._tie_heading(k, scan, match.T_map_robot)
         self._loops.add_edge(a, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
         self._anchor = k
         self._T_kf_robot = IDENTITY.copy()
         self._T_kf_moved_from = IDENTITY.copy()
         self._T_kf_map_cache = self.graph.pose(tr.key(k))
         return k
+
+    def _tie_heading(self, k: int, scan: ScanPoints, T_map_robot: F64) -> None:
+        """Tie keyframe ``k``'s heading to earlier keyframes' where square walls say what it
+        is (``server.slam.heading``)."""
+        c = self.cfg.square_walls
+        if not c.enabled or (c.narrow_only and not self.narrow):
+            return
+        tr = self.trajectory
+
+        def rel(j: int) -> float:
+            return float(wrap_angle(T_map_robot[2] - self.graph.pose(tr.key(j))[2]))
+
+        ties = self._square.observe(k, scan.normals, rel)
+        sigma = math.radians(c.sigma_deg) * math.sqrt(max(len(ties), 1))
+        for j, heading in ties:
+            T = between(self.graph.pose(tr.key(j)), T_map_robot)
+            T[2] = heading
+            add_constraint(self.graph, tr, heading_factor(tr.key(j), tr.key(k), T, sigma,
+                                                          c.huber_k), "heading")
+        if ties:
+            self.stats.heading_ties += 1
 
     def _close_loops(self, k: int) -> None:
         poses = self.keyframe_poses()
