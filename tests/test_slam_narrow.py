@@ -39,9 +39,11 @@ def test_a_narrow_scan_knows_its_field_of_view() -> None:
 
 
 def run(sensors: dict[str, str], seconds: float, slam: dict[str, Any] | None = None,
-        seed: int = 0) -> tuple[ServerCore, dict[str, float]]:
+        seed: int = 0, true_poses: dict[tuple[str, int], np.ndarray] | None = None
+        ) -> tuple[ServerCore, dict[str, float]]:
     """The robots exploring the small house from known starts (one team); the largest error
-    of each robot's pose against the truth, in its own start frame."""
+    of each robot's pose against the truth, in its own start frame. ``true_poses``, if given,
+    receives each robot's true pose at each scan's stamp."""
     spawn = {r: SPAWN[r] for r in sorted(sensors)}
     cfg = ServerConfig.model_validate({
         "robots": sorted(spawn), "slam": {"grid": {"resolution_m": 1 / 15}, **(slam or {})},
@@ -54,6 +56,8 @@ def run(sensors: dict[str, str], seconds: float, slam: dict[str, Any] | None = N
     for _ in range(round(seconds / 0.1)):
         obs = sim.sense()
         for rid in spawn:
+            if true_poses is not None:
+                true_poses[rid, obs.stamp_ns] = np.array(sim.robots[rid].pose)
             cmd = core.on_scan(scan_of(sim, obs, rid))
             sim.set_command(rid, cmd.v_mps, cmd.omega_rps)
             truth = between(np.array(spawn[rid]), np.array(sim.robots[rid].pose))
