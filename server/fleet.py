@@ -76,6 +76,9 @@ class RobotContext:
     sensor_range_m: float = float("inf")   # its latest scan's maximum range
     #: a narrow sensor's recent obstacles, for the reactive layer (``server.steering``)
     obstacles: ObstacleMemory | None = None
+    #: robots of other teams a tag sighting put near it lately: robot id -> (this robot's
+    #: stamp then, the other's place in this robot's map frame)
+    sighted: dict[str, tuple[int, F64]] | None = None
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first
@@ -262,6 +265,22 @@ class Fleet:
         if not len(xy):
             return np.zeros((0, 2))
         return transform_points(inverse(r.pose), xy)
+
+    def others_in_robot_frame(self, r: RobotContext) -> F64:
+        """Robots ``r`` keeps clear of, in its body frame: its live teammates, and robots of
+        other teams that a tag sighting put near it within ``control.sighted_robot_s`` (a
+        camera on a tower, looking elsewhere, does not see a robot beside it)."""
+        mates = self.mates_in_robot_frame(r)
+        keep_ns = self.cfg.control.sighted_robot_s * 1e9
+        if not r.sighted or keep_ns <= 0:
+            return mates
+        now = r.last_stamp_ns
+        seen = [xy for rid, (t, xy) in r.sighted.items()
+                if 0 <= now - t <= keep_ns and rid in self.robots
+                and self.robots[rid].team_id != r.team_id]
+        if not seen:
+            return mates
+        return np.vstack([mates, transform_points(inverse(r.pose), np.array(seen))])
 
     # -- teams -----------------------------------------------------------------------------
     def team_grid(self, team_id: str) -> OccupancyGrid:

@@ -82,7 +82,7 @@ class Steering:
                 team = self.fleet.team_of(r)
                 twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,
                                    lambda: self.fleet.planning_grid(team.team_id),
-                                   team.visited, self.fleet.mates_in_robot_frame(r),
+                                   team.visited, self.fleet.others_in_robot_frame(r),
                                    planner=self.planner)
                 twist = Twist(float(np.clip(twist.v_mps, -5, 5)),
                               float(np.clip(twist.omega_rps, -20, 20)))
@@ -104,7 +104,7 @@ class Steering:
         twist = follow.twist
         if r.nav.vfh is not None:
             twist = r.nav.vfh.adjust(twist, follow.heading_error_rad, points_robot,
-                                     self.fleet.mates_in_robot_frame(r))
+                                     self.fleet.others_in_robot_frame(r))
         return twist
 
     def look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
@@ -130,5 +130,5 @@ class Steering:
             return None
         if twist.v_mps > 0 and r.nav.vfh is not None:
             twist = r.nav.vfh.adjust(twist, r.look.heading_error, points_robot,
-                                     self.fleet.mates_in_robot_frame(r))
+                                     self.fleet.others_in_robot_frame(r))
         return twist

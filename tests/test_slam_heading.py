@@ -103,7 +103,8 @@ def test_the_depth_robots_ties_in_the_small_house_agree_with_the_truth() -> None
     index = {slam.trajectory.key(kf.index): kf for kf in slam.keyframes}
     err = []
     for rec in ties:
-        a, b = (index[key] for key in rec.factor.keys())
+        ka, kb = rec.factor.keys()
+        a, b = index[ka], index[kb]
         true_rel = between(truth["r1", a.stamp_ns], truth["r1", b.stamp_ns])[2]
         err.append(math.degrees(wrap_angle(rec.factor.measured().theta() - true_rel)))
     assert np.median(np.abs(err)) < 1.0 and np.mean(err) == pytest.approx(0.0, abs=1.0), err

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import gtsam
+import msgspec
 import numpy as np
 import pytest
 
@@ -227,6 +228,48 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
     core.on_tags(TagDetections(robot_id="r1", seq=10, stamp_ns=r1.last_stamp_ns,
                                detections=[nan]))
     assert r1.look.call is None and r2.look.call is None
+
+
+def test_robots_of_other_teams_a_tag_put_near_are_kept_clear_of_for_a_while() -> None:
+    """A camera turned away on its tower does not see the robot beside it: a tag sighting
+    tells both robots where the other is, and each steers clear of it for
+    ``control.sighted_robot_s``, as of a teammate."""
+    core, _ = run(3, cfg=config(min_sightings=100))          # never merged here
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert r1.team_id != r2.team_id
+    assert r1.sighted and r2.sighted             # they saw each other's tags in those steps
+    r1.sighted = r2.sighted = None
+    assert len(core.fleet.others_in_robot_frame(r1)) == 0
+    near = TagDetection(tag_id=2, observed_robot_id="r2", range_m=0.6, bearing_rad=-0.3,
+                        yaw_rad=math.pi, sigma_range_m=0.02, sigma_bearing_rad=0.01,
+                        sigma_yaw_rad=0.1)
+    core.on_tags(TagDetections(robot_id="r1", seq=9, stamp_ns=r1.last_stamp_ns,
+                               detections=[near]))
+    (seen,) = core.fleet.others_in_robot_frame(r1)
+    assert seen == pytest.approx([0.6 * math.cos(-0.3), 0.6 * math.sin(-0.3)], abs=1e-9)
+    (back,) = core.fleet.others_in_robot_frame(r2)    # the reader, by the tag's heading
+    assert math.hypot(*back) == pytest.approx(0.6, abs=1e-9) and back[0] > 0
+    # the steering avoids it: straight at it, the reactive layer does not drive on
+    from server.control.geometry import Twist
+    from server.control.vfh import Vfh
+    ahead = Vfh().evaluate(Twist(0.3, 0.0), float(np.arctan2(seen[1], seen[0])),
+                           np.zeros((0, 2)), core.fleet.others_in_robot_frame(r1))
+    assert ahead.twist.v_mps < 0.3
+    # kept for two seconds of the robot's own stamps, then forgotten
+    r1.last_stamp_ns += int(1.9e9)
+    assert len(core.fleet.others_in_robot_frame(r1)) == 1
+    r1.last_stamp_ns += int(0.2e9)
+    assert len(core.fleet.others_in_robot_frame(r1)) == 0
+    # read from afar, the robot read does not place the reader; a NaN places nobody
+    far = msgspec.structs.replace(near, range_m=4.0, observed_robot_id="r1")
+    r1.sighted = None
+    core.on_tags(TagDetections(robot_id="r2", seq=9, stamp_ns=r2.last_stamp_ns,
+                               detections=[far]))
+    assert r1.sighted is None and r2.sighted is not None
+    r2.sighted = None
+    core.on_tags(TagDetections(robot_id="r2", seq=10, stamp_ns=r2.last_stamp_ns,
+                               detections=[msgspec.structs.replace(near, range_m=float("nan"))]))
+    assert r2.sighted is None and r1.sighted is None
 
 
 def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:

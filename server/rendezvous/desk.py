@@ -38,6 +38,9 @@ from server.rendezvous.merger import Merger
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
+#: a robot whose tag was read keeps clear of the reader only from this close: farther, the
+#: tag's heading (which places the reader) is poor
+NEAR_BACK_M = 2.5
 
 
 class SightingDesk:
@@ -61,6 +64,7 @@ class SightingDesk:
             if det.observed_robot_id == msg.robot_id:
                 self.counters.own_tag += 1
                 continue
+            self._note_near(msg.robot_id, det)
             self._call(msg.robot_id, det)
             if det.range_m > self._usable_range_m(det):
                 self.counters.too_far += 1
@@ -76,6 +80,24 @@ class SightingDesk:
         if det.located_by == "lidar":
             return max(t.max_sighting_range_m, t.max_lidar_sighting_range_m)
         return t.max_sighting_range_m
+
+    def _note_near(self, observer: str, det: TagDetection) -> None:
+        """Each robot of the pair keeps clear of the other for a while
+        (``Fleet.others_in_robot_frame``): the reader where the tag was, the robot read where
+        the tag's heading puts the reader, if within ``NEAR_BACK_M``."""
+        robots = self.fleet.robots
+        a, b = robots.get(observer), robots.get(det.observed_robot_id)
+        if a is None or b is None or a.team_id == b.team_id or not a.scans or not b.scans:
+            return
+        if not all(math.isfinite(v) for v in (det.range_m, det.bearing_rad, det.yaw_rad)):
+            return
+        rel = np.array([det.range_m * math.cos(det.bearing_rad),
+                        det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
+        a.sighted = {**(a.sighted or {}), b.robot_id: (
+            a.last_stamp_ns, transform_points(a.pose, rel[None, :2])[0])}
+        if det.range_m <= NEAR_BACK_M:
+            b.sighted = {**(b.sighted or {}), a.robot_id: (
+                b.last_stamp_ns, transform_points(b.pose, inverse(rel)[None, :2])[0])}
 
     def _call(self, observer: str, det: TagDetection) -> None:
         """A robot of another team was seen: tell both robots where the other one is, so they

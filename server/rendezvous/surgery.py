@@ -132,6 +132,7 @@ class GraphSurgery:
             r.slam.rebind(graph)
             r.pose = r.slam.pose
             r.obstacles = None   # kept in the frame the robot just left
+            r.sighted = None
 
     # -- map matches -----------------------------------------------------------------------
     def match_teammates(self, r: RobotContext) -> None:
