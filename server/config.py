@@ -45,9 +45,9 @@ class ControlConfig(ConfigModel):
         0.5, gt=0.0, le=10.0, description="each velocity command holds this long; without a newer "
         "one the robot stops")
     sighted_robot_s: float = Field(
-        2.0, ge=0.0, description="a robot keeps clear of a robot of another team for this long "
-        "after a tag sighting put it near (either robot read the other's tag; the one read "
-        "only from 2.5 m), as it does of its teammates (0: only what its scans show)")
+        15.0, ge=0.0, description="after a tag sighting between two robots of different teams, "
+        "each keeps clear of the other for this long, as of a teammate, placed by the other's "
+        "own pose through that sighting (0: only what its scans show)")
     obstacle_memory_s: float = Field(
         5.0, ge=0.0, description="a robot whose latest scan was narrow "
         "(slam.matcher.narrow_fov_deg: a depth camera's) avoids what its scans of this many "

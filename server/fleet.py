@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,6 +54,15 @@ class Meeting:
     team_id: str = ""              # the robot's team when planned (whose frame these are in)
 
 
+class Sighted(NamedTuple):
+    """A tag sighting between a robot and one of another team, as the robot keeps it."""
+
+    stamp_ns: int           # the robot's latest scan stamp when it was placed
+    T_own_other: F64        # the other's team frame in the robot's team frame
+    own_team: str           # the two teams then (a merge changes the frames)
+    other_team: str
+
+
 @dataclass
 class RobotContext:
     robot_id: str
@@ -76,9 +85,9 @@ class RobotContext:
     sensor_range_m: float = float("inf")   # its latest scan's maximum range
     #: a narrow sensor's recent obstacles, for the reactive layer (``server.steering``)
     obstacles: ObstacleMemory | None = None
-    #: robots of other teams a tag sighting put near it lately: robot id -> (this robot's
-    #: stamp then, the other's place in this robot's map frame)
-    sighted: dict[str, tuple[int, F64]] | None = None
+    #: robots of other teams it saw or was seen by lately, and where their team frames lie
+    #: in its own then (robot id -> ``Sighted``)
+    sighted: dict[str, Sighted] | None = None
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first
@@ -267,17 +276,22 @@ class Fleet:
         return transform_points(inverse(r.pose), xy)
 
     def others_in_robot_frame(self, r: RobotContext) -> F64:
-        """Robots ``r`` keeps clear of, in its body frame: its live teammates, and robots of
-        other teams that a tag sighting put near it within ``control.sighted_robot_s`` (a
-        camera on a tower, looking elsewhere, does not see a robot beside it)."""
+        """Robots ``r`` keeps clear of, in its body frame: its live teammates, and live robots
+        of other teams it saw or was seen by within ``control.sighted_robot_s``, placed by
+        their own poses through that sighting (a camera on a tower, looking elsewhere, does
+        not see a robot beside it)."""
         mates = self.mates_in_robot_frame(r)
         keep_ns = self.cfg.control.sighted_robot_s * 1e9
         if not r.sighted or keep_ns <= 0:
             return mates
         now = r.last_stamp_ns
-        seen = [xy for rid, (t, xy) in r.sighted.items()
-                if 0 <= now - t <= keep_ns and rid in self.robots
-                and self.robots[rid].team_id != r.team_id]
+        seen = []
+        for rid, s in r.sighted.items():
+            o = self.robots.get(rid)
+            if o is None or not o.alive or not 0 <= now - s.stamp_ns <= keep_ns or \
+                    r.team_id != s.own_team or o.team_id != s.other_team:
+                continue   # stale, or a merge has changed the frames since
+            seen.append(transform_points(s.T_own_other, o.pose[None, :2])[0])
         if not seen:
             return mates
         return np.vstack([mates, transform_points(inverse(r.pose), np.array(seen))])

@@ -161,7 +161,6 @@ def test_sightings_of_unknown_robots_or_oneself_are_counted_not_fatal() -> None:
 
 
 def replace_id(d: TagDetection, rid: str) -> TagDetection:
-    import msgspec
 
     return msgspec.structs.replace(d, observed_robot_id=rid)
 
@@ -207,7 +206,6 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
     assert core.tag_counters["too_far"] >= 1                  # no evidence for a merge ...
     assert r1.look.call is not None and r2.look.call is not None   # ... but a call to both
     # located by the LIDAR off r2's body, the same sighting is good evidence at 6 m
-    import msgspec
 
     too_far, used = core.tag_counters["too_far"], core.tag_counters["used"]
     fixed = msgspec.structs.replace(far, located_by="lidar", sigma_range_m=0.02,
@@ -230,46 +228,50 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
     assert r1.look.call is None and r2.look.call is None
 
 
-def test_robots_of_other_teams_a_tag_put_near_are_kept_clear_of_for_a_while() -> None:
-    """A camera turned away on its tower does not see the robot beside it: a tag sighting
-    tells both robots where the other is, and each steers clear of it for
+def test_robots_of_other_teams_that_saw_each_other_keep_clear_of_each_other() -> None:
+    """A camera turned away on its tower does not see the robot beside it: after a tag
+    sighting, each robot of the pair knows where the other's team frame lies in its own, and
+    keeps clear of the other robot, wherever that robot's own pose puts it, for
     ``control.sighted_robot_s``, as of a teammate."""
     core, _ = run(3, cfg=config(min_sightings=100))          # never merged here
     r1, r2 = core.robots["r1"], core.robots["r2"]
-    assert r1.team_id != r2.team_id
-    assert r1.sighted and r2.sighted             # they saw each other's tags in those steps
-    r1.sighted = r2.sighted = None
+    assert r1.team_id != r2.team_id and not r1.sighted and not r2.sighted
     assert len(core.fleet.others_in_robot_frame(r1)) == 0
-    near = TagDetection(tag_id=2, observed_robot_id="r2", range_m=0.6, bearing_rad=-0.3,
+    near = TagDetection(tag_id=2, observed_robot_id="r2", range_m=0.8, bearing_rad=-0.3,
                         yaw_rad=math.pi, sigma_range_m=0.02, sigma_bearing_rad=0.01,
                         sigma_yaw_rad=0.1)
     core.on_tags(TagDetections(robot_id="r1", seq=9, stamp_ns=r1.last_stamp_ns,
                                detections=[near]))
-    (seen,) = core.fleet.others_in_robot_frame(r1)
-    assert seen == pytest.approx([0.6 * math.cos(-0.3), 0.6 * math.sin(-0.3)], abs=1e-9)
-    (back,) = core.fleet.others_in_robot_frame(r2)    # the reader, by the tag's heading
-    assert math.hypot(*back) == pytest.approx(0.6, abs=1e-9) and back[0] > 0
-    # the steering avoids it: straight at it, the reactive layer does not drive on
+    assert r1.sighted and r2.sighted
+    (seen,) = core.fleet.others_in_robot_frame(r1)   # where the sighting put r2
+    assert math.hypot(*(seen - [0.8 * math.cos(-0.3), 0.8 * math.sin(-0.3)])) < 0.3
+    (back,) = core.fleet.others_in_robot_frame(r2)   # and r1, seen from r2 facing it
+    assert math.hypot(*back) == pytest.approx(math.hypot(*seen), abs=1e-6) and back[0] > 0
+    # it follows the other robot's own pose
+    r2.pose = r2.pose + np.array([0.5, 0.0, 0.0])
+    (moved,) = core.fleet.others_in_robot_frame(r1)
+    assert math.hypot(*(moved - seen)) == pytest.approx(0.5, abs=1e-6)
     from server.control.geometry import Twist
     from server.control.vfh import Vfh
+
+    # the steering avoids it: straight at it, the reactive layer slows or turns away
     ahead = Vfh().evaluate(Twist(0.3, 0.0), float(np.arctan2(seen[1], seen[0])),
                            np.zeros((0, 2)), core.fleet.others_in_robot_frame(r1))
-    assert ahead.twist.v_mps < 0.3
-    # kept for two seconds of the robot's own stamps, then forgotten
-    r1.last_stamp_ns += int(1.9e9)
+    assert math.hypot(*seen) > 2.0 or ahead.twist.v_mps < 0.3 or ahead.twist.omega_rps != 0
+    # kept for control.sighted_robot_s of the robot's own stamps, then forgotten
+    keep = core.cfg.control.sighted_robot_s
+    r1.last_stamp_ns = r1.sighted["r2"].stamp_ns + int((keep - 0.1) * 1e9)
     assert len(core.fleet.others_in_robot_frame(r1)) == 1
     r1.last_stamp_ns += int(0.2e9)
     assert len(core.fleet.others_in_robot_frame(r1)) == 0
-    # read from afar, the robot read does not place the reader; a NaN places nobody
-    far = msgspec.structs.replace(near, range_m=4.0, observed_robot_id="r1")
-    r1.sighted = None
-    core.on_tags(TagDetections(robot_id="r2", seq=9, stamp_ns=r2.last_stamp_ns,
-                               detections=[far]))
-    assert r1.sighted is None and r2.sighted is not None
-    r2.sighted = None
-    core.on_tags(TagDetections(robot_id="r2", seq=10, stamp_ns=r2.last_stamp_ns,
-                               detections=[msgspec.structs.replace(near, range_m=float("nan"))]))
-    assert r2.sighted is None and r1.sighted is None
+    # a robot that vanished, or a merge since (the team frames changed), places nobody
+    r2.last_stamp_ns = r2.sighted["r1"].stamp_ns
+    r1.alive = False
+    assert len(core.fleet.others_in_robot_frame(r2)) == 0
+    r1.alive = True
+    assert len(core.fleet.others_in_robot_frame(r2)) == 1
+    r2.sighted["r1"] = r2.sighted["r1"]._replace(other_team="team-gone")
+    assert len(core.fleet.others_in_robot_frame(r2)) == 0
 
 
 def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
@@ -319,7 +321,6 @@ def test_a_team_keeps_matching_each_robots_new_keyframes_against_the_others_maps
 def misread(after_step: int, seen: str, read_as: str) -> Relabel:
     """From ``after_step`` on, r1 reads ``seen``'s tag as ``read_as``'s (a misread id that
     persists)."""
-    import msgspec
 
     def relabel(step: int, observer: str, d: TagDetection) -> TagDetection:
         if step >= after_step and observer == "r1" and d.observed_robot_id == seen:
@@ -472,7 +473,6 @@ def test_sightings_leave_the_graph_once_the_maps_tie_the_robots() -> None:
     bearing): kept in the graph beside the map matches, they hold the robots' relative pose
     off where they met while the matches pull it right, and both maps bend. Once the maps tie
     the pair, the sightings leave the graph and no more are added."""
-    import msgspec
 
     def biased(step: int, observer: str, d: TagDetection) -> TagDetection:
         return msgspec.structs.replace(d, yaw_rad=d.yaw_rad + math.radians(5.0),

@@ -24,7 +24,7 @@ from factors.rendezvous import Sighting
 from schemas import TagDetection, TagDetections
 from schemas.se2 import compose, inverse, transform_points
 from server.config import ServerConfig
-from server.fleet import Fleet, RobotContext
+from server.fleet import Fleet, RobotContext, Sighted
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import (
     CHI2_3DOF_99,
@@ -38,9 +38,6 @@ from server.rendezvous.merger import Merger
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-#: a robot whose tag was read keeps clear of the reader only from this close: farther, the
-#: tag's heading (which places the reader) is poor
-NEAR_BACK_M = 2.5
 
 
 class SightingDesk:
@@ -64,7 +61,6 @@ class SightingDesk:
             if det.observed_robot_id == msg.robot_id:
                 self.counters.own_tag += 1
                 continue
-            self._note_near(msg.robot_id, det)
             self._call(msg.robot_id, det)
             if det.range_m > self._usable_range_m(det):
                 self.counters.too_far += 1
@@ -80,24 +76,6 @@ class SightingDesk:
         if det.located_by == "lidar":
             return max(t.max_sighting_range_m, t.max_lidar_sighting_range_m)
         return t.max_sighting_range_m
-
-    def _note_near(self, observer: str, det: TagDetection) -> None:
-        """Each robot of the pair keeps clear of the other for a while
-        (``Fleet.others_in_robot_frame``): the reader where the tag was, the robot read where
-        the tag's heading puts the reader, if within ``NEAR_BACK_M``."""
-        robots = self.fleet.robots
-        a, b = robots.get(observer), robots.get(det.observed_robot_id)
-        if a is None or b is None or a.team_id == b.team_id or not a.scans or not b.scans:
-            return
-        if not all(math.isfinite(v) for v in (det.range_m, det.bearing_rad, det.yaw_rad)):
-            return
-        rel = np.array([det.range_m * math.cos(det.bearing_rad),
-                        det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
-        a.sighted = {**(a.sighted or {}), b.robot_id: (
-            a.last_stamp_ns, transform_points(a.pose, rel[None, :2])[0])}
-        if det.range_m <= NEAR_BACK_M:
-            b.sighted = {**(b.sighted or {}), a.robot_id: (
-                b.last_stamp_ns, transform_points(b.pose, inverse(rel)[None, :2])[0])}
 
     def _call(self, observer: str, det: TagDetection) -> None:
         """A robot of another team was seen: tell both robots where the other one is, so they
@@ -179,6 +157,7 @@ class SightingDesk:
                 return
         # -- 4. to the merger, or checked against the team
         if not same_team:
+            self._note_frames(a, b, rec)
             self.merger.consider(a.team_id, b.team_id, rec)
         elif det.range_m > self.cfg.teams.max_sighting_range_m:
             # from afar (located by the LIDAR) a sighting helps find a team; within one,
@@ -186,6 +165,18 @@ class SightingDesk:
             self.counters.within_team += 1
         else:
             self._within_team(rec)
+
+    @staticmethod
+    def _note_frames(a: RobotContext, b: RobotContext, rec: SightingRecord) -> None:
+        """Each robot of the pair learns where the other's team frame lies in its own, by this
+        sighting, so that it keeps clear of the other robot for a while wherever that robot's
+        own pose puts it (``Fleet.others_in_robot_frame``): a camera turned away on its tower
+        does not see the robot beside it."""
+        T_ab = inverse(rec.T_ab) if rec.flipped else rec.T_ab
+        a.sighted = {**(a.sighted or {}),
+                     b.robot_id: Sighted(a.last_stamp_ns, T_ab.copy(), a.team_id, b.team_id)}
+        b.sighted = {**(b.sighted or {}),
+                     a.robot_id: Sighted(b.last_stamp_ns, inverse(T_ab), b.team_id, a.team_id)}
 
     def _agrees(self, rec: SightingRecord) -> bool:
         return agrees_with_team(rec, self.merger.verifier.p)
