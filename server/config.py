@@ -48,6 +48,10 @@ class ControlConfig(ConfigModel):
         15.0, ge=0.0, description="after a tag sighting between two robots of different teams, "
         "each keeps clear of the other for this long, as of a teammate, placed by the other's "
         "own pose through that sighting (0: only what its scans show)")
+    mapped_obstacles_m: float = Field(
+        1.0, ge=0.0, description="a robot whose latest scan was narrow also avoids the occupied "
+        "cells of its team's map within this distance: a wall corner beside it that its camera, "
+        "turned elsewhere, has not shown lately (0: not)")
     obstacle_memory_s: float = Field(
         5.0, ge=0.0, description="a robot whose latest scan was narrow "
         "(slam.matcher.narrow_fov_deg: a depth camera's) avoids what its scans of this many "

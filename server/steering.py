@@ -18,6 +18,7 @@ from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
 from server.operator import OperatorOrders
+from server.planning import OccupancyGrid as PlanningGrid
 
 F64 = NDArray[np.float64]
 
@@ -45,6 +46,25 @@ class ObstacleMemory:
         return np.concatenate([points_robot, kept])
 
 
+def mapped_obstacles(grid: PlanningGrid | None, pose: F64, radius_m: float) -> F64:
+    """The occupied cells of ``grid`` within ``radius_m`` of the robot at ``pose``, as points
+    in its body frame (their centres); none without a grid."""
+    if grid is None or radius_m <= 0:
+        return np.zeros((0, 2))
+    geo = grid.geometry
+    (r0, c0), (r1, c1) = geo.world_to_cell(pose[:2] - radius_m), geo.world_to_cell(
+        pose[:2] + radius_m)
+    r0, c0 = max(int(r0), 0), max(int(c0), 0)
+    r1, c1 = min(int(r1) + 1, geo.shape[0]), min(int(c1) + 1, geo.shape[1])
+    if r0 >= r1 or c0 >= c1:
+        return np.zeros((0, 2))
+    rows, cols = np.nonzero(grid.occupied[r0:r1, c0:c1])
+    xy = geo.cell_to_world(np.stack([rows + r0, cols + c0], axis=1))
+    xy = xy[np.hypot(*(xy - pose[:2]).T) <= radius_m]
+    c, s_ = math.cos(pose[2]), math.sin(pose[2])
+    return np.asarray((xy - pose[:2]) @ np.array([[c, -s_], [s_, c]]), dtype=np.float64)
+
+
 class Steering:
     """Commands for the fleet's robots (one thread)."""
 
@@ -70,6 +90,10 @@ class Steering:
                     r.obstacles = ObstacleMemory()
                 pts = r.obstacles.around(stamp_ns, r.pose, pts,
                                          self.cfg.control.obstacle_memory_s)
+            if r.slam.narrow:    # and what its team mapped right around it
+                pts = np.concatenate([pts, mapped_obstacles(
+                    self.fleet.latest_grids.get(r.team_id), r.pose,
+                    self.cfg.control.mapped_obstacles_m)])
             ordered = self.orders.command(r, self.fleet, pts, self.events, stamp_ns)
             look = None if ordered is not None else self.look(r, stamp_ns * 1e-9, pts)
             if ordered is not None:

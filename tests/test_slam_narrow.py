@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 
 from bench.support.mission import scan_of
+from schemas.occupancy import OCCUPIED, UNKNOWN
 from schemas.se2 import between
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.planning import OccupancyGrid as PlanningGrid
 from server.slam.config import MatcherConfig
 from server.slam.frontend import is_narrow, min_points
 from server.slam.keyframes import gather
 from server.slam.scan import scan_to_points
-from server.steering import ObstacleMemory
+from server.steering import ObstacleMemory, mapped_obstacles
 from sim.config import SimConfig
 from sim.loader import load_world
 from sim.process import params_from_config
@@ -109,3 +111,19 @@ def test_obstacle_memory_carries_what_was_seen_with_the_robot() -> None:
     mem.around(8_000_000_000, pose, wall, keep_s=5.0)
     # a clock that steps back forgets what came "later"
     assert len(mem.around(2_000_000_000, pose, np.zeros((0, 2)), keep_s=5.0)) == 0
+
+
+def test_a_narrow_robot_avoids_the_mapped_walls_right_around_it() -> None:
+    """A wall corner beside the robot that its camera, turned elsewhere, has not shown lately
+    is still in the team's map: the reactive layer gets its cells within the radius."""
+    data = np.zeros((40, 40), dtype=np.int8)        # 2 m × 2 m at 5 cm, origin (-1, -1)
+    data[:, 30] = OCCUPIED                           # a wall along x = 0.525
+    data[0, 0] = UNKNOWN
+    grid = PlanningGrid(data, 0.05, (-1.0, -1.0))
+    pose = np.array([0.0, 0.0, math.pi / 2])         # facing +y: the wall is on its right
+    pts = mapped_obstacles(grid, pose, 1.0)
+    assert len(pts) > 20 and np.all(np.hypot(*pts.T) <= 1.0)
+    assert np.allclose(pts[:, 1], -0.525)            # to its right, in its body frame
+    assert len(mapped_obstacles(grid, pose, 0.5)) == 0       # the wall is farther than that
+    assert len(mapped_obstacles(None, pose, 1.0)) == 0
+    assert len(mapped_obstacles(grid, np.array([9.0, 9.0, 0.0]), 1.0)) == 0   # off the map
