@@ -46,8 +46,9 @@ class ControlConfig(ConfigModel):
         "one the robot stops")
     sighted_robot_s: float = Field(
         15.0, ge=0.0, description="after a tag sighting between two robots of different teams, "
-        "each keeps clear of the other for this long, as of a teammate, placed by the other's "
-        "own pose through that sighting (0: only what its scans show)")
+        "each whose latest scan was narrow (slam.matcher.narrow_fov_deg) keeps clear of the "
+        "other for this long, as of a teammate, placed by the other's own pose through that "
+        "sighting (0: only what its scans show)")
     mapped_obstacles_m: float = Field(
         1.0, ge=0.0, description="a robot whose latest scan was narrow also avoids the occupied "
         "cells of its team's map within this distance: a wall corner beside it that its camera, "

@@ -276,13 +276,13 @@ class Fleet:
         return transform_points(inverse(r.pose), xy)
 
     def others_in_robot_frame(self, r: RobotContext) -> F64:
-        """Robots ``r`` keeps clear of, in its body frame: its live teammates, and live robots
-        of other teams it saw or was seen by within ``control.sighted_robot_s``, placed by
-        their own poses through that sighting (a camera on a tower, looking elsewhere, does
-        not see a robot beside it)."""
+        """Robots ``r`` keeps clear of, in its body frame: its live teammates, and — if its
+        latest scan was narrow (a camera on a tower, looking elsewhere, does not see a robot
+        beside it; a LIDAR does) — live robots of other teams it saw or was seen by within
+        ``control.sighted_robot_s``, placed by their own poses through that sighting."""
         mates = self.mates_in_robot_frame(r)
         keep_ns = self.cfg.control.sighted_robot_s * 1e9
-        if not r.sighted or keep_ns <= 0:
+        if not r.sighted or keep_ns <= 0 or not r.slam.narrow:
             return mates
         now = r.last_stamp_ns
         seen = []

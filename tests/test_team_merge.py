@@ -231,8 +231,8 @@ def test_a_tag_read_from_afar_calls_both_robots_together() -> None:
 def test_robots_of_other_teams_that_saw_each_other_keep_clear_of_each_other() -> None:
     """A camera turned away on its tower does not see the robot beside it: after a tag
     sighting, each robot of the pair knows where the other's team frame lies in its own, and
-    keeps clear of the other robot, wherever that robot's own pose puts it, for
-    ``control.sighted_robot_s``, as of a teammate."""
+    one whose scans are narrow keeps clear of the other robot, wherever that robot's own pose
+    puts it, for ``control.sighted_robot_s``, as of a teammate."""
     core, _ = run(3, cfg=config(min_sightings=100))          # never merged here
     r1, r2 = core.robots["r1"], core.robots["r2"]
     assert r1.team_id != r2.team_id and not r1.sighted and not r2.sighted
@@ -243,6 +243,9 @@ def test_robots_of_other_teams_that_saw_each_other_keep_clear_of_each_other() ->
     core.on_tags(TagDetections(robot_id="r1", seq=9, stamp_ns=r1.last_stamp_ns,
                                detections=[near]))
     assert r1.sighted and r2.sighted
+    # a LIDAR robot sees the other: only a robot whose scans are narrow needs this
+    assert len(core.fleet.others_in_robot_frame(r1)) == 0
+    r1.slam.narrow = r2.slam.narrow = True
     (seen,) = core.fleet.others_in_robot_frame(r1)   # where the sighting put r2
     assert math.hypot(*(seen - [0.8 * math.cos(-0.3), 0.8 * math.sin(-0.3)])) < 0.3
     (back,) = core.fleet.others_in_robot_frame(r2)   # and r1, seen from r2 facing it
