@@ -114,16 +114,23 @@ def check_foxglove(path: Path) -> dict[str, Any]:
         if not any(tr.child_frame_id == rid for msg in tf_at.get(t, []) for tr in msg.transforms))
 
     # roots of every frame drawn after the last merge: Foxglove keeps each frame's latest
-    # transform across messages, so the tree at a message is all transforms up to it
+    # transform across messages, so the tree at a message is all transforms up to it. A
+    # robot whose first estimate has not come yet has an odometry frame with no parent: it
+    # is not placed in any team yet (a merge in the first second can come before it), and
+    # is not counted as a root of its own
     parent_of: dict[str, str] = {}
     after_merge: list[set[str]] = []
     lagging = 0   # single tree messages without the link (made before the merge arrived)
+    unplaced = 0  # tree messages after the merge with a robot not yet placed
     for t, msg in tf_msgs:
         own = {tr.child_frame_id: tr.parent_frame_id for tr in msg.transforms}
         parent_of.update(own)
         if merges and t > merges[-1]:
             frames = set(parent_of) | set(drawn_frames.values())
-            after_merge.append(_roots(parent_of, frames))
+            roots = _roots(parent_of, frames)
+            waiting = {r for r in roots if r.endswith("/odom")}
+            unplaced += bool(waiting)
+            after_merge.append(roots - waiting)
             lagging += len(_roots(own, set(own) | set(drawn_frames.values()))) > 1
 
     def roots_of(msg: Any) -> set[str]:
@@ -136,6 +143,7 @@ def check_foxglove(path: Path) -> dict[str, Any]:
             "tree_messages_after_last_merge": len(after_merge),
             "single_tree_messages_without_the_link": lagging,
             "max_roots_after_last_merge": max((len(r) for r in after_merge), default=0),
+            "tree_messages_with_a_robot_not_yet_placed": unplaced,
             "roots_at_end": sorted(roots_of(tf_msgs[-1][1])) if tf_msgs else []}
 
 
