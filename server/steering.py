@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas import VelocityCommand
+from schemas.se2 import inverse, transform_points
 from server.config import ServerConfig
 from server.control import Twist
 from server.events import EventLog
@@ -60,9 +61,7 @@ def mapped_obstacles(grid: PlanningGrid | None, pose: F64, radius_m: float) -> F
         return np.zeros((0, 2))
     rows, cols = np.nonzero(grid.occupied[r0:r1, c0:c1])
     xy = geo.cell_to_world(np.stack([rows + r0, cols + c0], axis=1))
-    xy = xy[np.hypot(*(xy - pose[:2]).T) <= radius_m]
-    c, s_ = math.cos(pose[2]), math.sin(pose[2])
-    return np.asarray((xy - pose[:2]) @ np.array([[c, -s_], [s_, c]]), dtype=np.float64)
+    return transform_points(inverse(pose), xy[np.hypot(*(xy - pose[:2]).T) <= radius_m])
 
 
 class Steering:

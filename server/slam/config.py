@@ -185,7 +185,7 @@ class LoopClosureConfig(ConfigModel):
 class SquareWallsConfig(ConfigModel):
     """Headings held by square walls (``server.slam.heading``): where a robot's keyframes show
     walls along two perpendicular directions, each such keyframe's heading is tied, modulo
-    90°, to the first one's."""
+    90°, to earlier such keyframes' (the first and others spread over the run)."""
 
     enabled: bool = Field(True, description="False: never")
     narrow_only: bool = Field(

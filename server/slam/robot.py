@@ -332,14 +332,16 @@ class RobotSlam:
         if not c.enabled or (c.narrow_only and not self.narrow):
             return
         tr = self.trajectory
+        poses: dict[int, F64] = {}    # the earlier keyframes' estimates, each read once
 
         def rel(j: int) -> float:
-            return float(wrap_angle(T_map_robot[2] - self.graph.pose(tr.key(j))[2]))
+            poses[j] = self.graph.pose(tr.key(j))
+            return float(wrap_angle(T_map_robot[2] - poses[j][2]))
 
         ties = self._square.observe(k, scan.normals, rel)
         sigma = math.radians(c.sigma_deg) * math.sqrt(max(len(ties), 1))
         for j, heading in ties:
-            T = between(self.graph.pose(tr.key(j)), T_map_robot)
+            T = between(poses[j], T_map_robot)
             T[2] = heading
             add_constraint(self.graph, tr, heading_factor(tr.key(j), tr.key(k), T, sigma,
                                                           c.huber_k), "heading")
