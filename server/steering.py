@@ -101,6 +101,8 @@ class Steering:
                 twist = look
             elif r.meeting is not None:
                 twist = self.meet(r, pts)
+            elif r.slam.sweep_due(stamp_ns) and r.nav.mode != NavMode.RECOVERING:
+                twist = Twist(0.0, 0.0)   # still, while its turning camera looks round once
             else:
                 team = self.fleet.team_of(r)
                 twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,

@@ -48,7 +48,7 @@ class FactorRecord:
     """A factor a robot added, what it is, and its index in the graph holding it (or None)."""
 
     factor: gtsam.NoiseModelFactor
-    kind: str  # "prior", "match", "odometry", "loop", "heading"
+    kind: str  # "prior", "match", "odometry", "loop", "heading", "sweep"
     index: int | None = None
 
 

@@ -213,6 +213,29 @@ class SquareWallsConfig(ConfigModel):
     huber_k: float = Field(1.345, gt=0, description="robust kernel on the tie")
 
 
+class SweepConfig(ConfigModel):
+    """Whole scans of a turning camera (``server.slam.sweep``): a robot whose camera turns on
+    a tower stands still every ``every_m`` of driving while the camera turns once round, and
+    the views of that turn are matched as one 360° scan."""
+
+    enabled: bool = Field(True, description="False: never stop for one")
+    every_m: float = Field(
+        1.0, gt=0, description="odometry distance driven between two whole scans")
+    wait_s: float = Field(
+        6.0, gt=0, description="the robot drives on when no whole scan has come after standing "
+        "still this long")
+    coverage: float = Field(
+        0.9, gt=0, le=1, description="share of the circle the views must cover")
+    still_m: float = Field(
+        0.005, gt=0, description="the views since the odometry moved less than this are one scan")
+    still_deg: float = Field(0.5, gt=0, description="... and turned less than this")
+    max_shift_m: float = Field(
+        0.05, gt=0, description="a whole scan's match against the one before is refused when it "
+        "moves the pose further from the odometry's than this (over a metre, wheel odometry "
+        "is good to a centimetre or two; a wall matched to the wrong one is off by more)")
+    max_turn_deg: float = Field(3.0, gt=0, description="... or turns it more than this")
+
+
 class GridConfig(ConfigModel):
     """Log-odds occupancy grid (probabilities, not log-odds, here)."""
 
@@ -246,4 +269,5 @@ class SlamConfig(ConfigModel):
     graph: GraphConfig = GraphConfig()
     loop: LoopClosureConfig = LoopClosureConfig()
     square_walls: SquareWallsConfig = SquareWallsConfig()
+    sweep: SweepConfig = SweepConfig()
     grid: GridConfig = GridConfig()

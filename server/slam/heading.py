@@ -68,6 +68,9 @@ class SquareWalls:
     aligned: list[tuple[int, float]] = field(default_factory=list)
     checked: int = 0
     agreed: int = 0
+    #: a keyframe whose wall direction is known better than any other's (a whole scan's,
+    #: taken where the robot started, before it moved): every tie then includes it
+    reference: tuple[int, float] | None = None
 
     @property
     def holds(self) -> bool:
@@ -86,16 +89,22 @@ class SquareWalls:
         phi = found[0]
         ties: list[tuple[int, float]] = []
         if self.aligned and not self.holds:
-            j, phi_j = self.aligned[0]
+            j, phi_j = self.reference or self.aligned[0]
             self.checked += 1
             if abs(self._correction(phi_j, phi, relative_heading(j))) <= math.radians(
                     self.agree_deg):
                 self.agreed += 1
         elif self.holds:
-            for j, phi_j in self._partners():
+            partners = self._partners()
+            if self.reference is not None:
+                partners = [self.reference] + [p for p in partners if p[0] != self.reference[0]]
+            for j, phi_j in partners:
                 rel = relative_heading(j)
                 c = self._correction(phi_j, phi, rel)
-                if abs(c) <= math.radians(self.max_correction_deg):
+                # the reference's tie holds hard: only where the walls agree with it
+                limit = self.agree_deg if self.reference and j == self.reference[0] else \
+                    self.max_correction_deg
+                if abs(c) <= math.radians(limit):
                     ties.append((j, wrap_angle(rel + c)))
         self.aligned.append((k, phi))
         return ties

@@ -28,7 +28,7 @@ from server.slam.backend import (
     extend_trajectory,
     start_trajectory,
 )
-from server.slam.config import SlamConfig
+from server.slam.config import SlamConfig, SweepConfig
 from server.slam.errors import SlamInputError
 from server.slam.frontend import (
     FrontendMatch,
@@ -41,13 +41,14 @@ from server.slam.frontend import (
     odometry_step_suspicious,
 )
 from server.slam.grid import GridParams, OccupancyGrid
-from server.slam.heading import SquareWalls
+from server.slam.heading import SquareWalls, wall_direction, wrap_quarter
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
 from server.slam.loop_closure import LOOP_EDGE_LENGTH_M, LoopCloser, LoopClosure, LoopStats
 from server.slam.mapping import GridMapper, point_cloud
 from server.slam.scan import ScanPoints, field_of_view, scan_to_points
 from server.slam.stamped import StampedRows
+from server.slam.sweep import Sweep
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +70,7 @@ class SlamStats:
     loop_closures_removed: int = 0
     reused: int = 0   # scans re-anchored on a keyframe instead of adding one (``reuse``)
     heading_ties: int = 0   # keyframes whose heading square walls tied (``square_walls``)
+    sweeps: int = 0   # whole scans of a turning camera matched (``sweep``)
 
 
 @dataclass(frozen=True)
@@ -131,6 +133,8 @@ class RobotSlam:
         #: the server before each scan; not kept in a snapshot)
         self.guides: list[RobotSlam] = []
         self._square = self._square_walls()
+        self._sweep = Sweep(c.sweep)
+        self._wholes: list[int] = []    # keyframes of a turning camera's whole scans
 
     def _square_walls(self) -> SquareWalls:
         c = self.cfg.square_walls
@@ -141,9 +145,12 @@ class RobotSlam:
         return {**self.__dict__, "guides": []}   # the teammates are the fleet's to keep
 
     def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update({"guides": [], "narrow": False, "_recent": [], **state})
+        self.__dict__.update({"guides": [], "narrow": False, "_recent": [], "_wholes": [],
+                              **state})
         if "_square" not in state:        # saved before square walls held the heading
             self._square = self._square_walls()
+        if "_sweep" not in state:         # saved before a turning camera's whole scans
+            self._sweep = Sweep(getattr(self.cfg, "sweep", SweepConfig()))
         if "_icp_narrow" not in state:   # saved before narrow scans had their own
             self._icp_narrow = dataclasses.replace(
                 self._icp, min_normal_cos=self.cfg.matcher.narrow_min_normal_cos)
@@ -169,17 +176,19 @@ class RobotSlam:
         step = between(self._last_odom, odom)
         T_pred = compose(T_last, step)                                 # 1. predict (odometry)
         match = self._match(scan, T_pred, T_last, step)                # 2. match the local map
+        whole: int | None = None
         if is_narrow(scan, self.cfg.matcher):                          # (a narrow sensor's
-            match = self._smoothed(match, odom)                        # matches, averaged)
+            scan, match, whole = self._narrow(scan, match, odom, T_pred, T_last, step)
         self._velocity = between(T_last, match.T_map_robot)
         self._T_kf_robot = between(self._T_kf_map_cache, match.T_map_robot)
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
-        if self._is_keyframe(scan, match.T_map_robot):                 # 3. keyframe?
-            j = self._reusable(match.T_map_robot) if self.reusing else None
+        if whole is not None or self._is_keyframe(scan, match.T_map_robot):   # 3. keyframe?
+            j = (self._reusable(match.T_map_robot) if self.reusing and whole is None
+                 else None)
             if j is not None:                                          # (or one re-used)
                 self._reanchor(j, match.T_map_robot)
             else:
-                k = self._add_keyframe(stamp_ns, scan, odom, match)    # 4. optimise (ISAM2)
+                k = self._add_keyframe(stamp_ns, scan, odom, match, whole)   # 4. optimise
                 if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
                     self._close_loops(k)                               # 5. loop closure
                 self._refresh_local_map()                              # 6. maps follow poses
@@ -208,6 +217,53 @@ class RobotSlam:
         return scan_to_points(np.asarray(ranges_m, dtype=np.float64), angles, s.min_range_m,
                               s.max_range_m, s.narrow_normal_window if narrow else s.normal_window,
                               s.normal_max_gap_m, s.min_point_spacing_m, free_m)
+
+    def _narrow(self, scan: ScanPoints, match: FrontendMatch, odom: F64, T_pred: F64,
+                T_last: F64, step: F64) -> tuple[ScanPoints, FrontendMatch, int | None]:
+        """A narrow scan's match, averaged over the latest (``_smoothed``); or, when it
+        completes a turning camera's views taken while the robot stood still, those views as
+        one 360° scan (``server.slam.sweep``), which then stands for it and becomes a
+        keyframe. The third value is None for a narrow scan; for a whole one, the keyframe
+        of the whole scan before it that it was matched against, or -1."""
+        whole = self._sweep.add(scan, odom) if self._sweep.cfg.enabled else None
+        mc = self.cfg.matcher
+        if whole is None or len(whole) < mc.min_points:
+            return scan, self._smoothed(match, odom), None
+        prior = odometry_prior if mc.use_odometry_prior else None
+        # against the whole scans before it: they were taken standing still, so what they
+        # drew is not smeared by the narrow views' drift
+        prev = self._wholes[-1] if self._wholes else None
+        if prev is not None:
+            kfs = [self.keyframes[i] for i in self._wholes[-3:]]
+            poses = self.graph.poses([self.trajectory.key(kf.index) for kf in kfs])
+            target = local_point_map(kfs, poses, self.cfg.local_map.voxel_m)
+            from_prev = between(self.keyframes[prev].T_odom_robot, odom)
+            T_guess = compose(poses[-1], from_prev)
+            if len(target) >= mc.min_points:
+                m = match_scan(whole, target, T_guess, T_guess, IDENTITY, False, mc, self._icp,
+                               prior(from_prev, mc) if prior else None)
+                d, a = pose_distance(between(T_guess, m.T_map_robot))
+                if m.kind in (MatchKind.ICP, MatchKind.DEGENERATE) and \
+                        d <= self._sweep.cfg.max_shift_m and \
+                        a <= math.radians(self._sweep.cfg.max_turn_deg):
+                    self.stats.sweeps += 1
+                    self._recent.clear()      # the whole scan outweighs the views before it
+                    return whole, self._smoothed(m, odom), prev
+        assert self._local_map is not None
+        m = match_scan(whole, self._local_map, T_pred, T_last, self._velocity, False, mc,
+                       self._icp, prior(step, mc) if prior else None)
+        if m.kind in (MatchKind.ICP, MatchKind.DEGENERATE):
+            self.stats.sweeps += 1
+            self._recent.clear()
+            return whole, self._smoothed(m, odom), -1
+        # unmatched (it sees mostly what the map has not): still the better keyframe
+        return whole, self._smoothed(match, odom), -1
+
+    def sweep_due(self, stamp_ns: int) -> bool:
+        """Whether the robot should stand still now while its turning camera makes a whole
+        scan (``server.slam.sweep``; never for a 360° sensor or a camera that does not
+        turn)."""
+        return self.narrow and self._sweep.due(stamp_ns)
 
     def _smoothed(self, match: FrontendMatch, odom: F64) -> FrontendMatch:
         """A narrow scan's pose from every match since the last keyframe, each carried here by
@@ -301,7 +357,10 @@ class RobotSlam:
         return info + np.diag([s_xy ** -2, s_xy ** -2, s_th ** -2])
 
     def _add_keyframe(self, stamp_ns: int, scan: ScanPoints, odom: F64,
-                      match: FrontendMatch) -> int:
+                      match: FrontendMatch, whole: int | None = None) -> int:
+        """Keyframe k after the anchor; ``whole`` (see ``_narrow``): for a whole scan matched
+        against the whole scans before it, that match ties it to the latest of them, and
+        the anchor only by odometry."""
         g = self.cfg.graph
         k = len(self.keyframes)
         T_rel = self._T_kf_robot.copy()
@@ -310,13 +369,26 @@ class RobotSlam:
                           math.radians(g.match_sigma_floor_deg)])
         scale = g.match_cov_scale if match.kind != MatchKind.ODOMETRY else 1.0
         a = self._anchor
+        by = (FrontendMatch(match.T_map_robot, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0)
+              if whole is not None and whole >= 0 else match)
         factor = scan_match_factor(tr.key(a), tr.key(k), T_rel,
-                                   self._relative_information(match, T_rel), scale, floor)
-        kind = "odometry" if match.kind == MatchKind.ODOMETRY else "match"
+                                   self._relative_information(by, T_rel),
+                                   scale if by is match else 1.0, floor)
+        kind = "odometry" if by.kind == MatchKind.ODOMETRY else "match"
         extend_trajectory(self.graph, tr, factor, kind, match.T_map_robot)
+        if whole is not None and whole >= 0:
+            T_w = between(self.graph.pose(tr.key(whole)), match.T_map_robot)
+            add_constraint(self.graph, tr, scan_match_factor(
+                tr.key(whole), tr.key(k), T_w, self._relative_information(match, T_w), scale,
+                floor), "sweep")
+            self._loops.add_edge(whole, k, pose_distance(T_w)[0] + 0.2 * pose_distance(T_w)[1])
+        if whole is not None:
+            self._wholes.append(k)
         self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom,
                                               self.cfg.keyframes.render_on_disk))
         self.stats.keyframes = len(self.keyframes)
+        if whole is not None and self._square.reference is None:
+            self._reference_walls(scan, odom)
         self._tie_heading(k, scan, match.T_map_robot)
         self._loops.add_edge(a, k, pose_distance(T_rel)[0] + 0.2 * pose_distance(T_rel)[1])
         self._anchor = k
@@ -324,6 +396,20 @@ class RobotSlam:
         self._T_kf_moved_from = IDENTITY.copy()
         self._T_kf_map_cache = self.graph.pose(tr.key(k))
         return k
+
+    def _reference_walls(self, whole: ScanPoints, odom: F64) -> None:
+        """A whole scan taken before the robot moved from its first pose gives the first
+        keyframe's wall direction far better than any narrow view: square-wall ties then all
+        hold to the first keyframe through it (``SquareWalls.reference``)."""
+        c, sw = self.cfg.square_walls, self._sweep.cfg
+        d, a = pose_distance(between(self.keyframes[0].T_odom_robot, odom))
+        if d > sw.still_m or a > math.radians(sw.still_deg):
+            return
+        found = wall_direction(whole.normals, c.min_points)
+        if found is None or found[1] < c.min_alignment:
+            return
+        turned = wrap_angle(odom[2] - self.keyframes[0].T_odom_robot[2])
+        self._square.reference = (0, wrap_quarter(found[0] + turned))
 
     def _tie_heading(self, k: int, scan: ScanPoints, T_map_robot: F64) -> None:
         """Tie keyframe ``k``'s heading to earlier keyframes' where square walls say what it
@@ -339,11 +425,14 @@ class RobotSlam:
             return float(wrap_angle(T_map_robot[2] - poses[j][2]))
 
         ties = self._square.observe(k, scan.normals, rel)
-        sigma = math.radians(c.sigma_deg) * math.sqrt(max(len(ties), 1))
+        ref = self._square.reference
+        others = sum(ref is None or j != ref[0] for j, _ in ties)
+        sigma = math.radians(c.sigma_deg) * math.sqrt(max(others, 1))
         for j, heading in ties:
             T = between(poses[j], T_map_robot)
             T[2] = heading
-            add_constraint(self.graph, tr, heading_factor(tr.key(j), tr.key(k), T, sigma,
+            s = math.radians(c.sigma_deg) if ref is not None and j == ref[0] else sigma
+            add_constraint(self.graph, tr, heading_factor(tr.key(j), tr.key(k), T, s,
                                                           c.huber_k), "heading")
         if ties:
             self.stats.heading_ties += 1
