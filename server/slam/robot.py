@@ -249,6 +249,9 @@ class RobotSlam:
                     self.stats.sweeps += 1
                     self._recent.clear()      # the whole scan outweighs the views before it
                     return whole, self._smoothed(m, odom), prev
+                # a match far from the odometry's is a wall taken for another: the local
+                # map, drawn by the narrow views, would not say better
+                return whole, self._smoothed(match, odom), -1
         assert self._local_map is not None
         m = match_scan(whole, self._local_map, T_pred, T_last, self._velocity, False, mc,
                        self._icp, prior(step, mc) if prior else None)
