@@ -119,3 +119,24 @@ def test_whole_scans_keep_the_camera_robot_on_the_truth() -> None:
     assert len(err) >= 8 and np.median(err) < 0.03, err
     _, without = run({"r1": "depth"}, 120.0, {"sweep": {"enabled": False}})
     assert worst["r1"] < 0.2 and without["r1"] > worst["r1"] + 0.05, (worst, without)
+
+
+def test_a_robot_saved_before_whole_scans_loads_and_goes_on() -> None:
+    from server.slam.robot import RobotSlam
+
+    core, _ = run({"r1": "depth"}, 3.0)
+    slam = core.fleet.robots["r1"].slam
+    state = slam.__getstate__()
+    for key in ("_sweep", "_wholes"):
+        state.pop(key)
+    square = SquareWalls()
+    vars(square).update({k: v for k, v in vars(state["_square"]).items() if k != "reference"})
+    vars(square).pop("reference", None)
+    state["_square"] = square
+    old = RobotSlam.__new__(RobotSlam)
+    old.__setstate__(state)
+    assert old._square.reference is None and old._wholes == []
+    a = np.linspace(-FOV / 2, FOV / 2, 60)
+    stamp = slam._last_stamp_ns + 100_000_000
+    pose = old.add_scan(stamp, slam._last_odom, 2.0 / np.cos(a), a)
+    assert np.all(np.isfinite(pose)) and isinstance(old.sweep_due(stamp), bool)
