@@ -16,6 +16,7 @@ then holds it still until the scan is whole, or until ``wait_s`` has passed.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,7 +43,8 @@ class Sweep:
     travelled_m: float = 0.0        # odometry distance since the last whole scan
     last_odom: F64 | None = None
     hold_since_ns: int | None = None
-    headings: list[float] = field(default_factory=list)   # the latest views' headings
+    headings: deque[float] = field(default_factory=lambda: deque(maxlen=2 * BINS))
+    """the latest views' headings"""
     wholes: int = 0                 # whole scans given
     given_up: int = 0               # holds that ended without one
 
@@ -52,8 +54,7 @@ class Sweep:
         if len(self.headings) < 2:
             return False
         h = np.asarray(self.headings)
-        spread = np.abs(np.angle(np.exp(1j * (h[:, None] - h[None, :]))))
-        return bool(spread.max() >= TURNING_SPREAD_RAD)
+        return bool(np.abs(np.angle(np.exp(1j * (h - h[-1])))).max() >= TURNING_SPREAD_RAD)
 
     def add(self, view: ScanPoints, odom: F64) -> ScanPoints | None:
         """Take one narrow view at odometry pose ``odom``; the whole scan, in the robot frame
@@ -62,7 +63,7 @@ class Sweep:
         if self.last_odom is not None:
             self.travelled_m += pose_distance(between(self.last_odom, odom))[0]
         self.last_odom = odom
-        self.headings = [*self.headings[-(2 * BINS):], view.heading_rad]
+        self.headings.append(view.heading_rad)
         if self.start_odom is not None:
             d, a = pose_distance(between(self.start_odom, odom))
             if d > c.still_m or a > math.radians(c.still_deg):
