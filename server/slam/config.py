@@ -197,7 +197,8 @@ class SquareWallsConfig(ConfigModel):
         "grid (|mean(exp(4iα))|; 1: all on it)")
     agree_deg: float = Field(
         3.0, gt=0, description="a keyframe agrees with the rule when its walls put its heading "
-        "within this of the estimate")
+        "within this of the estimate; and is tied to the reference (a whole scan at the start: "
+        "slam.sweep) only then")
     min_checked: int = Field(10, ge=1, description="keyframes checked before the rule is used")
     min_agreement: float = Field(
         0.7, gt=0, le=1, description="... of which this share must agree (walls that are not "

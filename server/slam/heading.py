@@ -17,6 +17,12 @@ for keyframes that agree within ``max_correction_deg``: a wall off the square gr
 nothing. Each keyframe is tied to several earlier ones (the first and others spread over the
 run); tied to one alone, that one view's error would turn every later keyframe by as much.
 
+A robot whose camera turns gives its first keyframe a better wall direction than any narrow
+view: the whole scan it takes standing where it started (``server.slam.sweep``). That keyframe
+is then the ``reference``: every tie includes it, with its full σ, where the walls agree with
+it within ``agree_deg``. Tied only to each other, the keyframes' common heading would turn with
+the average drift of the odometry.
+
 A tie constrains the relative heading alone (so it holds in any frame, and across a merge),
 under a Huber kernel.
 """
