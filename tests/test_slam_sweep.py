@@ -102,7 +102,7 @@ def test_whole_scans_keep_the_camera_robot_on_the_truth() -> None:
     assert slam.stats.sweeps >= 10 and slam._square.reference is not None
     assert slam._square.reference[0] == 0
     # the robot did not move before its first whole scan
-    first = slam.whole_keyframes[0]
+    first = slam._wholes[0]
     stamps = sorted(s for r, s in truth if r == "r1")
     before = [s for s in stamps if s <= slam.keyframes[first].stamp_ns]
     moved = between(truth["r1", before[0]], truth["r1", before[-1]])
@@ -117,17 +117,6 @@ def test_whole_scans_keep_the_camera_robot_on_the_truth() -> None:
         m = rec.factor.measured()
         err.append(math.hypot(m.x() - true_rel[0], m.y() - true_rel[1]))
     assert len(err) >= 8 and np.median(err) < 0.03, err
-    # they close loops among themselves, and what each closure says is the truth
-    wholes = set(slam.whole_keyframes)
-    closed = []
-    for rec in slam.trajectory.records("loop"):
-        ka, kb = rec.factor.keys()
-        a, b = index[ka], index[kb]
-        if a.index in wholes and b.index in wholes:
-            true_rel = between(truth["r1", a.stamp_ns], truth["r1", b.stamp_ns])
-            m = rec.factor.measured()
-            closed.append(math.hypot(m.x() - true_rel[0], m.y() - true_rel[1]))
-    assert closed and max(closed) < 0.1, closed
     _, without = run({"r1": "depth"}, 120.0, {"sweep": {"enabled": False}})
     assert worst["r1"] < 0.2 and without["r1"] > worst["r1"] + 0.05, (worst, without)
 
@@ -138,7 +127,7 @@ def test_a_robot_saved_before_whole_scans_loads_and_goes_on() -> None:
     core, _ = run({"r1": "depth"}, 3.0)
     slam = core.fleet.robots["r1"].slam
     state = slam.__getstate__()
-    for key in ("_sweep", "_wholes", "_whole_loops"):
+    for key in ("_sweep", "_wholes"):
         state.pop(key)
     square = SquareWalls()
     vars(square).update({k: v for k, v in vars(state["_square"]).items() if k != "reference"})
@@ -146,8 +135,7 @@ def test_a_robot_saved_before_whole_scans_loads_and_goes_on() -> None:
     state["_square"] = square
     old = RobotSlam.__new__(RobotSlam)
     old.__setstate__(state)
-    assert old._square.reference is None and old.whole_keyframes == []
-    assert not old._whole_loops.submaps
+    assert old._square.reference is None and old._wholes == []
     a = np.linspace(-FOV / 2, FOV / 2, 60)
     stamp = slam._last_stamp_ns + 100_000_000
     pose = old.add_scan(stamp, slam._last_odom, 2.0 / np.cos(a), a)

@@ -267,11 +267,6 @@ class RobotSlam:
         # unmatched (it sees mostly what the map has not): still the better keyframe
         return whole, self._smoothed(match, odom), -1
 
-    @property
-    def whole_keyframes(self) -> list[int]:
-        """The keyframes of a turning camera's whole scans (none for other sensors)."""
-        return self._wholes
-
     def sweep_due(self, stamp_ns: int) -> bool:
         """Whether the robot should stand still now while its turning camera makes a whole
         scan (``server.slam.sweep``; never for a 360° sensor or a camera that does not
