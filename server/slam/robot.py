@@ -461,14 +461,10 @@ class RobotSlam:
     def _close_whole_loops(self) -> None:
         """Loop closure among a turning camera's whole scans alone, every
         ``loop.every_keyframes`` of them: 360° scans close loops that narrow views, a few
-        metres of wall each, cannot. Not once the robot is in a team with a 360° sensor: a
-        wrong closure would move that robot's map too, and the team's matches against it
-        close the loops."""
+        metres of wall each, cannot."""
         w = len(self._wholes) - 1
         if w <= 0 or w % self.cfg.loop.every_keyframes:
             return
-        if any(not g.narrow for g in self.guides):
-            return   # beside a wide sensor's map, whose matches close the loops in the team
         kfs = [self.keyframes[i] for i in self._wholes]
         poses = self.graph.poses([self.trajectory.key(i) for i in self._wholes])
         self._whole_loops.maybe_close_submap(kfs, poses)
