@@ -135,7 +135,6 @@ class RobotSlam:
         self._square = self._square_walls()
         self._sweep = Sweep(c.sweep)
         self._wholes: list[int] = []    # keyframes of a turning camera's whole scans
-        self._whole_loops = LoopCloser(c.loop, self._icp)   # ... closing loops among them
 
     def _square_walls(self) -> SquareWalls:
         c = self.cfg.square_walls
@@ -152,8 +151,6 @@ class RobotSlam:
             self._square = self._square_walls()
         if "_sweep" not in state:         # saved before a turning camera's whole scans
             self._sweep = Sweep(getattr(self.cfg, "sweep", SweepConfig()))
-        if "_whole_loops" not in state:
-            self._whole_loops = LoopCloser(self.cfg.loop, self._icp)
         if "_icp_narrow" not in state:   # saved before narrow scans had their own
             self._icp_narrow = dataclasses.replace(
                 self._icp, min_normal_cos=self.cfg.matcher.narrow_min_normal_cos)
@@ -194,8 +191,6 @@ class RobotSlam:
                 k = self._add_keyframe(stamp_ns, scan, odom, match, whole)   # 4. optimise
                 if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
                     self._close_loops(k)                               # 5. loop closure
-                if self.cfg.loop.enabled and whole is not None:
-                    self._close_whole_loops()
                 self._refresh_local_map()                              # 6. maps follow poses
         self._scan_poses.append(stamp_ns, self._T_kf_robot, tag=self._anchor)
         self.stats.scans += 1
@@ -391,12 +386,6 @@ class RobotSlam:
                 floor), "sweep")
             self._loops.add_edge(whole, k, pose_distance(T_w)[0] + 0.2 * pose_distance(T_w)[1])
         if whole is not None:
-            if self._wholes:
-                prev = self._wholes[-1]
-                step_m, turn = pose_distance(between(self.graph.pose(tr.key(prev)),
-                                                     match.T_map_robot))
-                self._whole_loops.add_edge(len(self._wholes) - 1, len(self._wholes),
-                                           step_m + 0.2 * turn)
             self._wholes.append(k)
         self.keyframes.append(Keyframe.create(k, stamp_ns, scan, odom,
                                               self.cfg.keyframes.render_on_disk))
@@ -457,22 +446,6 @@ class RobotSlam:
         closures = self._loops.search(k, self.keyframes, poses, self.narrow)
         if closures:
             self.apply_loop_closures(closures)
-
-    def _close_whole_loops(self) -> None:
-        """Loop closure among a turning camera's whole scans alone, every
-        ``loop.every_keyframes`` of them: 360° scans close loops that narrow views, a few
-        metres of wall each, cannot."""
-        w = len(self._wholes) - 1
-        if w <= 0 or w % self.cfg.loop.every_keyframes:
-            return
-        kfs = [self.keyframes[i] for i in self._wholes]
-        poses = self.graph.poses([self.trajectory.key(i) for i in self._wholes])
-        self._whole_loops.maybe_close_submap(kfs, poses)
-        closures = self._whole_loops.search(w, kfs, poses)
-        if closures:
-            self.apply_loop_closures([dataclasses.replace(
-                lc, anchor=self._wholes[lc.anchor], keyframe=self._wholes[lc.keyframe])
-                for lc in closures])
 
     def apply_loop_closures(self, closures: list[LoopClosure]) -> int:
         """Add verified closures under a robust kernel, optimise, and take out again any whose
