@@ -229,7 +229,9 @@ class RobotSlam:
         mc = self.cfg.matcher
         if whole is None or len(whole) < mc.min_points:
             return scan, self._smoothed(match, odom), None
-        prior = odometry_prior if mc.use_odometry_prior else None
+        def prior(step: F64) -> F64 | None:
+            return odometry_prior(step, mc) if mc.use_odometry_prior else None
+
         # against the whole scans before it: they were taken standing still, so what they
         # drew is not smeared by the narrow views' drift
         prev = self._wholes[-1] if self._wholes else None
@@ -241,7 +243,7 @@ class RobotSlam:
             T_guess = compose(poses[-1], from_prev)
             if len(target) >= mc.min_points:
                 m = match_scan(whole, target, T_guess, T_guess, IDENTITY, False, mc, self._icp,
-                               prior(from_prev, mc) if prior else None)
+                               prior(from_prev))
                 d, a = pose_distance(between(T_guess, m.T_map_robot))
                 if m.kind in (MatchKind.ICP, MatchKind.DEGENERATE) and \
                         d <= self._sweep.cfg.max_shift_m and \
@@ -254,7 +256,7 @@ class RobotSlam:
                 return whole, self._smoothed(match, odom), -1
         assert self._local_map is not None
         m = match_scan(whole, self._local_map, T_pred, T_last, self._velocity, False, mc,
-                       self._icp, prior(step, mc) if prior else None)
+                       self._icp, prior(step))
         if m.kind in (MatchKind.ICP, MatchKind.DEGENERATE):
             self.stats.sweeps += 1
             self._recent.clear()

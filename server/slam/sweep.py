@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import between, pose_distance, transform_points
+from schemas.se2 import between, pose_distance, rotate_vectors, transform_points
 from server.slam.config import SweepConfig
 from server.slam.scan import ScanPoints
 
@@ -108,8 +108,8 @@ class Sweep:
         parts = []
         for view, at in self.views:
             T = between(odom, at)    # ≈ identity: the robot stood still
-            R = np.array([[math.cos(T[2]), -math.sin(T[2])], [math.sin(T[2]), math.cos(T[2])]])
-            parts.append((transform_points(T, view.points), view.normals @ R.T, view.ranges_m,
+            parts.append((transform_points(T, view.points), rotate_vectors(T[2], view.normals),
+                          view.ranges_m,
                           transform_points(T, view.hits), transform_points(T, view.misses)))
         pts, nrm, rng, hits, misses = (np.concatenate([p[i] for p in parts]) for i in range(5))
         return ScanPoints(pts, nrm, rng, hits, misses, 2 * math.pi, 0.0)
