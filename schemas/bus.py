@@ -223,6 +223,7 @@ class Bus:
         self._handles: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
+        self._zid: str | None = None
 
     @classmethod
     def open(cls, mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
@@ -258,7 +259,9 @@ class Bus:
     @property
     def zid(self) -> str:
         """This session's Zenoh id (what receivers see as the source of its messages)."""
-        return str(self.session.zid())
+        if self._zid is None:
+            self._zid = str(self.session.zid())
+        return self._zid
 
     # -- publishing -------------------------------------------------------------------------
     def publish(self, key: str, msg: Message, *, block: bool = False) -> None:
@@ -317,6 +320,33 @@ class Bus:
                               callback: Callable[[str, M, str | None], None]) -> Any:
         """Like ``subscribe``, with the id of the session the message says it came from
         (``None`` when the sender did not say: not a ``Bus.publish``)."""
+        def with_source(k: str, msg: M, sample: Any) -> None:
+            info = sample.source_info
+            callback(k, msg, None if info is None else str(info.source_id.zid))
+
+        return self._subscribe(key, cls, with_source)
+
+    def subscribe_received(self, key: str, cls: type[M],
+                           callback: Callable[[str, M, int], None]) -> Any:
+        """Like ``subscribe``, with the time the message reached this process [ns since the
+        epoch, this machine's clock] (``received_ns``)."""
+        return self._subscribe(key, cls,
+                               lambda k, msg, sample: callback(k, msg, self.received_ns(sample)))
+
+    def received_ns(self, sample: Any) -> int:
+        """When ``sample``'s bytes reached this session. A router stamps every sample as it
+        arrives, in Zenoh's own threads, so a stall of ours (the GIL held by a long
+        computation) does not make it later; a sample stamped elsewhere (by its sender, or by
+        another router with its own clock), or not at all, gets the time its callback ran,
+        which is never earlier than its arrival."""
+        now = time.time_ns()
+        ts = sample.timestamp
+        if ts is None or str(ts.get_id()) != self.zid:
+            return now
+        return min(now, ts.get_time_as_ntp64().as_nanos())
+
+    def _subscribe(self, key: str, cls: type[M],
+                   callback: Callable[[str, M, Any], None]) -> Any:
         name = cls.__name__
 
         def on_sample(sample: Any) -> None:
@@ -330,8 +360,7 @@ class Bus:
                 return
             self.stats.received[name] += 1
             try:
-                info = sample.source_info
-                callback(k, msg, None if info is None else str(info.source_id.zid))
+                callback(k, msg, sample)
             except Exception as e:  # a broken handler must not kill Zenoh's thread
                 self.stats.callback_errors[name] += 1
                 self.stats.last_error = f"{k}: {type(e).__name__}: {e}"

@@ -178,10 +178,20 @@ class ClockConfig(ConfigModel):
         "mrslam/sim/clock (sim; the demo), or the newest robot stamp accepted (stamps: for "
         "replaying recordings only, it trusts every robot's clock)")
     max_skew_s: float = Field(2.0, gt=0.0, description="a stamp (after its robot's re-basing) "
-                              "this far from the server's clock is refused")
-    rebase_after: int = Field(3, ge=1, description="this many messages in a row that agree "
-                              "on a new offset to the server's clock re-base the robot's "
-                              "stamps (its clock stepped)")
+                              "this far ahead of its own receipt is refused until "
+                              "rebase_after messages confirm that the robot's clock jumped; "
+                              "re-bases larger than a tenth of this are counted as clock steps")
+    rebase_after: int = Field(3, ge=1, description="this many messages in a row whose stamps "
+                              "run ahead of their receipt, or go backwards, and agree on a new "
+                              "offset to the server's clock re-base the robot's stamps (its "
+                              "clock stepped)")
+    window_s: float = Field(10.0, gt=0.0, description="a robot's offset follows the smallest "
+                            "(receipt - stamp) of its messages received within this window: a "
+                            "delay burst never moves it; a clock that stepped back while the "
+                            "robot was silent is re-based after one window")
+    tolerance_s: float = Field(0.05, ge=0.0, description="an offset within this of the "
+                               "window's smallest (receipt - stamp) is left where it is (a "
+                               "synchronised clock keeps offset 0)")
     step_barrier_s: float = Field(2.0, gt=0.0, description="in a lockstep simulation, wait "
                                   "this long (wall time) for every live robot's scan of a "
                                   "step, then take the step's messages in robot order, so a "

@@ -67,7 +67,8 @@ class ServerNode:
             allowed=frozenset(cfg.robots) if cfg.robots is not None else None,
             probation=a.probation_messages, forget_after_ns=round(a.forget_after_s * 1e9),
             max_newcomers=a.max_newcomers,
-            clock=ClockPolicy(round(c.max_skew_s * 1e9), c.rebase_after)))
+            clock=ClockPolicy(round(c.max_skew_s * 1e9), c.rebase_after,
+                              round(c.window_s * 1e9), round(c.tolerance_s * 1e9))))
         self.dropped: dict[str, int] = {}
         self.errors = 0
         self._queues: dict[str, deque[Any]] = {}
@@ -103,25 +104,29 @@ class ServerNode:
     def start(self) -> None:
         self.bus.declare_alive(keys.SERVER_ALIVE)
         if self.clock.source == "sim":
-            self.bus.subscribe(keys.SIM_CLOCK, SimClock, self._on_sim_clock)
-        self.bus.subscribe(keys.ALL_SCANS, Scan, self._on_message)
-        self.bus.subscribe(keys.ALL_TAGS, TagDetections, self._on_message)
+            self.bus.subscribe_received(keys.SIM_CLOCK, SimClock, self._on_sim_clock)
+        self.bus.subscribe_received(keys.ALL_SCANS, Scan, self._on_message)
+        self.bus.subscribe_received(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
         self.bus.serve(keys.SERVER_MAP, lambda: list(self._latest_maps))
         if self.cluster is not None:
             self.cluster.start()
         self._worker.start()
 
-    def _on_sim_clock(self, _key: str, msg: SimClock) -> None:
-        self.clock.on_sim_clock(msg.stamp_ns)
+    def _on_sim_clock(self, _key: str, msg: SimClock, received_ns: int) -> None:
+        with self._cv:
+            self.clock.on_sim_clock(msg.stamp_ns, received_ns, msg.dt_ns,
+                                    0.0 if msg.lockstep else msg.real_time_factor)
         self._lockstep = msg.lockstep
 
-    def _on_message(self, key: str, msg: Scan | TagDetections) -> None:
+    def _on_message(self, key: str, msg: Scan | TagDetections, received_ns: int) -> None:
         stream = "scan" if isinstance(msg, Scan) else "tags"
         with self._cv:
+            # the receipt as the router stamped it, not when this callback got to run
+            server_ns, slack_ns = self.clock.receive_ns(received_ns)
             try:
                 ready = self.registry.admit(keys.robot_id_of(key), msg.robot_id, stream,
-                                            msg.stamp_ns, self.clock.reference_ns(), msg)
+                                            msg.stamp_ns, server_ns, msg, slack_ns)
             except Refused:
                 return
             if self.cluster is not None:

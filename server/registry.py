@@ -2,8 +2,8 @@
 
 A message is refused (with a typed reason, counted per reason and logged at a limited rate)
 when its key names a different robot than its body (``key-mismatch``), when the robot is not
-on the configured allowlist (``unknown-robot``), when its stamp is too far from the server's
-clock or does not advance (``clock-skew``, ``out-of-order``; see ``server.clock``). Refusing is
+on the configured allowlist (``unknown-robot``), when its stamp is far ahead of its own receipt
+or does not advance (``clock-skew``, ``out-of-order``; see ``server.clock``). Refusing is
 never fatal: the message is dropped, everything accepted before stays.
 
 A robot that is not yet known is admitted as soon as its agent's liveliness token is seen, or
@@ -73,10 +73,12 @@ class RobotRegistry:
 
     # -- messages --------------------------------------------------------------------------
     def admit(self, key_robot_id: str | None, robot_id: str, stream: str, stamp_ns: int,
-              server_ns: int | None, message: Any = None) -> list[tuple[str, int, Any]]:
+              server_ns: int | None, message: Any = None, slack_ns: int = 0
+              ) -> list[tuple[str, int, Any]]:
         """Admit one message; returns what is now ready for processing, in order, as
         (stream, stamp in server time, message): nothing while the robot is on probation,
-        its held messages and this one when it is admitted. Raises Refused."""
+        its held messages and this one when it is admitted. ``server_ns`` is the server's
+        clock when the message arrived, known to ``slack_ns``. Raises Refused."""
         if key_robot_id is not None and key_robot_id != robot_id:
             raise self._refuse(robot_id, "key-mismatch",
                                f"published under robot {key_robot_id!r}'s key")
@@ -84,9 +86,9 @@ class RobotRegistry:
         if p.allowed is not None and robot_id not in p.allowed:
             raise self._refuse(robot_id, "unknown-robot", "not in the configured robot list")
         rec = self.robots.get(robot_id) or self._new(robot_id)
-        steps = rec.clock.steps
+        steps, offset = rec.clock.steps, rec.clock.offset_ns
         try:
-            t = rec.clock.map(stream, stamp_ns, server_ns)
+            t = rec.clock.map(stream, stamp_ns, server_ns, slack_ns)
         except StampRefused as e:
             raise self._refuse(robot_id, e.reason, str(e).split(": ", 1)[1]) from None
         finally:
@@ -96,8 +98,11 @@ class RobotRegistry:
             rec.last_heard_ns = max(rec.last_heard_ns, t)
         if rec.clock.steps != steps:
             self.clock_steps += 1
-            log.warning("robot %s: its clock stepped; stamps re-based by %+.3f s (step #%d)",
-                        robot_id, rec.clock.offset_ns / 1e9, rec.clock.steps)
+            log.warning("robot %s: its clock stepped by %+.3f s; stamps re-based (step #%d)",
+                        robot_id, (offset - rec.clock.offset_ns) / 1e9, rec.clock.steps)
+        elif rec.clock.offset_ns != offset:
+            self._log.info("clock-adjusted", "robot %s: offset to the server's clock adjusted "
+                           "by %+.3f s", robot_id, (rec.clock.offset_ns - offset) / 1e9)
         rec.accepted[stream] += 1
         if rec.admitted:
             return [(stream, t, message)]
@@ -183,6 +188,9 @@ class RobotRegistry:
             d.update({f"accepted_{k}": v for k, v in r.accepted.items()})
             if r.clock.steps:
                 d["clock_steps"] = r.clock.steps
+            if r.clock.adjustments:
+                d["clock_adjustments"] = r.clock.adjustments
+            if r.clock.offset_ns:
                 d["clock_offset_s"] = r.clock.offset_ns / 1e9
         return out
 
