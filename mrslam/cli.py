@@ -511,24 +511,43 @@ def merge(
 def slam_log(
     log_file: Annotated[Path, typer.Argument(
         help="CARMEN log (.clf/.log, optionally .gz/.bz2), ROS 1 bag (.bag) or ROS 2 bag "
-        "folder: a LaserScan topic with odometry (an Odometry topic or /tf)")],
+        "folder: a LaserScan or MultiEchoLaserScan topic, with odometry (an Odometry topic or "
+        "/tf) or without (then from scan matching)")],
     out: Annotated[Path, typer.Option(help="output folder")],
     scan_topic: Annotated[str | None, typer.Option(
-        help="a bag's LaserScan topic (default: the only one, or the one with most messages)")
-    ] = None,
+        help="a bag's scan topic (default: the one with the most messages)")] = None,
     odom_topic: Annotated[str | None, typer.Option(
-        help="a bag's Odometry topic (default: the only one; without one, /tf)")] = None,
+        help="a bag's Odometry topic (default: the one with the most messages; without one, "
+        "/tf; without that, scan matching)")] = None,
+    echo: Annotated[str | None, typer.Option(
+        metavar="first|last", help="the echo of a MultiEchoLaserScan beam (default: first)")
+    ] = None,
+    laser_pose: Annotated[str | None, typer.Option(
+        metavar="X,Y,YAW", help="the laser's pose on the robot [m, m, rad] where the bag has "
+        "no static transform for it (replaces /tf_static's)")] = None,
+    odometry: Annotated[str | None, typer.Option(
+        metavar="auto|laser|odom|scans", help="odometry source; scans: from scan matching, "
+        "ignoring the recording's (default: auto)")] = None,
     config: ConfigOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run per-robot graph SLAM offline on a CARMEN laser log or a ROS bag."""
     setup_logging(verbose, "slam-log")
     check_out("slam-log", out)
+    pose: tuple[float, ...] | None = None
+    if laser_pose is not None:
+        try:
+            pose = tuple(float(v) for v in laser_pose.split(","))
+        except ValueError:
+            pose = ()
+        if len(pose) != 3:
+            _fail(f"slam-log: --laser-pose {laser_pose!r}: give X,Y,YAW (metres, radians)")
 
     def body() -> Any:
         from server.slam_log import run
 
-        return run(log_file, out, config, scan_topic, odom_topic)
+        return run(log_file, out, config, scan_topic, odom_topic, echo=echo, laser_pose=pose,
+                   odometry=odometry)
 
     call("slam-log", body)
 

@@ -18,6 +18,10 @@ class CarmenError(Exception):
     user_error = True
 
 
+class BagError(CarmenError):
+    """A bag that cannot be used: not a bag, no laser scan topic, no odometry, unreadable."""
+
+
 class LineError(ValueError):
     """One line is corrupt or truncated; the reader skips and counts it."""
 

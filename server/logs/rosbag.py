@@ -1,30 +1,49 @@
 """Reader for ROS bags (ROS 1 ``.bag`` files, ROS 2 bag folders in SQLite or MCAP storage): the
-laser scans of one ``sensor_msgs/LaserScan`` topic with the odometry pose of the laser at each.
+laser scans of one scan topic with the odometry pose of the laser at each.
 
-Odometry comes from a ``nav_msgs/Odometry`` topic, else from ``/tf``: the transform whose child
-is the frame the scan hangs from (through ``/tf_static``). Where the scan's frame is mounted on
-that frame by static transforms, the mount is composed in, so each scan gets the pose of the
-laser itself. Stamps are the messages' header stamps; ranges outside the scan's
-``[range_min, range_max]`` and non-finite ones (REP 117: ``+inf`` no return, ``-inf`` too close,
-NaN invalid) are no return (``inf``).
+1. **Scans**: a ``sensor_msgs/LaserScan`` or ``sensor_msgs/MultiEchoLaserScan`` topic (the
+   one asked for, else the one with the most messages); of a multi-echo beam, the first echo
+   or the last (``echo``). Stamps are the header stamps (the bag's receive time where a header
+   stamp is unset).
+2. **Odometry**, the first of: a ``nav_msgs/Odometry`` topic (the one asked for, else the one
+   with the most messages); ``/tf``: the transforms whose child is the frame the scans hang from
+   (through ``/tf_static``); none — then ``RobotSlam`` gets scan-matched odometry
+   (``server.logs.scan_odometry``), as it does when asked to ignore the bag's odometry.
+3. **Corrupt samples** of that odometry are skipped and counted (``server.logs.odomcheck``);
+   if every sample is corrupt, the bag is refused.
+4. **Laser pose** on the robot: ``laser_pose`` if given, else the ``/tf_static`` transforms from
+   the scans' frame up to the odometry's frame, else the robot's origin (with a warning).
+5. Each scan gets the odometry interpolated at its stamp, composed with the laser pose.
 """
 
 from __future__ import annotations
 
 import logging
-import math
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from schemas.se2 import wrap_angle
+from schemas.se2 import compose
+from server.logs.bagmsgs import (
+    ODOMETRY,
+    SCAN_TYPES,
+    TF_TYPES,
+    Echo,
+    frame,
+    laser_record,
+    pose_of,
+    stamp,
+    transform_of,
+    yaw_of,
+)
+from server.logs.bagsource import is_bag, read_messages
+from server.logs.odomcheck import OdometryCheck, OdometryLimits, check_odometry
 from server.logs.odometry import interpolate_pose
 from server.logs.records import (
     F64,
-    CarmenError,
+    BagError,
     CarmenLog,
     LaserRecord,
     OdometryRecord,
@@ -33,73 +52,51 @@ from server.logs.records import (
 
 log = logging.getLogger(__name__)
 
-LASER_SCAN = "sensor_msgs/msg/LaserScan"
-ODOMETRY = "nav_msgs/msg/Odometry"
-TF = "tf2_msgs/msg/TFMessage"
+__all__ = ["BagError", "BagInfo", "compose", "is_bag", "read_bag", "yaw_of"]
+TF_TOPICS = ("/tf", "/tf_static")
+Sample = tuple[float, str, str, F64]     # stamp [s], stamp text, parent frame, pose
 
 
-class BagError(CarmenError):
-    """A bag that cannot be used: not a bag, no laser scan topic, no odometry, unreadable."""
+@dataclass
+class BagInfo:
+    """Where a bag's scans and odometry came from, and what was skipped on the way."""
 
+    scan_topic: str
+    scan_type: str
+    reader: str
+    odometry: str = "none: scan matching"
+    laser_pose: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    laser_pose_from: str = "none: the robot's origin"
+    odometry_samples: int = 0
+    odometry_skipped: dict[str, int] = field(default_factory=dict)
+    lost: list[str] = field(default_factory=list)
 
-def is_bag(path: Path) -> bool:
-    """A ROS 1 bag file, a ROS 2 bag folder, or a file inside a ROS 2 bag folder."""
-    path = Path(path)
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    if path.suffix == ".bag":
-        return True
-    return path.suffix in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file()
-
-
-def yaw_of(q: Any) -> float:
-    """Rotation about z [rad] of a quaternion message (x, y, z, w)."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-
-
-def compose(a: F64, b: F64) -> F64:
-    """SE(2) a ⊕ b for (x, y, θ) arrays."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
-                     wrap_angle(a[2] + b[2])])
-
-
-def _stamp(header: Any) -> tuple[str, float, int]:
-    sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
-    return f"{sec}.{nsec:09d}", sec + nsec * 1e-9, sec * 1_000_000_000 + nsec
-
-
-def _pose2(p: Any) -> F64:
-    return np.array([float(p.position.x), float(p.position.y), yaw_of(p.orientation)])
-
-
-def _tf2(t: Any) -> F64:
-    return np.array([float(t.translation.x), float(t.translation.y), yaw_of(t.rotation)])
-
-
-def _frame(name: str) -> str:
-    return name.lstrip("/")   # ROS 1 frames may carry a leading slash
+    @property
+    def source(self) -> str:
+        return f"{self.scan_topic}; odometry {self.odometry}"
 
 
 @dataclass
 class _Collected:
-    scans: list[tuple[Any, int]] = field(default_factory=list)        # (message, number)
-    odometry: list[tuple[float, str, str, F64]] = field(default_factory=list)
+    scans: list[LaserRecord] = field(default_factory=list)
+    scan_frame: str = ""
+    odometry: list[Sample] = field(default_factory=list)
     odom_child: str | None = None
     #: child frame -> (parent frame, pose of the child in the parent)
     static: dict[str, tuple[str, F64]] = field(default_factory=dict)
-    dynamic: dict[str, list[tuple[float, str, str, F64]]] = field(default_factory=dict)
+    dynamic: dict[str, list[Sample]] = field(default_factory=dict)
 
 
-def _choose(topics: dict[str, tuple[str, int]], msgtype: str, wanted: str | None,
+def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: str | None,
             what: str) -> str | None:
-    found = {t: n for t, (ty, n) in topics.items() if ty == msgtype}
     if wanted is not None:
         if wanted not in topics:
             raise BagError(f"no topic {wanted!r} in the bag (topics: {sorted(topics)})")
-        if topics[wanted][0] != msgtype:
-            raise BagError(f"topic {wanted!r} carries {topics[wanted][0]}, not {msgtype}")
+        if topics[wanted][0] not in types:
+            raise BagError(f"topic {wanted!r} carries {topics[wanted][0]}, not "
+                           f"{' or '.join(types)}")
         return wanted
+    found = {t: n for t, (ty, n) in topics.items() if ty in types}
     if not found:
         return None
     best = max(found, key=lambda t: found[t])
@@ -109,137 +106,163 @@ def _choose(topics: dict[str, tuple[str, int]], msgtype: str, wanted: str | None
     return best
 
 
-def _open(path: Path) -> Any:
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    if path.suffix in (".mcap", ".db3") and not path.is_dir():
-        path = path.parent
-    return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY))
-
-
-def _collect(reader: Any, scan_topic: str, odom_topic: str | None,
+def _collect(src: Any, scan_topic: str, odom_topic: str | None, echo: Echo,
              stats: ReadStats) -> _Collected:
-    from rosbags.serde import SerdeError
-
     got = _Collected()
-    wanted = {scan_topic} | ({odom_topic} if odom_topic else set()) | {"/tf", "/tf_static"}
-    conns = [c for c in reader.connections if c.topic in wanted
-             and c.msgtype in (LASER_SCAN, ODOMETRY, TF)]
-    number = 0
-    for conn, _, raw in reader.messages(connections=conns):
-        number += 1
+    for number, (topic, msgtype, t_ns, raw) in enumerate(src.messages, start=1):
         stats.lines += 1
         try:
-            msg = reader.deserialize(raw, conn.msgtype)
-        except (SerdeError, ValueError, IndexError, struct.error) as e:   # skipped, counted
-            stats.skip("corrupt", number, f"{conn.topic}: {type(e).__name__}: {e}")
+            msg = src.decode(raw, msgtype)
+            if topic == scan_topic:
+                rec = laser_record(msg, msgtype, t_ns, number, echo)
+                got.scan_frame = got.scan_frame or frame(msg.header.frame_id)
+            elif topic == odom_topic:
+                text, t = stamp(msg.header, t_ns)
+                pose = pose_of(msg.pose.pose)
+                got.odom_child = frame(msg.child_frame_id)
+                odom_frame = frame(msg.header.frame_id)
+            else:
+                trs = [(frame(tr.child_frame_id), frame(tr.header.frame_id),
+                        *stamp(tr.header, t_ns), transform_of(tr.transform))
+                       for tr in msg.transforms]
+        except Exception as e:   # a damaged message: skipped, counted
+            stats.skip("corrupt", number, f"{topic}: {type(e).__name__}: {e}")
             continue
-        stats.by_kind[conn.topic] += 1
-        if conn.topic == scan_topic:
-            got.scans.append((msg, number))
-        elif conn.topic == odom_topic:
-            text, t, _ = _stamp(msg.header)
-            got.odom_child = _frame(msg.child_frame_id)
-            got.odometry.append((t, text, _frame(msg.header.frame_id), _pose2(msg.pose.pose)))
-        elif conn.msgtype == TF:
-            for tr in msg.transforms:
-                child, parent = _frame(tr.child_frame_id), _frame(tr.header.frame_id)
-                if conn.topic == "/tf_static":
-                    got.static[child] = (parent, _tf2(tr.transform))
+        stats.by_kind[topic] += 1
+        if topic == scan_topic:
+            got.scans.append(rec)
+        elif topic == odom_topic:
+            got.odometry.append((t, text, odom_frame, pose))
+        else:
+            for child, parent, text, t, T in trs:
+                if topic == "/tf_static":
+                    got.static[child] = (parent, T)
                 else:
-                    text, t, _ = _stamp(tr.header)
-                    got.dynamic.setdefault(child, []).append((t, text, parent,
-                                                              _tf2(tr.transform)))
+                    got.dynamic.setdefault(child, []).append((t, text, parent, T))
     return got
 
 
-def _mount(static: dict[str, tuple[str, F64]], frame: str, base: str | None
+def _mount(static: dict[str, tuple[str, F64]], start: str, base: str | None
            ) -> tuple[str, F64]:
-    """Walk the static transforms up from ``frame`` (to ``base``, or to the first frame with no
-    static parent): that frame and the pose of ``frame`` in it."""
+    """Walk the static transforms up from ``start`` (to ``base``, or to the first frame with
+    no static parent): that frame and the pose of ``start`` in it."""
     pose = np.zeros(3)
-    seen = {frame}
-    while frame != base and frame in static:
-        parent, T = static[frame]
+    seen = {start}
+    at = start
+    while at != base and at in static:
+        parent, T = static[at]
         pose = compose(T, pose)
-        frame = parent
-        if frame in seen:
-            raise BagError(f"/tf_static has a loop through {frame!r}")
-        seen.add(frame)
-    return frame, pose
+        at = parent
+        if at in seen:
+            raise BagError(f"/tf_static has a loop through {at!r}")
+        seen.add(at)
+    return at, pose
 
 
-def _laser_record(msg: Any, number: int) -> LaserRecord:
-    text, t, _ = _stamp(msg.header)
-    raw = np.asarray(msg.ranges)
-    # float32 ranges read as the decimal they print as (8.13, not 8.1300001144): a log
-    # converted to a bag gives back its own readings
-    ranges = raw.astype(str).astype(np.float64) if raw.dtype == np.float32 else \
-        raw.astype(np.float64)
-    lo, hi = float(msg.range_min), float(msg.range_max)
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(ranges) | (ranges < lo) | ((ranges > hi) if math.isfinite(hi) and
-                                                      hi > 0 else False)
-    ranges = np.where(bad, np.inf, ranges).astype(np.float64)
-    angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(len(ranges),
-                                                                           dtype=np.float64)
-    max_r = hi if math.isfinite(hi) and hi > 0 else None
-    return LaserRecord("LaserScan", text, t, ranges, angles, max_r, None, None, number)
+def _checked(samples: list[Sample], limits: OdometryLimits, what: str, path: Path
+             ) -> tuple[list[Sample], OdometryCheck]:
+    order = sorted(range(len(samples)), key=lambda i: samples[i][0])
+    ordered = [samples[i] for i in order]
+    check = check_odometry(np.array([s[0] for s in ordered]),
+                           np.array([s[3] for s in ordered]).reshape(-1, 3), limits)
+    if not check.keep:
+        raise BagError(f"{path}: every odometry sample of {what} is corrupt "
+                       f"({dict(check.skipped)}): nothing to place the scans with")
+    if check.skipped_total:
+        first = ", ".join(f"{ordered[i][1]} ({why})" for i, why in check.examples)
+        log.warning("%s: %d of %d odometry samples of %s skipped as corrupt %s, e.g. at %s",
+                    path, check.skipped_total, len(samples), what, dict(check.skipped), first)
+    return [ordered[i] for i in check.keep], check
 
 
-def read_bag(path: str | Path, scan_topic: str | None = None,
-             odom_topic: str | None = None) -> tuple[CarmenLog, str]:
-    """The scans of a bag with the laser's odometry pose in each (``laser_pose``) and the
-    odometry it came from; returns them as a ``CarmenLog`` and a line saying where the odometry
-    came from. Raises ``BagError`` naming what is missing."""
-    from rosbags.highlevel import AnyReaderError
-
+def read_bag(path: str | Path, scan_topic: str | None = None, odom_topic: str | None = None,
+             echo: Echo = "first", laser_pose: F64 | None = None,
+             limits: OdometryLimits | None = None, use_odometry: bool = True
+             ) -> tuple[CarmenLog, BagInfo]:
+    """The scans of a bag, each with the laser's odometry pose (``laser_pose``; None for every
+    scan when the bag has no odometry or ``use_odometry`` is False), the odometry kept, and
+    where each came from. Raises ``BagError`` naming what is missing."""
     p = Path(path)
-    if not p.exists():
-        raise BagError(f"{p}: no such file or folder")
     stats = ReadStats()
-    try:
-        with _open(p) as reader:
-            topics = {t: (i.msgtype or "", int(i.msgcount)) for t, i in reader.topics.items()}
-            scan = _choose(topics, LASER_SCAN, scan_topic, "LaserScan")
-            if scan is None:
-                raise BagError(f"{p}: no sensor_msgs/LaserScan topic in the bag (topics: "
-                               f"{ {t: ty for t, (ty, _) in topics.items()} })")
-            odom = _choose(topics, ODOMETRY, odom_topic, "Odometry")
-            got = _collect(reader, scan, odom, stats)
-    except AnyReaderError as e:
-        raise BagError(f"{p}: not a readable ROS bag ({e})") from None
+    chosen: dict[str, str | None] = {}
+
+    def choose(topics: dict[str, tuple[str, int]]) -> set[str]:
+        scan = _choose(topics, SCAN_TYPES, scan_topic, "scan")
+        if scan is None:
+            raise BagError(f"{p}: no sensor_msgs/LaserScan or MultiEchoLaserScan topic in the "
+                           f"bag (topics: { {t: ty for t, (ty, _) in topics.items()} })")
+        odom = _choose(topics, (ODOMETRY,), odom_topic, "Odometry") if use_odometry else None
+        chosen.update(scan=scan, type=topics[scan][0], odom=odom)
+        tf = {t for t in TF_TOPICS if t in topics and topics[t][0] in TF_TYPES}
+        return {scan} | ({odom} if odom else set()) | (tf if use_odometry else set())
+
+    bag = read_messages(p, lambda ty: ty in SCAN_TYPES or ty == ODOMETRY or ty in TF_TYPES,
+                        choose)
+    scan, odom = str(chosen["scan"]), chosen["odom"]
+    got = _collect(bag, scan, odom, echo, stats)
+    info = BagInfo(scan, str(chosen["type"]), bag.reader, lost=bag.lost)
+    if bag.lost:
+        stats.truncated_stream = True
+        log.warning("%s: parts of the bag could not be read: %s", p, "; ".join(bag.lost[:3]))
     if not got.scans:
-        raise BagError(f"{p}: the topic {scan} holds no readable LaserScan message")
-    lasers = [_laser_record(m, n) for m, n in got.scans]
-    scan_frame = _frame(got.scans[0][0].header.frame_id)
-    base, T_base_laser = _mount(got.static, scan_frame, got.odom_child)
+        raise BagError(f"{p}: the topic {scan} holds no readable scan")
+    samples: list[Sample] = []
+    base = _mount(got.static, got.scan_frame, None)[0]   # the top of the scans' static tree
     if got.odometry:
-        source = f"{odom} ({got.odom_child} in {got.odometry[0][2]})"
-        samples = got.odometry
-        if got.odom_child and base != got.odom_child:
-            log.warning("%s: the scans' frame %r is not tied to the odometry's %r by "
-                        "/tf_static: taking the laser at the robot's origin", p, scan_frame,
-                        got.odom_child)
-            T_base_laser = np.zeros(3)
+        samples, base = got.odometry, got.odom_child or base
+        info.odometry = f"{odom} ({base} in {samples[0][2]})"
     elif base in got.dynamic:
         samples = got.dynamic[base]
-        source = f"/tf ({base} in {samples[0][2]})"
+        info.odometry = f"/tf ({base} in {samples[0][2]})"
+    elif use_odometry and odom_topic is not None:
+        raise BagError(f"{p}: the topic {odom_topic} holds no readable odometry")
+    T_base_laser = np.zeros(3)
+    if samples:
+        samples, check = _checked(samples, limits or OdometryLimits(), info.odometry, p)
+        info.odometry_samples = len(samples) + check.skipped_total
+        info.odometry_skipped = {k: int(v) for k, v in check.skipped.items()}
+        top, T = _mount(got.static, got.scan_frame, base)
+        T_base_laser = _laser_pose(info, laser_pose, T if top == base else None,
+                                   got.scan_frame, base, p)
     else:
-        raise BagError(f"{p}: no odometry: no nav_msgs/Odometry topic, and /tf has no "
-                       f"transform to the scans' frame {scan_frame!r} (or a frame it is "
-                       f"mounted on through /tf_static)")
+        info.laser_pose_from = "not needed: scan-matched odometry is the laser's own"
     odometry = [OdometryRecord(text, t, pose, 0) for t, text, _, pose in samples]
+    placed = _place(got.scans, odometry, T_base_laser)
+    log.info("%s: %d scans on %s (%s), odometry from %s, read by %s", p, len(placed), scan,
+             info.scan_type, info.odometry, bag.reader)
+    return CarmenLog(placed, odometry, {}, stats), info
+
+
+def _laser_pose(info: BagInfo, given: F64 | None, from_tf: F64 | None, scan_frame: str,
+                base: str, p: Path) -> F64:
+    """The laser's pose on the robot: the one given, else /tf_static's, else the origin."""
+    if given is not None:
+        if from_tf is not None and np.any(from_tf):
+            log.warning("%s: the laser pose given (%s) replaces the one of /tf_static (%s)", p,
+                        np.round(given, 4).tolist(), np.round(from_tf, 4).tolist())
+        info.laser_pose, info.laser_pose_from = [float(v) for v in given], "--laser-pose"
+        return np.asarray(given, dtype=np.float64)
+    if from_tf is not None:
+        info.laser_pose = [float(v) for v in from_tf]
+        info.laser_pose_from = ("/tf_static" if scan_frame != base
+                                else "the scans' frame is the odometry's")
+        return from_tf
+    log.warning("%s: no static transform ties the scans' frame %r to the odometry's %r: "
+                "taking the laser at the robot's origin (give --laser-pose X,Y,YAW)", p,
+                scan_frame, base)
+    return np.zeros(3)
+
+
+def _place(scans: list[LaserRecord], odometry: list[OdometryRecord], T_base_laser: F64
+           ) -> list[LaserRecord]:
+    if not odometry:
+        return scans
     stamps = np.array([o.stamp_s for o in odometry])
-    order = np.argsort(stamps, kind="stable")
-    stamps, poses = stamps[order], np.array([o.pose for o in odometry])[order]
+    poses = np.array([o.pose for o in odometry])
     placed = []
-    for rec in lasers:
+    for rec in scans:
         robot = interpolate_pose(stamps, poses, rec.stamp_s)
         placed.append(LaserRecord(rec.kind, rec.stamp_text, rec.stamp_s, rec.ranges_m,
                                   rec.angles_rad, rec.max_range_m, compose(robot, T_base_laser),
                                   robot, rec.line_no))
-    log.info("%s: %d scans on %s, odometry from %s", p, len(placed), scan, source)
-    return CarmenLog(placed, odometry, {}, stats), f"{scan}; odometry {source}"
-
+    return placed
