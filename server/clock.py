@@ -78,6 +78,7 @@ class RobotClock:
     offset_ns: int = 0
     steps: int = 0                  # re-bases larger than ``min_step_ns``
     adjustments: int = 0            # smaller ones
+    at_receipt: int = 0             # messages ahead of their receipt, taken at it
     last_ns: dict[str, int] = field(default_factory=dict)      # mapped, per stream
     last_raw_ns: dict[str, int] = field(default_factory=dict)  # the robot's own, per stream
     _started: bool = False
@@ -118,6 +119,7 @@ class RobotClock:
                 raise StampRefused("clock-skew", f"{stream} stamp {ahead / 1e9:+.3f} s ahead "
                                    "of its receipt")
             # taken no later than it came; its stamp is not trusted to order the next ones
+            self.at_receipt += 1
             return self._accept(stream, None, received_ns)
         self._candidates.clear()
         self._remember(received_ns, d)

@@ -56,6 +56,8 @@ class RobotRecord:
     #: (stream, stamp in server time, message) held while on probation
     held: list[tuple[str, int, Any]] = field(default_factory=list)
     accepted: Counter[str] = field(default_factory=Counter)
+    #: the latest clock steps: (the server's clock at the re-base [ns], the step [ns])
+    rebased: list[tuple[int, int]] = field(default_factory=list)
 
 
 class RobotRegistry:
@@ -98,6 +100,7 @@ class RobotRegistry:
             rec.last_heard_ns = max(rec.last_heard_ns, t)
         if rec.clock.steps != steps:
             self.clock_steps += 1
+            rec.rebased = [*rec.rebased[-9:], (server_ns or t, offset - rec.clock.offset_ns)]
             log.warning("robot %s: its clock stepped by %+.3f s; stamps re-based (step #%d)",
                         robot_id, (offset - rec.clock.offset_ns) / 1e9, rec.clock.steps)
         elif rec.clock.offset_ns != offset:
@@ -188,8 +191,11 @@ class RobotRegistry:
             d.update({f"accepted_{k}": v for k, v in r.accepted.items()})
             if r.clock.steps:
                 d["clock_steps"] = r.clock.steps
+                d["clock_rebased"] = [[at / 1e9, step / 1e9] for at, step in r.rebased]
             if r.clock.adjustments:
                 d["clock_adjustments"] = r.clock.adjustments
+            if r.clock.at_receipt:
+                d["clock_taken_at_receipt"] = r.clock.at_receipt
             if r.clock.offset_ns:
                 d["clock_offset_s"] = r.clock.offset_ns / 1e9
         return out
