@@ -2,6 +2,8 @@
 
 - ``fake_ids``: a server process (open: no robot list) gets one scan each from 2,000 robot ids
   nobody runs, then a real robot joins; is it served, how many log lines, how much memory?
+- ``newcomer_flood``: while r1 streams with its token, 2,000 ids send 3 valid, current scans
+  each; is r1 answered within a second throughout, how much memory, how long to stop?
 - ``demo_clocks``: the default demo with one robot's clock set back an hour and a scan an hour
   ahead injected under another's name: does it still reach 98 % with every robot served?
 - ``clocks``: two robots stream to a server on this machine's clock; one's clock steps back an
@@ -61,6 +63,54 @@ def fake_ids(folder: Path, n_fakes: int = 2000) -> dict[str, Any]:
         "exit_code": code,
         "goal_met": first is not None and answered >= 100 and len(lines) <= GOAL_LOG_LINES
         and tracebacks == 0 and code == 0,
+    }
+
+
+def newcomer_flood(folder: Path, n_ids: int = 2000, per_id: int = 3, watch_s: float = 30.0
+                   ) -> dict[str, Any]:
+    """The default config (no robot list): r1 streams with its liveliness token while
+    ``n_ids`` ids nobody runs send ``per_id`` valid, current scans each (6,000 in about two
+    seconds). Is r1 answered within a second throughout, how much memory does the server
+    take, how long does it take to stop?"""
+    srv = ServerProcess(folder, {"explore": {"total_area_m2": 48.0}})
+    stop_s = None
+    try:
+        with srv.client() as bus:
+            robot = RoomRobot(srv.endpoint, "r1").start()
+            time.sleep(3.0)
+            rss0 = rss_mb(srv.proc.pid)
+            bus.wait_for_subscribers(keys.robot_scan("f0"), 10.0)
+            t0 = time.monotonic()
+            for k in range(per_id):
+                for i in range(n_ids):
+                    bus.publish(keys.robot_scan(f"f{i}"),
+                                room_scan(f"f{i}", k, time.time_ns(), 0.1 * k), block=True)
+            send_s = time.monotonic() - t0
+            rss = [rss_mb(srv.proc.pid)]
+            while time.monotonic() < t0 + watch_s:
+                time.sleep(1.0)
+                rss.append(rss_mb(srv.proc.pid))
+            t1 = time.monotonic()
+            share = robot.answered_within(t0, t1 - 1.0, 1.0)
+            silence = robot.longest_silence_s(t0, t1)
+            robot.close()
+        t_stop = time.monotonic()
+        code = srv.stop()
+        stop_s = time.monotonic() - t_stop
+    finally:
+        if stop_s is None:
+            code = srv.stop()
+    summary = json.loads((folder / "server" / "summary.json").read_text())
+    growth = max(rss) - rss0
+    return {
+        "ids": n_ids, "scans_each": per_id, "send_s": round(send_s, 2),
+        "r1_answered_within_1_s": round(share, 4), "r1_longest_silence_s": round(silence, 3),
+        "rss_start_mb": round(rss0, 1), "rss_growth_mb": round(growth, 1),
+        "stop_s": None if stop_s is None else round(stop_s, 2), "exit_code": code,
+        "dropped_scans": summary.get("dropped_scans", {}).get("r1", 0),
+        "admission": summary["admission"],
+        "goal_met": share >= 0.95 and growth <= 150.0 and stop_s is not None
+        and stop_s <= 5.0 and code == 0,
     }
 
 
@@ -181,4 +231,5 @@ def demo_clocks(folder: Path, step_at_s: float = 20.0, inject_at_s: float = 30.0
     }
 
 
-SECTIONS = {"fake_ids": fake_ids, "clocks": clocks, "demo_clocks": demo_clocks}
+SECTIONS = {"fake_ids": fake_ids, "newcomer_flood": newcomer_flood, "clocks": clocks,
+            "demo_clocks": demo_clocks}

@@ -210,6 +210,13 @@ class AdmissionConfig(ConfigModel):
                                   "starts afresh)")
     max_newcomers: int = Field(10_000, ge=1, description="ids waiting for admission at once; "
                                "beyond this the oldest waiting goes")
+    newcomers_per_s: float = Field(2.0, gt=0.0, description="newcomers without a liveliness "
+                                   "token are admitted at most this fast (after a burst of "
+                                   "newcomer_burst); one waiting for its turn keeps only its "
+                                   "latest probation_messages (robots with a token, or named "
+                                   "in robots, are admitted at once)")
+    newcomer_burst: int = Field(10, ge=1, description="newcomers without a token admitted at "
+                                "once before newcomers_per_s applies")
 
 
 class ClusterConfig(ConfigModel):

@@ -15,7 +15,8 @@ placed). So the server's worker takes a step at a time:
    robot order). A step's sightings wait for the next step: an agent may read a camera frame
    after it sent the step's scan, but it sends that frame's sightings before its next scan.
 
-Queues are the node's: name -> deque of items; ``order`` holds one name per queued item.
+Queues are the node's ``Inbox``: name -> deque of items, control items by name in arrival
+order.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import threading
 import time
 from collections import deque
 from typing import Any
+
+from server.inbox import Inbox
 
 ALIVE, TAGS = "#alive:", "#tags:"
 
@@ -36,9 +39,10 @@ class StepBarrier:
         self.missed: set[str] = set()   # robots not waited for until they send a scan again
         self.timeouts = 0
 
-    def take(self, queues: dict[str, deque[Any]], order: deque[str], cv: threading.Condition,
-             alive: set[str]) -> list[tuple[str, Any]]:
+    def take(self, inbox: Inbox, cv: threading.Condition, alive: set[str]
+             ) -> list[tuple[str, Any]]:
         """The next step's messages; the caller holds ``cv`` (its ``wait`` releases it)."""
+        queues = inbox.queues
         deadline = time.monotonic() + self.barrier_s
         while True:
             heads = _scan_heads(queues)
@@ -52,21 +56,18 @@ class StepBarrier:
                     self.timeouts += 1
                 break
             cv.wait(left)
-        batch: list[tuple[str, Any]] = [(n, None) for n in order if n.startswith(ALIVE)]
+        batch: list[tuple[str, Any]] = [(n, None) for n in inbox.control
+                                        if n.startswith(ALIVE)]
         if heads:
             step = min(heads.values())
             batch += [(rid, None) for rid in sorted(heads) if heads[rid] == step]
             self.missed -= {rid for rid, _ in batch}
-            batch += [(n, None) for n in sorted({n for n in order if n.startswith(TAGS)})
+            batch += [(n, None) for n in sorted(n for n in queues if n.startswith(TAGS))
                       for _ in range(_count_before(queues[n], step))]
         else:  # nothing but sightings came: take them all
-            batch += [(n, None) for n in sorted({n for n in order if n.startswith(TAGS)})
+            batch += [(n, None) for n in sorted(n for n in queues if n.startswith(TAGS))
                       for _ in range(len(queues[n]))]
-        out = []
-        for name, _ in batch:
-            order.remove(name)   # the first occurrence is the item at the queue's head
-            out.append((name, queues[name].popleft()))
-        return out
+        return [(name, inbox.take_named(name)) for name, _ in batch]
 
 
 def _scan_heads(queues: dict[str, deque[Any]]) -> dict[str, int]:

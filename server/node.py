@@ -35,6 +35,7 @@ from server.clock import ClockPolicy, ServerClock
 from server.cluster import Cluster, Handover, Route
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.inbox import NEWCOMER, TRUSTED, Inbox
 from server.journal import JournalWriter
 from server.lockstep import StepBarrier
 from server.operator import OperatorCommand
@@ -66,13 +67,13 @@ class ServerNode:
         self.registry = RobotRegistry(AdmissionPolicy(
             allowed=frozenset(cfg.robots) if cfg.robots is not None else None,
             probation=a.probation_messages, forget_after_ns=round(a.forget_after_s * 1e9),
-            max_newcomers=a.max_newcomers,
+            max_newcomers=a.max_newcomers, newcomers_per_s=a.newcomers_per_s,
+            newcomer_burst=a.newcomer_burst,
             clock=ClockPolicy(round(c.max_skew_s * 1e9), c.rebase_after,
                               round(c.window_s * 1e9), round(c.tolerance_s * 1e9))))
-        self.dropped: dict[str, int] = {}
         self.errors = 0
-        self._queues: dict[str, deque[Any]] = {}
-        self._order: deque[str] = deque()  # queue names in arrival order, one per queued item
+        self._inbox = Inbox(cfg.queue_per_robot)
+        self.dropped = self._inbox.dropped
         self._cv = threading.Condition()
         self._stop = threading.Event()
         self._latest_maps: list[Any] = []
@@ -159,23 +160,19 @@ class ServerNode:
 
     def _queue_item(self, name: str, payload: Any) -> None:
         with self._cv:
-            self._queues.setdefault(name, deque()).append(payload)
-            self._order.append(name)
+            self._inbox.put_control(name, payload)
             self._cv.notify()
 
     def _enqueue(self, rid: str, ready: list[tuple[str, int, Any]]) -> None:
-        """Queue admitted messages (stamps in server time); the caller holds ``_cv``."""
+        """Queue admitted messages (stamps in server time), in the turn of robots the server
+        trusts or of newcomers (``server.inbox``); the caller holds ``_cv``."""
+        tier = TRUSTED if self.registry.trusted(rid) else NEWCOMER
         for stream, stamp_ns, msg in ready:
             self.clock.on_accepted(stamp_ns)
             name = rid if stream == "scan" else f"#tags:{rid}"
-            q = self._queues.setdefault(name, deque())
-            if len(q) >= self.cfg.queue_per_robot:
-                q.popleft()  # the server is behind: the oldest waiting message goes
-                self.dropped[name] = self.dropped.get(name, 0) + 1
-            else:
-                self._order.append(name)
             # the core works in server time; the robot's own stamp goes back in its command
-            q.append((msgspec.structs.replace(msg, stamp_ns=stamp_ns), msg.stamp_ns))
+            self._inbox.put(name, (msgspec.structs.replace(msg, stamp_ns=stamp_ns),
+                                   msg.stamp_ns), tier)
         if ready:
             self._cv.notify()
 
@@ -191,24 +188,22 @@ class ServerNode:
 
     def _queue_alive(self, rid: str, alive: bool) -> None:
         """(the caller holds ``_cv``)"""
-        self._queues.setdefault(f"#alive:{rid}", deque()).append(alive)
-        self._order.append(f"#alive:{rid}")
+        self._inbox.put_control(f"#alive:{rid}", alive)
         self._cv.notify()
 
     # -- the worker ------------------------------------------------------------------------
     def _next(self, timeout_s: float) -> list[tuple[str, Any]]:
         """The next message (queue name, payload); in lockstep, the next step's messages."""
         with self._cv:
-            if not self._order and not self._orders and not self._cv.wait_for(
-                    lambda: bool(self._order or self._orders), timeout_s):
+            if not self._inbox and not self._orders and not self._cv.wait_for(
+                    lambda: bool(self._inbox or self._orders), timeout_s):
                 return []
             if self._orders:
                 return [("#operator", self._orders.popleft())]
             if self._lockstep:
-                return self._barrier.take(self._queues, self._order, self._cv,
-                                          self._live_robots())
-            rid = self._order.popleft()
-            return [(rid, self._queues[rid].popleft())]
+                return self._barrier.take(self._inbox, self._cv, self._live_robots())
+            item = self._inbox.take()
+            return [] if item is None else [item]
 
     def _live_robots(self) -> set[str]:
         """Robots alive by their liveliness token, or by the core (worker thread)."""
@@ -501,7 +496,7 @@ class ServerNode:
             self._worker.join(timeout=10)
         for pool in (self._planner, self._matcher):
             if pool is not None:
-                pool.shutdown(wait=False, cancel_futures=True)
+                planner_pool.stop(pool)   # killed, not waited for: no job holds the stop up
         self._planner = self._matcher = None
         self._writer.close()
         if self.journal is not None:

@@ -43,6 +43,8 @@ class AdmissionPolicy:
     probation: int = 3                      # messages that admit a robot without a token
     forget_after_ns: int = 60_000_000_000
     max_newcomers: int = 10_000             # ids waiting for admission at once
+    newcomers_per_s: float = 2.0            # admissions by probation alone, at most this fast
+    newcomer_burst: int = 10                # ... after this many at once
     clock: ClockPolicy = field(default_factory=ClockPolicy)
 
 
@@ -71,7 +73,10 @@ class RobotRegistry:
         self.joined = self.forgotten = self.clock_steps = 0
         self._waiting: dict[str, None] = {}   # ids not admitted yet, oldest first
         self.evicted = 0
+        self.held_dropped = 0        # held messages of newcomers waiting for their turn
         self._log = RateLimitedLog(log)
+        self._allowance = float(self.policy.newcomer_burst)   # newcomers that may join now
+        self._allowance_ns: int | None = None
 
     # -- messages --------------------------------------------------------------------------
     def admit(self, key_robot_id: str | None, robot_id: str, stream: str, stamp_ns: int,
@@ -110,9 +115,30 @@ class RobotRegistry:
         if rec.admitted:
             return [(stream, t, message)]
         rec.held.append((stream, t, message))
-        if rec.alive or len(rec.held) >= p.probation:
+        if rec.alive:
             return self._admit(rec)
+        if len(rec.held) >= p.probation:
+            if self._newcomer_may_join(server_ns):
+                return self._admit(rec)
+            if len(rec.held) > p.probation:   # waiting for its turn: only the latest are kept
+                del rec.held[0]
+                self.held_dropped += 1
         return []
+
+    def _newcomer_may_join(self, server_ns: int | None) -> bool:
+        """A token bucket: ``newcomer_burst`` at once, then ``newcomers_per_s``. (Replays,
+        without a clock of their own, are not limited.)"""
+        p = self.policy
+        if server_ns is None:
+            return True
+        if self._allowance_ns is not None:
+            earned = (server_ns - self._allowance_ns) / 1e9 * p.newcomers_per_s
+            self._allowance = min(float(p.newcomer_burst), self._allowance + max(0.0, earned))
+        self._allowance_ns = server_ns
+        if self._allowance < 1.0:
+            return False
+        self._allowance -= 1.0
+        return True
 
     def _new(self, robot_id: str, waiting: bool = True) -> RobotRecord:
         """A record for a robot not heard of before (``waiting``: not admitted yet)."""
@@ -138,6 +164,14 @@ class RobotRegistry:
                        "" if rec.alive else " (no liveliness token seen)")
         held, rec.held = rec.held, []
         return held
+
+    def trusted(self, robot_id: str) -> bool:
+        """Served ahead of newcomers: named in the configuration, or holding a liveliness
+        token."""
+        if self.policy.allowed is not None:
+            return robot_id in self.policy.allowed
+        rec = self.robots.get(robot_id)
+        return rec is not None and rec.alive
 
     # -- liveliness and forgetting -----------------------------------------------------------
     def set_alive(self, robot_id: str, alive: bool, server_ns: int | None = None
@@ -203,5 +237,6 @@ class RobotRegistry:
     def totals(self) -> dict[str, Any]:
         return {"refused": dict(self.refused), "joined": self.joined,
                 "forgotten": self.forgotten, "evicted_newcomers": self.evicted,
+                "held_dropped": self.held_dropped,
                 "clock_steps": self.clock_steps, "known": len(self.robots),
                 "on_probation": len(self._waiting)}

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import itertools
 import threading
-from collections import deque
 from typing import Any
 
 import numpy as np
 
 from schemas import Scan, TagDetections
 from schemas.messages import quantise_ranges_mm
+from server.inbox import Inbox
 from server.lockstep import StepBarrier
 
 
@@ -25,16 +25,17 @@ def tags(rid: str, stamp_ns: int) -> TagDetections:
 
 
 class Queues:
-    """The node's queues: name -> items, and one name per item in arrival order."""
+    """The node's queues (an ``Inbox``) and its condition."""
 
     def __init__(self) -> None:
-        self.queues: dict[str, deque[Any]] = {}
-        self.order: deque[str] = deque()
+        self.inbox = Inbox(per_robot=50)
         self.cv = threading.Condition()
 
     def put(self, name: str, item: Any) -> None:
-        self.queues.setdefault(name, deque()).append(item)
-        self.order.append(name)
+        if name.startswith("#alive:"):
+            self.inbox.put_control(name, item)
+        else:
+            self.inbox.put(name, item)
 
     def arrive(self, msg: Scan | TagDetections) -> None:
         name = msg.robot_id if isinstance(msg, Scan) else f"#tags:{msg.robot_id}"
@@ -43,8 +44,7 @@ class Queues:
 
 def taken(b: StepBarrier, q: Queues, alive: set[str]) -> list[tuple[str, int]]:
     with q.cv:
-        return [(name, item[0].stamp_ns) for name, item in b.take(q.queues, q.order, q.cv,
-                                                                  alive)]
+        return [(name, item[0].stamp_ns) for name, item in b.take(q.inbox, q.cv, alive)]
 
 
 def test_a_step_comes_out_in_robot_order_whatever_the_arrival_order() -> None:
@@ -79,6 +79,6 @@ def test_a_robot_leaving_is_not_waited_for_and_its_news_comes_first() -> None:
     q.arrive(scan("r1", 100))
     q.put("#alive:r2", False)
     with q.cv:
-        out = b.take(q.queues, q.order, q.cv, {"r1", "r2"})   # at once: r2 is leaving
+        out = b.take(q.inbox, q.cv, {"r1", "r2"})   # at once: r2 is leaving
     assert [name for name, _ in out] == ["#alive:r2", "r1"] and out[0][1] is False
-    assert b.timeouts == 0 and not q.order
+    assert b.timeouts == 0 and len(q.inbox) == 0 and not q.inbox.control

@@ -125,3 +125,35 @@ def test_without_a_clock_of_its_own_the_stamps_say_when_a_robot_was_last_heard()
         reg.admit("r1", "r1", "scan", T0 + k * S, None)
     assert reg.forget_silent(T0 + 199 * S) == [] and reg.robots["r1"].admitted
     assert reg.forget_silent(T0 + 300 * S) == ["r1"]
+
+
+def test_newcomers_without_a_token_join_at_a_bounded_rate_and_hold_little() -> None:
+    """2,000 ids with three valid scans each: a burst joins, then two a second; those
+    waiting keep only their latest messages. A robot with a token joins at once."""
+    reg = RobotRegistry(AdmissionPolicy(probation=3, newcomers_per_s=2.0, newcomer_burst=10))
+    joined = 0
+    for k in range(3):
+        for i in range(2000):
+            now = T0 + k * S // 2 + i * 100_000       # 6,000 scans in about 1.2 s
+            joined += bool(reg.admit(f"f{i}", f"f{i}", "scan", now, now))
+    assert 10 <= joined <= 13
+    waiting = [r for r in reg.robots.values() if not r.admitted]
+    assert len(waiting) == 2000 - joined and max(len(r.held) for r in waiting) == 3
+    assert reg.set_alive("r1", True, T0 + 2 * S)[0]
+    assert reg.admit("r1", "r1", "scan", T0 + 2 * S, T0 + 2 * S) != []
+    assert reg.trusted("r1") and not reg.trusted("f1999")
+    # a newcomer that keeps sending joins when its turn comes
+    later = T0 + 10 * S
+    assert reg.admit("f1999", "f1999", "scan", later, later) != []
+    assert reg.totals()["held_dropped"] == 0
+
+
+def test_a_waiting_newcomer_keeps_only_its_latest_messages() -> None:
+    reg = RobotRegistry(AdmissionPolicy(probation=3, newcomers_per_s=0.001, newcomer_burst=1))
+    reg.admit("a", "a", "scan", T0, T0)
+    reg.admit("a", "a", "scan", T0 + 1, T0 + 1)
+    assert reg.admit("a", "a", "scan", T0 + 2, T0 + 2) != []       # the burst
+    for k in range(10):
+        assert reg.admit("b", "b", "scan", T0 + 10 + k, T0 + 10 + k) == []
+    assert [t for _, t, _ in reg.robots["b"].held] == [T0 + 17, T0 + 18, T0 + 19]
+    assert reg.totals()["held_dropped"] == 7

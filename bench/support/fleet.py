@@ -151,6 +151,19 @@ class RoomRobot:
         edges = [since, *times, until]
         return max(b - a for a, b in itertools.pairwise(edges))
 
+    def answered_within(self, since: float, until: float, limit_s: float = 1.0) -> float:
+        """The share of the scans sent in [since, until] (monotonic) that got their command
+        within ``limit_s``."""
+        with self._lock:
+            first = {}
+            for t, c in self.commands:
+                first.setdefault(c.stamp_ns, t)
+        sent = [(stamp, t) for stamp, t in list(self.sent.items()) if since <= t <= until]
+        if not sent:
+            return 0.0
+        ok = sum(1 for stamp, t in sent if stamp in first and first[stamp] - t <= limit_s)
+        return ok / len(sent)
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
