@@ -7,16 +7,18 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from mrslam.cli import app
 from server.evaluation import evaluate
-from server.logs.stamps import plan_stamps
+from server.logs.stamps import EARLY_NUDGE_S, plan_stamps
 from tests.conftest import DATA
 
 CARMEN = DATA / "carmen"
+needs_data = pytest.mark.skipif(not CARMEN.is_dir(), reason="no ../shared/data/carmen")
 
 
 def ticks(n: int, t0: float = 100.0, dt: float = 0.1) -> list[float]:
@@ -64,6 +66,7 @@ def test_planned_stamps_never_go_back_and_clean_logs_lose_nothing(jumps: list[fl
     assert sorted(plan.keep + plan.dropped_ahead + plan.dropped_behind) == list(range(len(noisy)))
 
 
+@needs_data
 def test_slam_log_on_a_real_log_with_a_jumping_stamp_keeps_the_rest(tmp_path: Path) -> None:
     """FR079's first 400 scans, once as recorded and once with one scan stamped an hour
     ahead and a later one a minute behind: every other scan gets its pose, and the same."""
@@ -105,3 +108,69 @@ def test_slam_log_on_a_real_log_with_a_jumping_stamp_keeps_the_rest(tmp_path: Pa
     a = evaluate(outs["clean"] / "poses.txt", CARMEN / "fr079.relations")
     b = evaluate(outs["bad"] / "poses.txt", CARMEN / "fr079.relations")
     assert b.matched >= a.matched - 2 and b.trans_mean_m < a.trans_mean_m + 0.01
+
+
+def test_a_scan_a_few_ms_early_is_kept_in_file_order_and_fed_just_after() -> None:
+    """The Intel Research Lab pattern: a line stamped 6 ms before the line above it."""
+    s = ticks(40, dt=0.2)
+    for k in (5, 17, 18, 30):
+        s[k] = s[k - 1] - 0.006
+    plan = plan_stamps(s)
+    assert plan.keep == list(range(40)) and plan.early == [5, 17, 18, 30]
+    assert not plan.dropped_ahead and not plan.dropped_behind and not plan.steps
+    assert np.all(np.diff(plan.stamps_s) > 0)
+    assert plan.stamps_s[5] == pytest.approx(s[4] + EARLY_NUDGE_S)
+    others = [k for k in range(40) if k not in plan.early]
+    assert [plan.stamps_s[k] for k in others] == [s[k] for k in others]
+
+
+def test_further_behind_than_jitter_is_still_an_outlier() -> None:
+    s = ticks(40, dt=0.2)
+    s[12] = s[11] - 0.15          # three quarters of a period behind: not jitter
+    s[25] = s[24] - 0.09          # less than half a period: jitter
+    plan = plan_stamps(s)
+    assert plan.dropped_behind == [12] and plan.early == [25]
+    assert plan_stamps(s, jitter_fraction=0.8).early == [12, 25]
+
+
+def jittered_fr079(tmp_path: Path, n_scans: int, every: int) -> tuple[Path, Path, list[str]]:
+    """FR079's first scans as recorded, and with every ``every``-th FLASER line stamped 6 ms
+    before the FLASER line above it (as 6.4 % of the Intel log's are). Returns both logs and
+    the jittered log's FLASER stamps as written."""
+    lines: list[str] = []
+    with bz2.open(CARMEN / "fr079.clf.bz2", "rt") as f:
+        n = 0
+        for line in f:
+            lines.append(line)
+            n += line.startswith("FLASER")
+            if n == n_scans:
+                break
+    flaser = [i for i, line in enumerate(lines) if line.startswith("FLASER")]
+    bad = list(lines)
+    for k in range(every, len(flaser), every):
+        words = bad[flaser[k]].split()
+        words[-3] = f"{float(lines[flaser[k - 1]].split()[-3]) - 0.006:.6f}"
+        bad[flaser[k]] = " ".join(words) + "\n"
+    clean, jittered = tmp_path / "clean.clf", tmp_path / "jittered.clf"
+    clean.write_text("".join(lines))
+    jittered.write_text("".join(bad))
+    return clean, jittered, [bad[i].split()[-3] for i in flaser]
+
+
+@needs_data
+def test_slam_log_poses_every_jittered_scan_with_its_own_stamp(tmp_path: Path) -> None:
+    clean, jittered, written = jittered_fr079(tmp_path, 400, 15)
+    outs = {}
+    for log_file in (clean, jittered):
+        outs[log_file.stem] = tmp_path / f"out-{log_file.stem}"
+        res = CliRunner().invoke(app, ["slam-log", str(log_file), "--out",
+                                       str(outs[log_file.stem])])
+        assert res.exit_code == 0, res.output
+    summary = json.loads((outs["jittered"] / "summary.json").read_text())
+    assert summary["scans"] == summary["scans_in_log"] == 400
+    assert summary["stamps_early_kept"] == 26 and summary["stamps_dropped_behind"] == 0
+    rows = (outs["jittered"] / "poses.txt").read_text().splitlines()
+    assert [r.split()[0] for r in rows] == written       # file order, the stamps as written
+    a = np.loadtxt(outs["clean"] / "poses.txt")[:, 1:]
+    b = np.loadtxt(outs["jittered"] / "poses.txt")[:, 1:]
+    assert np.hypot(*(a[:, :2] - b[:, :2]).T).max() < 0.05

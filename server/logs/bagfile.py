@@ -69,7 +69,7 @@ def _header(buf: bytes | memoryview, pos: int) -> tuple[dict[str, bytes], int]:
         raise RecordError("cut inside a record's header length")
     (n,) = U32.unpack_from(buf, pos)
     if n > MAX_HEADER or pos + 4 + n > len(buf):
-        raise RecordError(f"header of {n} bytes does not fit")
+        raise RecordError(f"a header of {n} bytes runs past the end of the data")
     fields: dict[str, bytes] = {}
     i, end = pos + 4, pos + 4 + n
     while i < end:
@@ -244,7 +244,8 @@ def read_records(path: Path, wanted: Callable[[str], bool]) -> Ros1Records:
             except RecordError:
                 n = 12 * _u32(fields, "count")
         if cut:
-            run.out.lost.append(f"cut at byte {len(buf)} inside a record starting at {pos}")
+            run.out.lost.append(f"the file ends at byte {len(buf)}, inside a record that "
+                                f"starts at byte {pos} (its intact part is read)")
             break
         pos = start + n
     return run.out

@@ -22,10 +22,12 @@ log = logging.getLogger(__name__)
 
 
 def is_bag(path: Path) -> bool:
-    """A ROS 1 bag file, a ROS 2 bag folder, or a ROS 2 storage file (``.db3``/``.mcap``)."""
+    """A ROS 1 bag file, a ROS 2 bag folder (or a folder of ``.db3``/``.mcap`` files), or a ROS 2
+    storage file."""
     path = Path(path)
     if path.is_dir():
-        return (path / "metadata.yaml").is_file()
+        return (path / "metadata.yaml").is_file() or any(
+            f.suffix in (".db3", ".mcap") for f in path.iterdir())
     return path.suffix in (".bag", ".mcap", ".db3")
 
 
@@ -45,13 +47,45 @@ class BagMessages:
 Chooser = Callable[[dict[str, tuple[str, int]]], set[str]]
 
 
-def _ros2_folder(path: Path) -> Path:
-    if path.is_dir():
-        return path
-    if (path.parent / "metadata.yaml").is_file():
-        return path.parent
-    raise BagError(f"{path}: a ROS 2 bag is a folder with metadata.yaml beside its "
-                   f"{path.suffix} file, and {path.parent} has none")
+def _choose_noting(choose: Chooser, topics: dict[str, tuple[str, int]], lost: list[str]
+                   ) -> set[str]:
+    """``choose(topics)``; a refusal also says what part of the bag could not be read."""
+    try:
+        return choose(topics)
+    except BagError as e:
+        if not lost:
+            raise
+        raise BagError(f"{e}; the bag is damaged: {lost[0]}") from None
+
+
+def _ros2_files(path: Path) -> list[Path]:
+    """The storage files of a ROS 2 bag folder (or the one file given), in name order."""
+    if path.is_file():
+        return [path]
+    return sorted(f for f in path.iterdir() if f.suffix in (".mcap", ".db3"))
+
+
+def _with_ros2_files(path: Path, why: str, wanted: Callable[[str], bool],
+                     choose: Chooser) -> BagMessages:
+    from server.logs.ros2files import Ros2Records, read_db3, read_mcap
+
+    files = _ros2_files(path)
+    if not files:
+        raise BagError(f"{path}: a ROS 2 bag folder without .mcap or .db3 files ({why})")
+    got = Ros2Records()
+    for f in files:
+        part = read_mcap(f, wanted) if f.suffix == ".mcap" else read_db3(f, wanted)
+        for topic, ty in part.topics.items():
+            got.topics.setdefault(topic, ty)
+            got.counts[topic] = got.counts.get(topic, 0) + part.counts.get(topic, 0)
+        got.messages += part.messages
+        got.definitions.update(part.definitions)
+        got.lost += [f"{f.name}: {w}" for w in part.lost]
+    topics = {t: (ty, got.counts.get(t, 0)) for t, ty in got.topics.items()}
+    chosen = _choose_noting(choose, topics, got.lost)
+    messages = [m for m in got.messages if m[0] in chosen]
+    return BagMessages(topics, messages, got.decoder(), f"storage files in file order ({why})",
+                       got.lost)
 
 
 def _with_rosbags(path: Path, choose: Chooser) -> BagMessages:
@@ -77,7 +111,7 @@ def _with_records(path: Path, why: str, wanted: Callable[[str], bool],
     for c in rec.connections.values():
         ty, n = topics.get(c.topic, (c.msgtype, 0))
         topics[c.topic] = (ty if ty == c.msgtype else "", n + rec.counts.get(c.id, 0))
-    chosen = choose(topics)
+    chosen = _choose_noting(choose, topics, rec.lost)
     messages = [(c.topic, c.msgtype, t, raw) for c, t, raw in
                 ((rec.connections[k], t, raw) for k, t, raw in rec.messages)
                 if c.topic in chosen]
@@ -88,23 +122,23 @@ def _with_records(path: Path, why: str, wanted: Callable[[str], bool],
 def read_messages(path: Path, wanted: Callable[[str], bool], choose: Chooser) -> BagMessages:
     """The messages of the topics ``choose`` picks from the bag's topics. ``wanted`` says
     which message types a record-by-record reading keeps before the choice."""
-    from rosbags.highlevel import AnyReaderError
-
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path}: no such file or folder")
     if path.is_file() and path.stat().st_size == 0:
         raise BagError(f"{path}: empty file, not a ROS bag")
     if path.suffix != ".bag" or path.is_dir():
-        folder = _ros2_folder(path)
+        folder = path if path.is_dir() else path.parent
+        if not (folder / "metadata.yaml").is_file():
+            return _with_ros2_files(path, "no metadata.yaml", wanted, choose)
         try:
             return _with_rosbags(folder, choose)
         except BagError:
             raise
-        except AnyReaderError as e:
-            raise BagError(f"{path}: not a readable ROS 2 bag ({e})") from None
-        except Exception as e:   # a damaged database or MCAP file
-            raise BagError(f"{path}: not a readable ROS 2 bag ({_what(e)})") from None
+        except Exception as e:   # a damaged database or MCAP file, a bag cut short
+            why = f"rosbags cannot read it: {_what(e)}"
+        log.info("%s: %s; reading its storage files in file order", path, why)
+        return _with_ros2_files(path, why, wanted, choose)
     try:
         return _with_rosbags(path, choose)
     except BagError:

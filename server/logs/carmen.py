@@ -197,7 +197,8 @@ def read_log(path: str | Path) -> CarmenLog:
     if not p.exists():
         raise CarmenError(f"{p}: no such file")
     if p.is_dir():
-        raise CarmenError(f"{p}: is a directory, not a log file")
+        raise CarmenError(f"{p}: is a directory: neither a log file nor a ROS 2 bag folder "
+                          f"(no metadata.yaml in it)")
     stats = ReadStats()
     lasers: list[LaserRecord] = []
     odometry: list[OdometryRecord] = []

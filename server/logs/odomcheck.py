@@ -11,9 +11,9 @@ sample, in stamp order, is judged against the last one kept:
    inside) is skipped;
 3. **jump** — a step from the last kept sample that the robot cannot drive in the time between
    them (more than ``max_speed_m_s`` · Δt + ``slack_m``, or ``max_turn_rate_deg_s`` · Δt +
-   ``slack_deg``) is skipped when the ``window`` samples after it side with the last kept
-   sample rather than with it (more of them within reach of the kept one than of it). A jump
-   that the following samples continue from is kept: odometry that stalled and caught up, or a
+   ``slack_deg``) is skipped when most of the ``window`` samples after it lie nearer the last
+   kept sample than it (nearer: less far beyond the robot's reach). A jump that the
+   following samples continue from is kept: odometry that stalled and caught up, or a
    driver that restarted at zero, is what the robot's odometry said, and the SLAM front-end
    treats a step that large as suspect on its own.
 """
@@ -64,13 +64,14 @@ class OdometryCheck:
             self.examples.append((i, reason))
 
 
-def _reachable(a: F64, b: F64, dt_s: float, lim: OdometryLimits) -> bool:
-    """Whether the robot can get from pose ``a`` to pose ``b`` in ``dt_s`` seconds."""
+def _excess(a: F64, b: F64, dt_s: float, lim: OdometryLimits) -> float:
+    """How far beyond the robot's reach pose ``b`` is from pose ``a`` after ``dt_s`` seconds:
+    the larger of distance / reach and turn / turn reach (≤ 1: within reach)."""
     dt = abs(dt_s)
     d = math.hypot(b[0] - a[0], b[1] - a[1])
     turn = abs(wrap_angle(float(b[2] - a[2])))
-    return (d <= lim.max_speed_m_s * dt + lim.slack_m
-            and turn <= math.radians(lim.max_turn_rate_deg_s * dt + lim.slack_deg))
+    return max(d / (lim.max_speed_m_s * dt + lim.slack_m + 1e-12),
+               turn / math.radians(lim.max_turn_rate_deg_s * dt + lim.slack_deg + 1e-9))
 
 
 def check_odometry(stamps_s: F64, poses: F64, limits: OdometryLimits | None = None
@@ -91,16 +92,17 @@ def check_odometry(stamps_s: F64, poses: F64, limits: OdometryLimits | None = No
         if last is None:
             # the first sample: kept unless the ones after it agree more among themselves
             # than with it
-            with_it = sum(_reachable(p[i], p[j], t[j] - t[i], lim) for j in following)
-            among = sum(_reachable(p[following[0]], p[j], t[j] - t[following[0]], lim)
+            with_it = sum(_excess(p[i], p[j], t[j] - t[i], lim) <= 1 for j in following)
+            among = sum(_excess(p[following[0]], p[j], t[j] - t[following[0]], lim) <= 1
                         for j in following[1:])
             ok = among <= with_it
-        elif _reachable(p[last], p[i], t[i] - t[last], lim):
+        elif _excess(p[last], p[i], t[i] - t[last], lim) <= 1:
             ok = True
         else:
-            with_kept = sum(_reachable(p[last], p[j], t[j] - t[last], lim) for j in following)
-            with_it = sum(_reachable(p[i], p[j], t[j] - t[i], lim) for j in following)
-            ok = with_kept <= with_it
+            # beyond reach: a spike if most samples after it lie nearer the kept one
+            nearer_kept = sum(_excess(p[last], p[j], t[j] - t[last], lim)
+                              < _excess(p[i], p[j], t[j] - t[i], lim) for j in following)
+            ok = 2 * nearer_kept <= len(following)
         if ok:
             out.keep.append(int(i))
             last = int(i)
