@@ -35,10 +35,11 @@ Mode = Literal["router", "client", "peer"]
 #: what a session accepts in one message by default [bytes]. Our largest messages are a
 #: 640x480 camera frame (SimImage, 307 kB) and a team's map (MapUpdate: zlib int8 cells; a
 #: 900x900 grid is 80-150 kB as maps look, 0.7-0.8 MB if every cell were noise). It is given
-#: to Zenoh (``transport/link/rx/max_message_size``), which in 1.10 drops only the first larger
-#: message of a link and lets later ones through (measured with 1.10: of [2 MB, 100 B, 2 MB],
-#: the second 2 MB arrived), so ``Bus``'s subscribers also drop a larger payload, counted as
-#: rejected, before copying or decoding it.
+#: to Zenoh (``transport/link/rx/max_message_size``), whose link drops every larger message
+#: while shared memory is off (with it on, 1.10 dropped only the first: later ones crossed as
+#: shared-memory descriptors, see SHARED_MEMORY). ``Bus``'s subscribers also drop a larger
+#: payload, counted as rejected, before copying or decoding it, in case a session's link
+#: takes more.
 DEFAULT_MAX_MESSAGE_SIZE = 1_572_864
 #: liveliness tokens ``<key>/zid/<session id>`` say which session holds ``<key>``'s token
 HOLDER_CHUNK = "zid"
@@ -87,6 +88,15 @@ class BusStats:
 
 #: how often a client tries to reach its router again after losing it
 RECONNECT_RETRY = {"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 1.5}
+#: Zenoh's shared-memory transport, off in every session we open (issue 42). With it on, a
+#: client on the server's host puts payloads over ~3 kB into a 16 MiB pool of its own, and the
+#: router maps and mlocks that pool plus a 1.25 MiB metadata segment and never unmaps them,
+#: also after the client has gone (Zenoh 1.10; eclipse-zenoh/zenoh#2787): ~19.7 MB of server
+#: memory per reconnecting client. We never allocate shared memory ourselves, so off costs us
+#: only a loopback copy. Off also makes the link's max_message_size hold for every payload:
+#: one in shared memory crosses the link as a small descriptor, past that check.
+#: ``bench/zenoh_session_memory.py`` measures it.
+SHARED_MEMORY = False
 
 
 def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
@@ -115,7 +125,10 @@ def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] 
     if connect_timeout_ms is not None:
         settings.append(("connect/timeout_ms", connect_timeout_ms))
     settings += [("scouting/multicast/enabled", multicast_scouting),
-                 ("transport/link/rx/max_message_size", max_message_size)]
+                 ("transport/link/rx/max_message_size", max_message_size),
+                 # a config file's own value is overridden too: a router that accepts
+                 # shared memory keeps every local client's pool (SHARED_MEMORY)
+                 ("transport/shared_memory/enabled", SHARED_MEMORY)]
     for key, value in settings:
         try:
             conf.insert_json5(key, json.dumps(value))
