@@ -19,10 +19,11 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import Field
 
-from mrslam.launch import ProcessGroup
+from mrslam.launch import GroupClosed, Proc, ProcessGroup
 from mrslam.supervise import Exit, RestartPolicy, Supervisor
 from schemas.config import ConfigModel, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
+from schemas.stopping import SignalStop
 from sim.config import SensorKind
 
 if TYPE_CHECKING:
@@ -31,6 +32,11 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 Pose = tuple[float, float, float]
+
+#: after a stop signal (SIGTERM, SIGINT, SIGHUP) the run's processes are asked to stop at
+#: once, and what is still running this long later is killed [s]; a second signal kills at
+#: once. The report follows, without the figures (nothing of the run left 5 s after it).
+KILL_AFTER_S = 3.5
 
 
 class DemoConfig(ConfigModel):
@@ -104,6 +110,13 @@ class DemoConfig(ConfigModel):
         1.0, gt=0, description="the wait before the first restart; each next one waits twice "
         "as long (at most 30 s)")
     out: str = Field("", description="the run folder; empty: runs/<scenario>-<date>-<time>")
+    endpoint: str | None = Field(
+        None, description="where the server listens (tcp/127.0.0.1:PORT); default: a free "
+        "loopback port")
+    agent_connect: dict[str, str] = Field(
+        default_factory=dict, description="robots whose agent connects elsewhere than the "
+        "server's endpoint: {r2: tcp/127.0.0.1:PORT} (a relay in front of the server, to try "
+        "a slow or bursty link)")
 
 
 def run(overrides: dict[str, Any] | None = None, progress: bool = True,
@@ -121,22 +134,30 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
         cfg.out = str(Path("runs") / time.strftime(f"{name}-%Y%m%d-%H%M%S"))
     out = Path(cfg.out)
     console = Console(stderr=True)
-    plan = plan_run(cfg)
-    for name, ids in (("clock_steps", cfg.clock_steps), ("reboot", cfg.reboot)):
-        if unknown := sorted(set(ids) - set(plan["robots"])):
-            raise ConfigError(f"{name}: no robot {', '.join(unknown)} in this run")
-    write_resolved(cfg, out, "demo_config.yaml")
-    console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} robot(s), "
-                  f"threshold {plan['threshold']:.0%} of {plan['area_m2']:.1f} m², "
-                  f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; run folder {out}")
-    t0 = time.monotonic()
-    watch = _execute(cfg, plan, out, console, progress, t0, foxglove_port, console_port)
-    from mrslam.report import build_report
+    with SignalStop(name="mrslam demo") as stopping:
+        plan = plan_run(cfg)
+        for name, ids in (("clock_steps", cfg.clock_steps), ("reboot", cfg.reboot),
+                      ("agent_connect", cfg.agent_connect)):
+            if unknown := sorted(set(ids) - set(plan["robots"])):
+                raise ConfigError(f"{name}: no robot {', '.join(unknown)} in this run")
+        write_resolved(cfg, out, "demo_config.yaml")
+        console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} "
+                      f"robot(s), threshold {plan['threshold']:.0%} of "
+                      f"{plan['area_m2']:.1f} m², "
+                      f"{'lockstep' if cfg.lockstep else f'×{cfg.rtf} real time'}; "
+                      f"run folder {out}")
+        t0 = time.monotonic()
+        watch = _execute(cfg, plan, out, console, progress, t0, stopping, foxglove_port,
+                         console_port)
+        from mrslam.report import build_report
 
-    report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0)
-    if cfg.reboot:
-        report["agent_reboots"] = watch.get("agent_reboots", [])
-    (out / "report.json").write_text(json.dumps(report, indent=2))
+        report = build_report(cfg, plan, out, watch, wall_time_s=time.monotonic() - t0,
+                              figures=stopping.signum is None)
+        if stopping.signum is not None:
+            report["stopped_by"] = stopping.signal_name
+        if cfg.reboot:
+            report["agent_reboots"] = watch.get("agent_reboots", [])
+        (out / "report.json").write_text(json.dumps(report, indent=2))
     from mrslam.report import print_summary
 
     print_summary(report, console)
@@ -206,7 +227,8 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
     }
     (out / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
     for rid in plan["robots"]:
-        agent = {"robot_id": rid, "bus": {"connect": [endpoint], "connect_timeout_ms": 30000},
+        agent = {"robot_id": rid, "bus": {"connect": [cfg.agent_connect.get(rid, endpoint)],
+                                          "connect_timeout_ms": 30000},
                  # the simulated robots' bodies, for the LIDAR fix of tag sightings
                  "detector": {"body_radius_m": SimConfig().drive.radius_m},
                  "sim_clock_steps": [list(step) for step in cfg.clock_steps.get(rid, [])]}
@@ -219,64 +241,100 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
 
 
 def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
-             progress: bool, t0: float, foxglove_port: int | None = None,
-             console_port: int | None = None) -> dict[str, Any]:
-    from mrslam.monitor import Monitor
+             progress: bool, t0: float, stopping: SignalStop,
+             foxglove_port: int | None = None, console_port: int | None = None
+             ) -> dict[str, Any]:
+    from mrslam.monitor import Monitor, Stopped
     from schemas.bus import free_local_endpoint
 
-    endpoint = free_local_endpoint()
+    endpoint = cfg.endpoint or free_local_endpoint()
     _configs(cfg, plan, out, endpoint)
     page = _ConsoleShot(console_port)
+    watch: dict[str, Any] = {}
+    why = "stopped"
     with ProcessGroup(out / "logs") as procs:
+        # a stop signal reaches every process of the run at once, whatever this thread does
+        stopping.on_signal(lambda _sig, n: procs.terminate_all(KILL_AFTER_S if n == 1 else 0.0))
         live = [] if foxglove_port is None else ["--foxglove", str(foxglove_port)]
-        server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v",
-                             *([] if cfg.record else live), *page.args, env=page.env)
-        with Monitor(endpoint, list(plan["robots"])) as mon:
-            if not mon.wait_for_server(30.0, server.alive):
-                raise RuntimeError(f"the server did not come up:\n{server.tail()}")
-            page.open(console)
-            if cfg.record:  # the file appears once the recorder is on the bus
-                # camera images are the simulator's business (the agents' tag detections are
-                # recorded): leaving them out keeps a run's file small
-                rec = procs.start("recorder", "record", "--out", str(out / "run.mcap"),
-                                  "--connect", endpoint, "--exclude", "mrslam/sim/robot/*/image",
-                                  *live)
-                until = time.monotonic() + 30.0
-                while rec.alive() and not (out / "run.mcap").exists() and \
-                        time.monotonic() < until:
-                    time.sleep(0.1)
-            for rid in plan["robots"]:
-                procs.start(f"agent_{rid}", "agent", "-c", str(out / f"agent_{rid}.yaml"))
-            sim_args = ["sim", "-c", str(out / "sim.yaml"), "--world", plan["world"],
-                        "--seed", str(cfg.seed),
-                        "--connect", endpoint, "--out", str(out / "sim"),
-                        "--duration", str(cfg.max_sim_time_s)]
-            sim_args += robot_args(plan)
-            sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
-            sim = procs.start("sim", *sim_args)
-            supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,
-                                                                 cfg.restart_back_off_s))
-            reboots = Reboots(procs, mon, cfg.reboot, cfg.reboot_s, out)
-            try:
-                why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"],
-                                 console, progress)
-            finally:
-                reboots.stop()
-                page.close(out / "console.png")
-            procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
-            _let_server_come_up(supervisor, mon, timeout_s=60.0)
-            procs.stop(["server"], timeout_s=60.0)
-            procs.stop(["recorder"])
-            watch = mon.results()
-            watch["agent_reboots"] = reboots.rows
-            watch["server_restarts"] = [_restart_row(e, mon.recovery(e), t0)
-                                        for e in supervisor.exits]
+        try:
+            server = procs.start("server", "server", "-c", str(out / "server.yaml"), "-v",
+                                 *([] if cfg.record else live), *page.args, env=page.env)
+            with Monitor(endpoint, list(plan["robots"]), stopping.event) as mon:
+                why, watch = _follow(cfg, plan, out, console, progress, t0, procs, server,
+                                     mon, page, endpoint, live)
+        except (GroupClosed, Stopped) as e:   # stopped before the run was under way
+            log.warning("%s", e)
+            procs.stop(timeout_s=KILL_AFTER_S)
+        if stopping.signum is not None:
+            why = f"stopped by {stopping.signal_name}"
         watch["end"] = why
         watch["exit_codes"] = {p.name: p.popen.returncode for p in procs.procs}
         failed = [p for p in procs.procs if p.popen.returncode not in (0, -15, None)]
         for p in failed:
             console.print(f"[red]{p.name} exited with {p.popen.returncode}[/]:\n{p.tail()}")
     return watch
+
+
+def _follow(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any, progress: bool,
+            t0: float, procs: ProcessGroup, server: Proc, mon: Monitor, page: _ConsoleShot,
+            endpoint: str, live: list[str]) -> tuple[str, dict[str, Any]]:
+    """Start the rest of the run once the server is up, follow it to its end and stop it;
+    why it ended, and what the monitor saw."""
+    supervisor = Supervisor(procs, server, RestartPolicy(cfg.server_restarts,
+                                                         cfg.restart_back_off_s))
+    reboots: Reboots | None = None
+    try:
+        sim = _launch(cfg, plan, out, console, procs, server, mon, page, endpoint, live)
+        reboots = Reboots(procs, mon, cfg.reboot, cfg.reboot_s, out)
+        why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"], console,
+                         progress)
+    except GroupClosed:
+        why = "stopped"
+    finally:
+        if reboots is not None:
+            reboots.stop()
+        page.close(out / "console.png")
+    if mon.stop.is_set():    # asked to stop: every process at once, killed if need be
+        procs.stop(timeout_s=KILL_AFTER_S)
+    else:
+        procs.stop(["sim"] + [f"agent_{r}" for r in plan["robots"]])
+        _let_server_come_up(supervisor, mon, timeout_s=60.0)
+        procs.stop(["server"], timeout_s=60.0)
+        procs.stop(["recorder"])
+    watch = mon.results()
+    watch["agent_reboots"] = reboots.rows if reboots is not None else []
+    watch["server_restarts"] = [_restart_row(e, mon.recovery(e), t0) for e in supervisor.exits]
+    return why, watch
+
+
+def _launch(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
+            procs: ProcessGroup, server: Proc, mon: Monitor, page: _ConsoleShot,
+            endpoint: str, live: list[str]) -> Proc:
+    """The recorder, the agents and the simulator, once the server is up; the simulator."""
+    if not mon.wait_for_server(30.0, server.alive):
+        if mon.stop.is_set():
+            raise GroupClosed("stopped before the server was up")
+        raise RuntimeError(f"the server did not come up:\n{server.tail()}")
+    page.open(console)
+    if cfg.record:  # the file appears once the recorder is on the bus
+        # camera images are the simulator's business (the agents' tag detections are
+        # recorded): leaving them out keeps a run's file small
+        rec = procs.start("recorder", "record", "--out", str(out / "run.mcap"),
+                          "--connect", endpoint, "--exclude", "mrslam/sim/robot/*/image",
+                          *live)
+        until = time.monotonic() + 30.0
+        while rec.alive() and not (out / "run.mcap").exists() and \
+                time.monotonic() < until and not mon.stop.is_set():
+            time.sleep(0.1)
+    for rid in plan["robots"]:
+        procs.start(f"agent_{rid}", "agent", "-c", str(out / f"agent_{rid}.yaml"))
+    sim_args = ["sim", "-c", str(out / "sim.yaml"), "--world", plan["world"],
+                "--seed", str(cfg.seed),
+                "--connect", endpoint, "--out", str(out / "sim"),
+                "--duration", str(cfg.max_sim_time_s)]
+    sim_args += robot_args(plan)
+    sim_args += ["--lockstep"] if cfg.lockstep else ["--real-time", "--rtf", str(cfg.rtf)]
+    return procs.start("sim", *sim_args)
 
 
 class _ConsoleShot:
@@ -336,8 +394,12 @@ def _let_server_come_up(supervisor: Supervisor, mon: Monitor, timeout_s: float) 
     so that, stopped, it writes its outputs; one that died for good or has exited is left."""
     until = time.monotonic() + timeout_s
     while time.monotonic() < until:
-        state = supervisor.poll(mon.sim_time_s)
-        if state in ("done", "failed") or (state == "running" and mon.server_alive):
+        try:
+            state = supervisor.poll(mon.sim_time_s)
+        except GroupClosed:   # a stop signal came meanwhile
+            return
+        if state in ("done", "failed") or (state == "running" and mon.server_alive) or \
+                mon.stop.is_set():
             return
         time.sleep(0.1)
     log.warning("the server did not come up within %.0f s of the run's end", timeout_s)
@@ -408,7 +470,11 @@ class Reboots:
                 return
             with self._lock:
                 self._waiting[rid] = row
-            self.procs.restart(p, ("agent", "-c", str(self.out / f"agent_{rid}_rebooted.yaml")))
+            try:
+                self.procs.restart(p, ("agent", "-c",
+                                       str(self.out / f"agent_{rid}_rebooted.yaml")))
+            except GroupClosed:   # the run is stopping
+                return
             row.update(restarted_sim_s=round(self.mon.sim_time_s, 3), new_pid=p.pid)
             log.warning("rebooted the agent of %s: killed at %.1f s of sim time, started "
                         "again at %.1f s (pid %d)", rid, row["killed_sim_s"],

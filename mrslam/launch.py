@@ -1,4 +1,9 @@
-"""Start and stop mrslam's processes for a local run (the demo, benchmarks, end-to-end tests)."""
+"""Start and stop mrslam's processes for a local run (the demo, benchmarks, end-to-end tests).
+
+Each child runs in a session of its own (a terminal's Ctrl-C reaches the launcher only, which
+stops the children in its order) and is told the launcher's pid (``MRSLAM_PARENT_PID``): it
+stops by itself once the launcher has gone, however that went (``schemas.stopping``).
+"""
 
 from __future__ import annotations
 
@@ -8,11 +13,18 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from schemas.stopping import PARENT_ENV
+
 log = logging.getLogger(__name__)
+
+
+class GroupClosed(RuntimeError):
+    """The group is stopping: it starts nothing any more."""
 
 
 @dataclass
@@ -49,14 +61,20 @@ class ProcessGroup:
 
     #: what a child runs: ``python -m mrslam ARGS`` (the same interpreter, so the same install)
     command: tuple[str, ...] = (sys.executable, "-m", "mrslam")
+    #: set by ``terminate_all``: nothing is started or restarted any more
+    closed: bool = False
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def start(self, name: str, *args: str, env: dict[str, str] | None = None) -> Proc:
         """Run ``command ARGS``, its output going to ``<log_dir>/<name>.log``; ``env``: more
         environment variables (a secret that must not show in the process list)."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         path = self.log_dir / f"{name}.log"
-        p = Proc(name, self._spawn(path, args, "wb", env or {}), path, args, env=dict(env or {}))
-        self.procs.append(p)
+        with self._lock:   # started and listed at once: terminate_all sees every child
+            self._refuse_when_closed(name)
+            p = Proc(name, self._spawn(path, args, "wb", env or {}), path, args,
+                     env=dict(env or {}))
+            self.procs.append(p)
         log.info("started %s (pid %d)", name, p.pid)
         return p
 
@@ -71,15 +89,50 @@ class ProcessGroup:
         old = p.pid
         if args is not None:
             p.args = args
-        p.popen = self._spawn(p.log_path, p.args, "ab", p.env)
+        with self._lock:
+            self._refuse_when_closed(p.name)
+            p.popen = self._spawn(p.log_path, p.args, "ab", p.env)
         log.info("restarted %s (pid %d, was %d)", p.name, p.pid, old)
 
     def _spawn(self, log_path: Path, args: tuple[str, ...], mode: str,
                extra_env: dict[str, str]) -> subprocess.Popen[bytes]:
         env = dict(os.environ, PYTHONUNBUFFERED="1", **extra_env)
+        env[PARENT_ENV] = str(os.getpid())
         with log_path.open(mode) as out:
             return subprocess.Popen([*self.command, *args], stdout=out,
                                     stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+    def _refuse_when_closed(self, name: str) -> None:
+        if self.closed:
+            raise GroupClosed(f"not starting {name}: the run is stopping")
+
+    def terminate_all(self, kill_after_s: float) -> None:
+        """Stop every child at once and start nothing more: SIGTERM now, and SIGKILL (to its
+        whole process group: a server's planner processes too) whatever is still there
+        ``kill_after_s`` later. Returns at once (a signal's thread calls it)."""
+        with self._lock:
+            self.closed = True
+            chosen = list(self.procs)
+            for p in chosen:
+                p.stopping = True
+        for p in chosen:
+            if p.alive():
+                with contextlib.suppress(ProcessLookupError):
+                    p.popen.send_signal(signal.SIGTERM)
+        threading.Thread(target=self._kill_after, args=(chosen, kill_after_s),
+                         name="kill-after", daemon=True).start()
+
+    @staticmethod
+    def _kill_after(chosen: list[Proc], kill_after_s: float) -> None:
+        deadline = time.monotonic() + kill_after_s
+        while time.monotonic() < deadline and any(p.alive() for p in chosen):
+            time.sleep(0.05)
+        for p in chosen:
+            if p.alive():
+                log.warning("%s did not stop within %.1f s; killing it", p.name, kill_after_s)
+            # the whole group, even when its leader has gone: what it started goes too
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.popen.pid, signal.SIGKILL)
 
     def stop(self, names: list[str] | None = None, timeout_s: float = 15.0) -> None:
         """SIGTERM, then SIGKILL whatever has not exited after ``timeout_s``."""

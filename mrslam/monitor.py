@@ -11,16 +11,35 @@ from typing import Any
 from mrslam.launch import Proc
 from mrslam.supervise import Exit, Supervisor
 from schemas import Event, RobotStates, SimClock, keys
-from schemas.bus import Bus
+from schemas.bus import Bus, BusError
 
 #: commands that come after this long without any [s] start a new stretch of them
 COMMAND_PAUSE_S = 0.5
 
 
+class Stopped(Exception):
+    """The run was asked to stop before the monitor was on the bus."""
+
+
 class Monitor:
-    def __init__(self, endpoint: str, robots: list[str]) -> None:
-        # the server was just started: on a loaded machine it may take a while to listen
-        self.bus = Bus.open("client", connect=[endpoint], connect_timeout_ms=60000)
+    def __init__(self, endpoint: str, robots: list[str],
+                 stop: threading.Event | None = None, timeout_s: float = 60.0) -> None:
+        """Connects to the server at ``endpoint``: it was just started, and on a loaded
+        machine it may take a while to listen (``timeout_s``); tries again every second, so
+        that a ``stop`` set meanwhile ends the wait (``Stopped``)."""
+        stop = stop or threading.Event()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self.bus = Bus.open("client", connect=[endpoint], connect_timeout_ms=1000)
+                break
+            except BusError:
+                if stop.is_set():
+                    raise Stopped("stopped before the server was up") from None
+                if time.monotonic() > deadline:
+                    raise
+                stop.wait(0.1)
+        self.stop = stop
         self.robots = robots
         self.sim_time_s = 0.0
         self.states: RobotStates | None = None
@@ -79,7 +98,7 @@ class Monitor:
         while time.monotonic() - t0 < timeout_s:
             if self._server_up.wait(0.2):
                 return True
-            if not alive():
+            if not alive() or self.stop.is_set():
                 return False
         return False
 
@@ -89,8 +108,9 @@ class Monitor:
 
     def follow(self, server: Supervisor, sim: Proc, wall_timeout_s: float, threshold: float,
                console: Any, progress: bool) -> str:
-        """Block until the run ends; returns why: finished, sim-ended, server-died, timeout.
-        A server that dies is restarted by ``server`` while the run goes on."""
+        """Block until the run ends; returns why: finished, sim-ended, server-died, timeout,
+        stopped (the monitor's ``stop`` was set: a signal). A server that dies is restarted
+        by ``server`` while the run goes on."""
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         columns = [TextColumn("[bold]coverage"), BarColumn(), TextColumn("{task.fields[cov]}"),
@@ -99,7 +119,7 @@ class Monitor:
         t0 = time.monotonic()
         with Progress(*columns, console=console, disable=not progress, transient=False) as bar:
             task = bar.add_task("run", total=threshold, cov="0.0%", sim="0 s", robots="")
-            while True:
+            while not self.stop.is_set():
                 cov = self.coverage()
                 state = server.poll(self.sim_time_s)
                 robots = (self._robot_line() if state == "running"
@@ -114,7 +134,8 @@ class Monitor:
                     return "sim-ended"
                 if time.monotonic() - t0 > wall_timeout_s:
                     return "timeout"
-                time.sleep(0.25)
+                self.stop.wait(0.25)
+        return "stopped"
 
     def _robot_line(self) -> str:
         s = self.states

@@ -149,9 +149,11 @@ def threshold_times(teams: dict[str, Any]) -> tuple[bool, float | None, float | 
 
 
 def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any],
-                 wall_time_s: float) -> dict[str, Any]:
+                 wall_time_s: float, figures: bool = True) -> dict[str, Any]:
     """Score the run folder ``out``. Whatever is missing or damaged (the server's outputs
-    when it died for good) is left out and named under ``missing``; the rest still counts."""
+    when it died for good) is left out and named under ``missing``; the rest still counts.
+    ``figures`` False: no figures (a run stopped by a signal ends without waiting for
+    them)."""
     from sim.errors import WorldError
     from sim.grid import read_nav2
 
@@ -288,12 +290,20 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "missing": gaps.notes,
         "dissertation": plan.get("reported", {}),
     }
+    if not figures:
+        gaps.note(out / "figures", "not drawn: the run was stopped by a signal")
+        return _without_errors(report, robots)
     try:
         from mrslam.figures import write_figures
 
         report["figures"] = write_figures(report, out, gaps)
     except Exception:  # figures are a convenience; the numbers above are the result
         log.exception("could not draw the figures")
+    return _without_errors(report, robots)
+
+
+def _without_errors(report: dict[str, Any], robots: dict[str, Any]) -> dict[str, Any]:
+    """The report without the error series only the figures use."""
     for r in robots.values():
         r.pop("_errors", None)
     return report

@@ -5,7 +5,6 @@ writes its outputs."""
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 import time
 from collections.abc import Callable
@@ -13,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas.bus import Bus
+from schemas.stopping import SignalStop
 from server.config import ServerConfig
 from server.core import ServerCore
 from server.journal import JournalWriter, replay
@@ -21,6 +21,10 @@ from server.slam import render_store
 from server.snapshot import Snapshots
 
 log = logging.getLogger(__name__)
+
+#: a server asked to stop (SIGTERM, SIGINT, SIGHUP) exits this long after at the latest [s],
+#: its last outputs written or not: its state survives a SIGKILL anyway (the journal)
+STOP_BUDGET_S = 4.0
 
 
 def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None = None,
@@ -41,9 +45,10 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     if out is not None:
         write_resolved(cfg, out, "server_config.yaml")
     stop = stop or threading.Event()
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: stop.set())
+    # a signal stops the server within STOP_BUDGET_S (a worker's handover on top)
+    signals = SignalStop(stop, exit_after_s=STOP_BUDGET_S + (
+        cfg.cluster.handover_timeout_s if cfg.cluster.worker is not None else 0.0),
+        name="the server")
     t0 = time.monotonic()
 
     def outputs(node: ServerNode) -> Callable[[], None] | None:
@@ -65,7 +70,8 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         log.info("worker %d: waiting for the router at %s", cfg.cluster.worker,
                  ", ".join(b.connect))
         b = b.model_copy(update={"connect_timeout_ms": -1})
-    with Bus.from_config(b) as bus:   # open first: robots reconnect while the state loads
+    # open first: robots reconnect while the state loads
+    with signals, Bus.from_config(b) as bus:
         core, journal, resumed = _resume(cfg)
         node = ServerNode(bus, cfg, core, journal, outputs)
         live = _foxglove_live(bus, foxglove_port)

@@ -26,6 +26,25 @@ def start(processes: int) -> ProcessPoolExecutor:
     return pool
 
 
+def stop(pool: ProcessPoolExecutor) -> None:
+    """End the pool at once: jobs not started are dropped, and the processes are killed
+    rather than waited for (a replan or a map query holds nothing of the server's state; its
+    answer is no longer wanted), so a stopping server never waits on a job."""
+    # the executor's own processes and thread (Python 3.14's kill_workers() does this);
+    # read first: shutdown forgets them
+    processes = dict(getattr(pool, "_processes", None) or {})
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for proc in processes.values():
+        with contextlib.suppress(Exception):
+            proc.kill()
+    for proc in processes.values():
+        with contextlib.suppress(Exception):
+            proc.join(timeout=2.0)
+    if manager is not None:   # it sees them gone and ends
+        manager.join(timeout=2.0)
+
+
 def _follow_parent(parent_pid: int) -> None:
     """In a planner process: end when the server ends, however it ends."""
     if sys.platform.startswith("linux"):   # the kernel kills us when the parent dies
