@@ -43,9 +43,14 @@ import bisect
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 log = logging.getLogger(__name__)
+
+
+#: a message's receipt, told again later (None: no clock)
+Again = Callable[[], "int | None"]
 
 
 class StampRefused(ValueError):
@@ -85,15 +90,18 @@ class RobotClock:
     #: (receive, d) received within the window: all of them, and the increasing minima
     _recent: deque[int] = field(default_factory=deque)
     _minima: deque[tuple[int, int]] = field(default_factory=deque)
-    #: messages in a row that disagree with the offset: their d, and which way ("ahead"/"back")
-    _candidates: list[int] = field(default_factory=list)
+    #: messages in a row that disagree with the offset (d, stamp, receipt told again), and
+    #: which way ("ahead"/"back")
+    _candidates: list[tuple[int, int, Again | None]] = field(default_factory=list)
     _direction: str = ""
 
-    def map(self, stream: str, stamp_ns: int, received_ns: int | None, slack_ns: int = 0
-            ) -> int:
+    def map(self, stream: str, stamp_ns: int, received_ns: int | None, slack_ns: int = 0,
+            again: Again | None = None) -> int:
         """The stamp in server time, or StampRefused. ``received_ns`` is the server's clock
         when the message arrived (None: no clock to check against; only the order is
-        checked), known to ``slack_ns`` (a lockstep simulation knows only the step)."""
+        checked); it may be up to ``slack_ns`` later than that (a simulation may hand over its
+        clock message after the message it preceded). ``again`` tells the receipt once more,
+        later, when the server may know it better: a re-base is taken from it."""
         last_raw = self.last_raw_ns.get(stream)
         if received_ns is None:
             if last_raw is not None and stamp_ns <= last_raw:
@@ -105,14 +113,14 @@ class RobotClock:
             self._started = True
             self.offset_ns = 0 if abs(d) <= self.policy.max_skew_ns + slack_ns else d
         if last_raw is not None and stamp_ns <= last_raw:
-            if self._confirmed(d, "back"):
+            if self._confirmed(d, stamp_ns, again, "back"):
                 self._rebase(received_ns)
                 return self._accept(stream, stamp_ns, stamp_ns + self.offset_ns)
             raise StampRefused("out-of-order", f"{stream} stamp "
                                f"{(stamp_ns - last_raw) / 1e9:+.3f} s before the last")
         ahead = self.offset_ns - d
         if ahead > self.policy.tolerance_ns + slack_ns:
-            if self._confirmed(d, "ahead"):
+            if self._confirmed(d, stamp_ns, again, "ahead"):
                 self._rebase(received_ns)
                 return self._accept(stream, stamp_ns, stamp_ns + self.offset_ns)
             if ahead > self.policy.max_skew_ns:
@@ -120,7 +128,7 @@ class RobotClock:
                                    "of its receipt")
             # taken no later than it came; its stamp is not trusted to order the next ones
             self.at_receipt += 1
-            return self._accept(stream, None, received_ns)
+            return self._accept(stream, None, received_ns + slack_ns)
         self._candidates.clear()
         self._remember(received_ns, d)
         self._follow_minimum(received_ns)
@@ -135,7 +143,7 @@ class RobotClock:
             self.last_raw_ns[stream] = stamp_ns
         return mapped_ns
 
-    def _confirmed(self, d: int, direction: str) -> bool:
+    def _confirmed(self, d: int, stamp_ns: int, again: Again | None, direction: str) -> bool:
         """Count messages in a row that disagree with the offset the same way and agree with
         each other on a new one; True once there are ``rebase_after`` of them."""
         p = self.policy
@@ -143,19 +151,23 @@ class RobotClock:
             self._candidates.clear()  # a repeat or a reordering, not a step of the clock
             return False
         c = self._candidates
-        if c and (direction != self._direction or abs(d - c[0]) > p.max_skew_ns):
+        if c and (direction != self._direction or abs(d - c[0][0]) > p.max_skew_ns):
             c.clear()
         self._direction = direction
-        c.append(d)
+        c.append((d, stamp_ns, again))
         return len(c) >= p.rebase_after
 
     def _rebase(self, received_ns: int) -> None:
         """The offset to the smallest d of the messages that confirmed a step; the window
         starts over from them (what came before the step says nothing about the clock now)."""
-        new = min(self._candidates)
+        told = [(again(), stamp) if again is not None else (None, stamp)
+                for _, stamp, again in self._candidates]
+        ds = [d if t is None else t - stamp for (d, _, _), (t, stamp) in zip(
+            self._candidates, told, strict=True)]
+        new = min(ds)
         self._recent.clear()
         self._minima.clear()
-        for d in self._candidates:
+        for d in ds:
             self._remember(received_ns, d)
         self._candidates.clear()
         self.last_raw_ns.clear()
@@ -229,7 +241,11 @@ class ServerClock:
             # lockstep: simulated time stands while the agents answer, and the next step's
             # clock message may not have been handed to us yet
             return sim_ns, dt_ns
-        return sim_ns + min(round((wall_ns - at_ns) * rtf), 10 * dt_ns), 0
+        # the next step's clock message may have come before this one and not yet been
+        # handed over (a simulation catching up publishes faster than real time)
+        newest = i == len(h) - 1
+        return (sim_ns + min(round((wall_ns - at_ns) * rtf), 10 * dt_ns),
+                dt_ns if newest else 0)
 
     def now_ns(self) -> int:
         """The time periodic work runs on (0 before a sim or stamp clock has started)."""

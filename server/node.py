@@ -127,7 +127,8 @@ class ServerNode:
             server_ns, slack_ns = self.clock.receive_ns(received_ns)
             try:
                 ready = self.registry.admit(keys.robot_id_of(key), msg.robot_id, stream,
-                                            msg.stamp_ns, server_ns, msg, slack_ns)
+                                            msg.stamp_ns, server_ns, msg, slack_ns,
+                                            lambda: self.clock.receive_ns(received_ns)[0])
             except Refused:
                 return
             if self.cluster is not None:

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from schemas.ratelog import RateLimitedLog
-from server.clock import ClockPolicy, RobotClock, StampRefused
+from server.clock import Again, ClockPolicy, RobotClock, StampRefused
 
 log = logging.getLogger(__name__)
 
@@ -80,12 +80,13 @@ class RobotRegistry:
 
     # -- messages --------------------------------------------------------------------------
     def admit(self, key_robot_id: str | None, robot_id: str, stream: str, stamp_ns: int,
-              server_ns: int | None, message: Any = None, slack_ns: int = 0
-              ) -> list[tuple[str, int, Any]]:
+              server_ns: int | None, message: Any = None, slack_ns: int = 0,
+              again: Again | None = None) -> list[tuple[str, int, Any]]:
         """Admit one message; returns what is now ready for processing, in order, as
         (stream, stamp in server time, message): nothing while the robot is on probation,
         its held messages and this one when it is admitted. ``server_ns`` is the server's
-        clock when the message arrived, known to ``slack_ns``. Raises Refused."""
+        clock when the message arrived, known to ``slack_ns`` (``again`` tells it once more,
+        later: ``RobotClock.map``). Raises Refused."""
         if key_robot_id is not None and key_robot_id != robot_id:
             raise self._refuse(robot_id, "key-mismatch",
                                f"published under robot {key_robot_id!r}'s key")
@@ -95,7 +96,7 @@ class RobotRegistry:
         rec = self.robots.get(robot_id) or self._new(robot_id)
         steps, offset = rec.clock.steps, rec.clock.offset_ns
         try:
-            t = rec.clock.map(stream, stamp_ns, server_ns, slack_ns)
+            t = rec.clock.map(stream, stamp_ns, server_ns, slack_ns, again)
         except StampRefused as e:
             raise self._refuse(robot_id, e.reason, str(e).split(": ", 1)[1]) from None
         finally:

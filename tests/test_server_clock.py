@@ -158,12 +158,34 @@ def test_the_simulated_receipt_follows_the_clock_messages_by_their_own_receipt()
     for k in (0, 1, 3, 2):
         sc.on_sim_clock(k * PERIOD, wall0 + k * 50 * MS, PERIOD, 2.0)
     assert sc.receive_ns(wall0 + 2 * 50 * MS + 5 * MS) == (2 * PERIOD + 10 * MS, 0)
-    assert sc.receive_ns(wall0 + 3 * 50 * MS + 1 * MS) == (3 * PERIOD + 2 * MS, 0)
+    # after the newest clock message known: the next one may be on its way to us
+    assert sc.receive_ns(wall0 + 3 * 50 * MS + 1 * MS) == (3 * PERIOD + 2 * MS, PERIOD)
     lock = ServerClock("sim")
     lock.on_sim_clock(7 * PERIOD, wall0, PERIOD, 0.0)
     assert lock.receive_ns(wall0 + 3 * S) == (7 * PERIOD, PERIOD)
     assert ServerClock("wall").receive_ns(wall0) == (wall0, 0)
     assert ServerClock("stamps").receive_ns(wall0) == (None, 0)
+
+
+def test_a_rebase_takes_the_receipts_as_the_server_knows_them_by_then() -> None:
+    """A simulation's clock message may be handed over after the scan it preceded, so that
+    scan's receipt is first placed from the step before. Where the simulation was catching up
+    (steps faster than real time) that is too early; the re-base the scan helps confirm takes
+    its receipt as known by then."""
+    sc = ServerClock("sim")
+    clock = RobotClock(POLICY)
+    for k in range(60):
+        stamp = k * PERIOD + (S if k >= 30 else 0)       # the robot's clock jumps 1 s ahead
+        at = 10 * S + (k * PERIOD if k < 30 else 3 * S + (k - 30) * 20 * MS)   # catching up
+        late = k == 31                                   # its clock message comes after it
+        if not late:
+            sc.on_sim_clock(k * PERIOD, at, PERIOD, 1.0)
+        recv, slack = sc.receive_ns(at + 3 * MS)
+        assert recv is not None
+        clock.map("scan", stamp, recv, slack, lambda w=at + 3 * MS: sc.receive_ns(w)[0])
+        if late:
+            sc.on_sim_clock(k * PERIOD, at, PERIOD, 1.0)
+    assert clock.steps == 1 and clock.offset_ns == -S + 3 * MS
 
 
 @settings(max_examples=300, deadline=None)
