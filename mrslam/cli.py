@@ -377,6 +377,11 @@ def demo(
             if v is not None:
                 opts[k] = v
         report = run(opts, foxglove_port=foxglove, console_port=console)
+        if report.get("stopped_by"):   # as a shell reports a command a signal ended
+            import signal
+
+            _fail(f"demo: stopped by {report['stopped_by']}; the report of the run so far "
+                  "is in its folder", 128 + signal.Signals[report["stopped_by"]].value)
         if not report["reached"]:
             raise typer.Exit(1)
         return report

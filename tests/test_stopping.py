@@ -41,6 +41,8 @@ def test_a_stop_signal_ends_every_process_of_the_demo_and_the_report_is_written(
     run, out = _demo(tmp_path, sigint_ignored)
     result = stopping.stop(run, sig)
     assert result["alive_after_5_s"] == [], result
+    assert result["exit_code"] == 128 + sig.value, run.log()[-2000:]   # as a shell says it
+    assert f"mrslam: demo: stopped by {sig.name}" in run.log()
     report = json.loads((out / "report.json").read_text())
     assert report["end"] == f"stopped by {sig.name}"
     assert report["stopped_by"] == sig.name
