@@ -71,3 +71,36 @@ def test_only_the_server_commands_a_robot(tmp_path: Path) -> None:
             thread.join(timeout=10)
             for b in (r1, r2, dash):
                 b.close()
+
+
+def test_a_robot_certificate_cannot_command_its_own_robot(tmp_path: Path) -> None:
+    """A second session with r1's certificate (a stolen robot key, a confused script) may
+    publish r1's scans but never r1's commands: the router refuses them before anyone, the
+    server included, sees them. r1 still hears the server."""
+    certs = tmp_path / "certs"
+    subprocess.run(["bash", str(DEPLOY / "make-certs.sh"), str(certs), "127.0.0.1", "r1"],
+                   check=True, capture_output=True)
+    endpoint = free_local_endpoint().replace("tcp/", "tls/")
+    conf = write_config(tmp_path, "server", "server", "--certs", str(certs), "--listen",
+                        endpoint, "r1")
+    key = keys.robot_cmd_vel("r1")
+    with Bus.open("router", config_file=conf) as server:
+        seen_by_server: list[VelocityCommand] = []
+        server.subscribe(key, VelocityCommand, lambda _k, m: seen_by_server.append(m))
+        r1, forger = (client(certs, tmp_path, endpoint, "r1") for _ in range(2))
+        got: list[VelocityCommand] = []
+        try:
+            r1.subscribe(key, VelocityCommand, lambda _k, m: got.append(m))
+            assert within(lambda: server.wait_for_subscribers(key, 0.2), 15.0)
+            assert within(lambda: (server.publish(key, VelocityCommand(
+                robot_id="r1", v_mps=0.2, omega_rps=0.0), block=True), bool(got))[1], 15.0)
+            for _ in range(10):
+                forger.publish(key, VelocityCommand(robot_id="r1", v_mps=0.5, omega_rps=2.0),
+                               block=True)
+                time.sleep(0.05)
+            time.sleep(1.0)   # would a refused command still arrive?
+            assert all(c.v_mps == 0.2 for c in got)
+            assert all(c.v_mps == 0.2 for c in seen_by_server)
+        finally:
+            r1.close()
+            forger.close()

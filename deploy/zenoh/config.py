@@ -11,15 +11,17 @@
     python deploy/zenoh/config.py client --certs DIR --connect tls/server:7447 --name worker1
 
 The server's router requires mutual TLS and applies access control keyed on the certificate's
-common name: robot <id> may publish, declare tokens and queryables only under
-``mrslam/robot/<id>/**`` and may subscribe to its own keys and to ``mrslam/server/**`` (its
-commands, the map, the server's liveliness). It is told which keys under ``mrslam/`` have
-subscribers (declarations only, no data): without that, a client's declared publisher delivers
-its first put at most and drops the rest. Names passed with ``--observer`` (dashboards,
-loggers) may read everything and write nothing; names passed with ``--worker`` (the server's
-other worker processes, ``server.cluster``) may do what the server does. Everything else is
-denied. The server's own session is the router, so its publications and subscriptions are
-local and always allowed.
+common name: robot <id> may publish only its scans, sightings and status
+(``mrslam/robot/<id>/{scan,tags,status}``), hold only its liveliness token
+(``mrslam/robot/<id>/alive``), and subscribe only to its commands
+(``mrslam/robot/<id>/cmd_vel``) and to ``mrslam/server/**`` (the map, the server's liveliness).
+It may never publish a command: only the server commands a robot. It is told which keys under
+``mrslam/`` have subscribers (declarations only, no data): without that, a client's declared
+publisher delivers its first put at most and drops the rest. Names passed with ``--observer``
+(dashboards, loggers) may read everything and write nothing; names passed with ``--worker``
+(the server's other worker processes, ``server.cluster``) may do what the server does.
+Everything else is denied. The server's own session is the router, so its publications and
+subscriptions are local and always allowed.
 
 Several sites: robots at a remote site connect to a ``zenohd`` router there, which connects to
 the server over mutual TLS with its own certificate. The site router enforces the per-robot
@@ -37,6 +39,8 @@ from typing import Any
 
 # what a remote sends into the router (ingress) and receives from it (egress)
 WRITE = ["put", "delete", "declare_queryable", "liveliness_token", "reply"]
+PUBLISH = ["put", "delete"]
+TOKEN = ["liveliness_token"]
 SUBSCRIBE = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
 RECEIVE = ["put", "delete", "reply", "liveliness_token", "query"]
 DECLARE = ["declare_subscriber", "declare_queryable", "declare_liveliness_subscriber"]
@@ -60,6 +64,16 @@ def _rule(rid: str, flow: str, messages: list[str], keys: list[str]) -> dict[str
             "key_exprs": keys}
 
 
+def robot_keys(rid: str) -> dict[str, list[str]]:
+    """What robot ``rid``'s certificate may do: publish its scans, sightings and status, hold
+    its liveliness token, and read its own commands and the server's keys. Never publish on
+    its ``cmd_vel``: only the server commands a robot (docs/wire.md)."""
+    own = f"mrslam/robot/{rid}"
+    return {"publish": [f"{own}/scan", f"{own}/tags", f"{own}/status"],
+            "token": [f"{own}/alive", f"{own}/alive/**"],
+            "read": [f"{own}/cmd_vel", "mrslam/server/**"]}
+
+
 def access_control(robots: list[str], observers: list[str],
                    sites: dict[str, list[str]] | None = None,
                    workers: list[str] | None = None) -> dict[str, Any]:
@@ -75,31 +89,19 @@ def access_control(robots: list[str], observers: list[str],
         policies.append({"id": "policy-workers", "subjects": ["workers"],
                          "rules": ["worker-in", "worker-out"]})
     for site, site_robots in (sites or {}).items():
-        own = [f"mrslam/robot/{rid}/**" for rid in site_robots]
-        readable = [*own, "mrslam/server/**"]
-        rules += [_rule(f"{site}-write", "ingress", WRITE, own),
-                  _rule(f"{site}-subscribe", "ingress", SUBSCRIBE, readable),
-                  _rule(f"{site}-receive", "egress", RECEIVE, readable),
-                  # router to router: the server's own subscriptions must reach the site so
-                  # that it forwards its robots' data (declarations carry no data)
-                  _rule(f"{site}-routes", "egress", DECLARE, ["mrslam/**"])]
+        rights = [robot_keys(rid) for rid in site_robots]
+        rules += _robot_rules(site, sorted({k for r in rights for k in r["publish"]}),
+                              sorted({k for r in rights for k in r["token"]}),
+                              sorted({k for r in rights for k in r["read"]}))
         subjects.append({"id": f"site-{site}", "cert_common_names": [site]})
         policies.append({"id": f"policy-site-{site}", "subjects": [f"site-{site}"],
-                         "rules": [f"{site}-write", f"{site}-subscribe", f"{site}-receive",
-                                   f"{site}-routes"]})
+                         "rules": [r["id"] for r in rules[-5:]]})
     for rid in robots:
-        own = [f"mrslam/robot/{rid}/**"]
-        readable = [*own, "mrslam/server/**"]
-        rules += [_rule(f"{rid}-write", "ingress", WRITE, own),
-                  _rule(f"{rid}-subscribe", "ingress", SUBSCRIBE, readable),
-                  _rule(f"{rid}-receive", "egress", RECEIVE, readable),
-                  # the server's subscriptions to the robot's keys: a client's publisher that
-                  # hears of no subscriber drops its puts before they leave the robot
-                  _rule(f"{rid}-routes", "egress", DECLARE, ["mrslam/**"])]
+        r = robot_keys(rid)
+        rules += _robot_rules(rid, r["publish"], r["token"], r["read"])
         subjects.append({"id": f"robot-{rid}", "cert_common_names": [rid]})
         policies.append({"id": f"policy-{rid}", "subjects": [f"robot-{rid}"],
-                         "rules": [f"{rid}-write", f"{rid}-subscribe", f"{rid}-receive",
-                                   f"{rid}-routes"]})
+                         "rules": [r["id"] for r in rules[-5:]]})
     if observers:
         rules += [_rule("observe-subscribe", "ingress", SUBSCRIBE, ["mrslam/**"]),
                   _rule("observe-receive", "egress", RECEIVE, ["mrslam/**"])]
@@ -108,6 +110,19 @@ def access_control(robots: list[str], observers: list[str],
                          "rules": ["observe-subscribe", "observe-receive"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,
             "subjects": subjects, "policies": policies}
+
+
+def _robot_rules(name: str, publish: list[str], token: list[str], read: list[str]
+                 ) -> list[dict[str, object]]:
+    """The five rules of a robot (or of a site router, for all its robots at once)."""
+    return [_rule(f"{name}-publish", "ingress", PUBLISH, publish),
+            _rule(f"{name}-token", "ingress", TOKEN, token),
+            _rule(f"{name}-subscribe", "ingress", SUBSCRIBE, read),
+            _rule(f"{name}-receive", "egress", RECEIVE, read),
+            # the server's subscriptions to the robot's keys: a client's publisher that hears
+            # of no subscriber drops its puts before they leave the robot (router to router:
+            # the site forwards its robots' data only where the server subscribes)
+            _rule(f"{name}-routes", "egress", DECLARE, ["mrslam/**"])]
 
 
 def server_config(certs: Path, listen: list[str], robots: list[str],
@@ -136,7 +151,9 @@ def site_router_config(certs: Path, name: str, listen: list[str], connect: list[
         "listen": {"endpoints": listen},
         "connect": {"endpoints": connect, "timeout_ms": -1},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"link": {"tls": tls}},
+        # a router that takes its clients' shared memory keeps every pool mapped after they
+        # leave (eclipse-zenoh/zenoh#2787; docs/wire.md "Memory per session")
+        "transport": {"link": {"tls": tls}, "shared_memory": {"enabled": False}},
         "access_control": upstream(access_control(robots, []), SERVER_CN),
     }
 
