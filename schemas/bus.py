@@ -237,6 +237,9 @@ class Bus:
         self._lock = threading.Lock()
         self._closed = False
         self._zid: str | None = None
+        #: where the session listens and what it connects to, as Zenoh was configured
+        self.listening: list[str] = []
+        self.connecting: list[str] = []
 
     @classmethod
     def open(cls, mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] = (),
@@ -256,12 +259,15 @@ class Bus:
         if not sec.secure:
             log.warning(insecure_listen_warning(sec))
         try:
-            return cls(zenoh.open(conf), max_message_size)
+            bus = cls(zenoh.open(conf), max_message_size)
         except zenoh.ZError as e:
             where = ", ".join(listen + connect) or ", ".join(sec.endpoints) or \
                 "default endpoints"
             raise BusError(f"cannot open a Zenoh {mode} session on {where}: "
                            f"{zenoh_message(e)}") from None
+        bus.listening = sec.endpoints
+        bus.connecting = connect or [str(e) for e in _json(conf, "connect/endpoints") or []]
+        return bus
 
     @classmethod
     def from_config(cls, cfg: BusConfig) -> Bus:

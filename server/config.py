@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -231,13 +231,14 @@ class ClusterConfig(ConfigModel):
                                       "a robot for this long leave it to the lower number")
 
 
-def _router() -> BusConfig:
-    # loopback: other interfaces take TLS and access rules, or bus.insecure_listen
-    return BusConfig(mode="router", listen=[f"tcp/127.0.0.1:{DEFAULT_PORT}"], connect=[])
+#: the server's bus, where its config says nothing else: a router on loopback (other
+#: interfaces take TLS and access rules, or bus.insecure_listen)
+SERVER_BUS: dict[str, Any] = {"mode": "router", "listen": [f"tcp/127.0.0.1:{DEFAULT_PORT}"],
+                              "connect": []}
 
 
 class ServerConfig(ConfigModel):
-    bus: BusConfig = Field(default_factory=_router)
+    bus: BusConfig = Field(default_factory=lambda: BusConfig(**SERVER_BUS))
     robots: list[str] | None = Field(
         None, description="robots allowed to join; null accepts any robot that appears")
     clock: ClockConfig = ClockConfig()
@@ -275,6 +276,28 @@ class ServerConfig(ConfigModel):
                                     "summary are rewritten this often while running (wall "
                                     "time; each file replaced whole), so a crash leaves the "
                                     "last good set")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _server_bus(cls, data: Any) -> Any:
+        """A ``bus`` section that says only part (``insecure_listen``, ``listen``) is a
+        server's: the rest comes from ``SERVER_BUS``, not from a client's defaults. With a
+        ``zenoh_config`` file and no ``listen``, the file says where to listen; with
+        ``insecure_listen`` and neither, the server listens on every interface."""
+        if not isinstance(data, dict) or not isinstance(data.get("bus"), dict):
+            return data
+        given = data["bus"]
+        bus = dict(given)
+        bus.setdefault("mode", "router")
+        if bus["mode"] != "client":
+            listen = SERVER_BUS["listen"]
+            if given.get("zenoh_config"):
+                listen = []
+            elif given.get("insecure_listen"):   # what --insecure is for: the network
+                listen = [f"tcp/0.0.0.0:{DEFAULT_PORT}"]
+            bus.setdefault("listen", listen)
+            bus.setdefault("connect", [])
+        return {**data, "bus": bus}
 
     @model_validator(mode="after")
     def _cluster_runs_in_real_time(self) -> ServerConfig:

@@ -79,7 +79,11 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         if console is not None and on_console is not None:
             on_console(console)
         node.start()
-        log.info("server up (%s on %s)", b.mode, ", ".join(b.listen or b.connect))
+        if b.mode == "client":
+            log.info("server up (a client of %s)", ", ".join(bus.connecting))
+        else:
+            log.info("server up (%s listening on %s)", b.mode,
+                     ", ".join(bus.listening) or "Zenoh's default endpoints")
         while not stop.wait(0.2):
             if cfg.exit_when_done and node.core.finished:
                 time.sleep(0.5)  # let the last commands and events go out
