@@ -405,6 +405,27 @@ class Bus:
         self._handles.append(sub)
         return sub
 
+    def watch_senders(self, key: str, callback: Callable[[str, str | None], None]) -> Any:
+        """Call ``callback(key, sender)`` for every sample on ``key`` that another session
+        sent (``sender``: its id, None when it did not say), without decoding it: who else
+        publishes where only this session should."""
+        mine = self.zid
+
+        def on_sample(sample: Any) -> None:
+            info = sample.source_info
+            sender = None if info is None else str(info.source_id.zid)
+            if sender == mine:
+                return
+            try:
+                callback(str(sample.key_expr), sender)
+            except Exception:
+                self.stats.callback_errors["senders"] += 1
+                log.exception("sender handler for %s failed", sample.key_expr)
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        self._handles.append(sub)
+        return sub
+
     def _oversized(self, name: str, key: str, sample: Any) -> bool:
         """True (counted as rejected, logged) when the payload is over ``max_message_size``."""
         size = len(sample.payload)

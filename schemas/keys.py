@@ -55,6 +55,7 @@ ALL_SCANS = f"{ROOT}/robot/*/scan"
 ALL_TAGS = f"{ROOT}/robot/*/tags"
 ALL_STATUS = f"{ROOT}/robot/*/status"
 ALL_ALIVE = f"{ROOT}/robot/*/alive"
+ALL_CMD_VEL = f"{ROOT}/robot/*/cmd_vel"
 
 
 # the workers of a server split over several processes (server.cluster)

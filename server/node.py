@@ -72,6 +72,7 @@ class ServerNode:
             clock=ClockPolicy(round(c.max_skew_s * 1e9), c.rebase_after,
                               round(c.window_s * 1e9), round(c.tolerance_s * 1e9))))
         self.errors = 0
+        self.foreign_commands: dict[str, int] = {}   # robot -> commands others published
         self._inbox = Inbox(cfg.queue_per_robot)
         self.dropped = self._inbox.dropped
         self._cv = threading.Condition()
@@ -109,6 +110,9 @@ class ServerNode:
         self.bus.subscribe_received(keys.ALL_SCANS, Scan, self._on_message)
         self.bus.subscribe_received(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
+        # only this server commands robots: anyone else who does is counted (on a network the
+        # access rules stop them in the router, before they get here: deploy/README.md)
+        self.bus.watch_senders(keys.ALL_CMD_VEL, self._on_foreign_command)
         self.bus.serve(keys.SERVER_MAP, lambda: list(self._latest_maps))
         if self.cluster is not None:
             self.cluster.start()
@@ -176,6 +180,15 @@ class ServerNode:
                                    msg.stamp_ns), tier)
         if ready:
             self._cv.notify()
+
+    def _on_foreign_command(self, key: str, sender: str | None) -> None:
+        rid = keys.robot_id_of(key) or "?"
+        with self._cv:
+            self.foreign_commands[rid] = self.foreign_commands.get(rid, 0) + 1
+            n = sum(self.foreign_commands.values())
+        self._errlog.log(logging.WARNING, "foreign-command", "a command for robot %s came from "
+                         "session %s, not this server (#%d; its agent ignores it)", rid,
+                         sender or "unknown", n)
 
     def _on_alive(self, key: str, alive: bool) -> None:
         rid = keys.robot_id_of(key)
@@ -505,7 +518,7 @@ class ServerNode:
 
     def summary(self) -> dict[str, Any]:
         return {"registry": self.registry.counters(), "admission": self.registry.totals(),
-                "dropped_scans": self.dropped,
+                "dropped_scans": self.dropped, "foreign_commands": self.foreign_commands,
                 "errors": self.errors, "bus": self.bus.stats.as_dict(),
                 "lockstep_barrier_timeouts": self._barrier.timeouts,
                 "cpu_s": round(time.process_time(), 3),

@@ -113,3 +113,28 @@ def test_the_server_applies_its_configured_message_size_cap(tmp_path: Path, cap:
         assert "max_message_size" not in stats["last_error"]
     else:   # Zenoh's own limit drops some on the link; the bus drops the rest by size
         assert not stats["rejected"] or "max_message_size" in stats["last_error"]
+
+
+def test_commands_published_by_anyone_but_the_server_are_counted(server: ServerProcess,
+                                                                  tmp_path: Path) -> None:
+    """Without access rules (a loopback server, --insecure) nothing stops a client from
+    publishing on a robot's cmd_vel; the agent ignores such commands, and the server, which
+    sees them, counts and logs them."""
+    from schemas import VelocityCommand
+
+    with server.client() as bus:
+        robot = RoomRobot(server.endpoint, "r1").start()
+        try:
+            time.sleep(2.0)
+            for _ in range(5):
+                bus.publish(keys.robot_cmd_vel("r1"), VelocityCommand(
+                    robot_id="r1", stamp_ns=time.time_ns(), v_mps=0.5, omega_rps=0.0),
+                    block=True)
+                time.sleep(0.05)
+            time.sleep(1.0)
+        finally:
+            robot.close()
+    assert server.stop() == 0
+    summary = json.loads((tmp_path / "server" / "summary.json").read_text())
+    assert summary["foreign_commands"] == {"r1": 5}    # the server's own are not counted
+    assert sum("not this server" in ln for ln in server.log_lines()) == 5
