@@ -138,3 +138,34 @@ def test_commands_published_by_anyone_but_the_server_are_counted(server: ServerP
     summary = json.loads((tmp_path / "server" / "summary.json").read_text())
     assert summary["foreign_commands"] == {"r1": 5}    # the server's own are not counted
     assert sum("not this server" in ln for ln in server.log_lines()) == 5
+
+
+def test_a_flood_of_valid_newcomers_does_not_starve_a_robot_with_a_token(
+        server: ServerProcess, tmp_path: Path) -> None:
+    """2,000 ids nobody runs send three valid, current scans each (the default config: any
+    robot may join). r1, which holds its liveliness token, keeps being answered within a
+    second; the newcomers join at a bounded rate; the server's memory stays bounded and it
+    stops at once."""
+    with server.client() as bus:
+        robot = RoomRobot(server.endpoint, "r1").start()
+        try:
+            time.sleep(3.0)
+            rss0 = rss_mb(server.proc.pid)
+            assert bus.wait_for_subscribers(keys.robot_scan("f0"), 10.0)
+            t0 = time.monotonic()
+            for k in range(3):
+                for i in range(2000):
+                    bus.publish(keys.robot_scan(f"f{i}"),
+                                room_scan(f"f{i}", k, time.time_ns(), 0.1 * k), block=True)
+            time.sleep(15.0)
+            share = robot.answered_within(t0, time.monotonic() - 1.0, 1.0)
+            rss1 = rss_mb(server.proc.pid)
+        finally:
+            robot.close()
+    t_stop = time.monotonic()
+    assert server.stop() == 0
+    assert time.monotonic() - t_stop <= 5.0
+    assert share >= 0.95, f"r1 answered within 1 s for {share:.0%} of its scans"
+    assert rss1 - rss0 <= 150, f"server RSS grew {rss1 - rss0:.0f} MB"
+    admission = json.loads((tmp_path / "server" / "summary.json").read_text())["admission"]
+    assert admission["joined"] <= 10 + 2 * 30 + 1      # the burst, then 2 a second
