@@ -18,6 +18,8 @@ from typing import Any, TypeVar
 import pydantic
 import yaml
 
+from schemas.textfile import UnreadableFile, read_yaml
+
 T = TypeVar("T", bound=pydantic.BaseModel)
 ENV_PREFIX = "MRSLAM_"
 
@@ -80,28 +82,13 @@ def read_yaml_mapping(path: Path) -> dict[str, Any]:
     """The mapping in a YAML file; ``ConfigError`` when it cannot be read, is not text, is not
     YAML or holds something else."""
     try:
-        text = path.read_bytes().decode("utf-8")
-    except OSError as e:
-        raise ConfigError(f"{path}: cannot read config ({e.strerror})") from None
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not a text file (byte {e.start} is not UTF-8); a config "
-                          "is YAML text") from None
-    try:
-        loaded = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML ({_yaml_problem(e)})") from None
+        loaded = read_yaml(path, "a config is YAML text")
+    except UnreadableFile as e:
+        raise ConfigError(f"{path}: {e.problem.replace('cannot read', 'cannot read config')}"
+                          ) from None
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"{path}: expected a mapping at the top level")
     return loaded or {}
-
-
-def _yaml_problem(err: yaml.YAMLError) -> str:
-    """The YAML error in one line: what is wrong and where."""
-    if isinstance(err, yaml.MarkedYAMLError) and err.problem:
-        mark = err.problem_mark
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        return f"{err.problem}{where}"
-    return " ".join(str(err).split())
 
 
 def validate(model: type[T], data: Mapping[str, Any], path: str | Path | None = None,

@@ -7,11 +7,11 @@ import re
 from pathlib import Path
 from typing import Literal, get_args
 
-import yaml
 from pydantic import Field, model_validator
 
 from schemas.config import BusConfig, ConfigModel
 from schemas.tags import CameraMount, TagLayout
+from schemas.textfile import UnreadableFile, read_yaml
 from schemas.types import ID_PATTERN
 from sim.errors import SimError
 
@@ -244,11 +244,9 @@ def _sensors(v: object, scenario: str) -> dict[str, str]:
 
 def load_scenario(path: Path, name: str) -> dict[str, object]:
     try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise SimError(f"{path}: cannot read scenarios ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise SimError(f"{path}: not valid YAML ({e})") from None
+        data = read_yaml(path, "scenarios are YAML text")
+    except UnreadableFile as e:
+        raise SimError(str(e)) from None
     cases = data.get("cases") if isinstance(data, dict) else None
     if not isinstance(cases, dict):
         raise SimError(f"{path}: expected a 'cases' mapping")

@@ -12,15 +12,19 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
+import cv2.utils.logging as cv2_logging
 import numpy as np
-import yaml
 
 from schemas import nav2map
 from schemas.occupancy import FREE, OCCUPIED, UNKNOWN
+from schemas.textfile import UnreadableFile, read_yaml
 from sim.errors import WorldError
 from sim.world import World
 
 _SHIFT = 8  # sub-pixel bits for cv2 drawing
+#: a world's obstacles and a map's origin lie within this of zero [m]: beyond, a float's
+#: precision no longer tells cells apart (and no building is that large)
+MAX_EXTENT_M = 1e6
 # the thresholds our maps are written with (schemas.nav2map), also the defaults when reading
 OCCUPIED_THRESH, FREE_THRESH = nav2map.OCCUPIED_THRESH, nav2map.FREE_THRESH
 
@@ -58,12 +62,17 @@ def rasterise(world: World, resolution_m: float, margin_m: float = 1.0,
     """
     if not resolution_m > 0:
         raise ValueError(f"resolution must be > 0, got {resolution_m}")
-    xmin, ymin, xmax, ymax = world.bounds()
+    bounds = world.bounds()
+    if not all(math.isfinite(v) and abs(v) <= MAX_EXTENT_M for v in bounds):
+        raise WorldError(f"{world.source}: obstacles reach beyond {MAX_EXTENT_M:g} m of the "
+                         f"origin (bounds {bounds})")
+    xmin, ymin, xmax, ymax = bounds
     ox, oy = xmin - margin_m, ymin - margin_m
     w = math.ceil((xmax + margin_m - ox) / resolution_m)
     h = math.ceil((ymax + margin_m - oy) / resolution_m)
     if w * h > 20000 * 20000:
-        raise ValueError(f"a {w}x{h} grid is too large; use a coarser resolution")
+        raise WorldError(f"{world.source}: a {w}x{h} grid at {resolution_m:g} m per cell is "
+                         "too large; use a coarser resolution")
     occ = np.zeros((h, w), np.uint8)
     scale = (1 << _SHIFT) / resolution_m
 
@@ -128,35 +137,39 @@ def read_nav2(yaml_path: str | Path) -> OccupancyGrid:
     """Read a nav2 map (YAML + PGM/PNG image) as a grid; errors name the file and field."""
     path = Path(yaml_path)
     try:
-        meta = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise WorldError(f"{path}: cannot read ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise WorldError(f"{path}: not valid YAML ({e})") from None
+        meta = read_yaml(path, "a nav2 map's .yaml is YAML text")
+    except UnreadableFile as e:
+        raise WorldError(str(e)) from None
     if not isinstance(meta, dict):
-        raise WorldError(f"{path}: expected a mapping with image, resolution and origin")
+        raise WorldError(f"{path}: {'is empty; ' if meta is None else ''}expected a mapping "
+                         "with image, resolution and origin")
     for key in ("image", "resolution", "origin"):
         if key not in meta:
             raise WorldError(f"{path}: missing '{key}'")
+    if not isinstance(meta["image"], str) or not meta["image"].strip():
+        raise WorldError(f"{path}: image must name the map's image file")
     try:
         res = float(meta["resolution"])
         origin = [float(v) for v in meta["origin"]]
         occ_t = float(meta.get("occupied_thresh", OCCUPIED_THRESH))
         free_t = float(meta.get("free_thresh", FREE_THRESH))
         negate = int(meta.get("negate", 0))
-    except (TypeError, ValueError) as e:
+    except (TypeError, ValueError, OverflowError) as e:
         raise WorldError(f"{path}: bad number in resolution/origin/thresholds ({e})") from None
-    mode = str(meta.get("mode", "trinary"))
+    mode = meta.get("mode", "trinary")
     if not (res > 0 and math.isfinite(res)) or len(origin) != 3:
         raise WorldError(f"{path}: resolution must be > 0 and origin [x, y, yaw]")
+    if not all(math.isfinite(v) and abs(v) <= MAX_EXTENT_M for v in origin):
+        raise WorldError(f"{path}: origin {origin} must be finite and within "
+                         f"{MAX_EXTENT_M:g} m of zero")
     if origin[2] != 0.0:
         raise WorldError(f"{path}: origin yaw {origin[2]} is not supported (must be 0)")
+    if not 0.0 <= free_t < occ_t <= 1.0:
+        raise WorldError(f"{path}: thresholds must satisfy 0 <= free_thresh < "
+                         f"occupied_thresh <= 1 (got {free_t} and {occ_t})")
     if mode not in ("trinary", "scale", "raw"):
-        raise WorldError(f"{path}: unknown mode '{mode}'")
-    image = path.parent / str(meta["image"])
-    raw = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise WorldError(f"{path}: image '{meta['image']}' is missing or not an image")
+        raise WorldError(f"{path}: unknown mode '{str(mode)[:40]}' (trinary, scale or raw)")
+    raw = _read_image(path, meta["image"])
     if raw.ndim == 3:
         raw = raw[:, :, :3].mean(axis=2)
     v = np.flipud(raw.astype(np.float64))
@@ -173,3 +186,30 @@ def read_nav2(yaml_path: str | Path) -> OccupancyGrid:
         cells[mid] = np.rint(99 * (p[mid] - free_t) / (occ_t - free_t)).astype(np.int8)
         cells[p > occ_t] = OCCUPIED
     return OccupancyGrid(cells, res, (origin[0], origin[1], 0.0))
+
+
+def _read_image(yaml_path: Path, name: str) -> np.ndarray:
+    """The map's image (``name`` relative to the YAML's folder), decoded here rather than by
+    ``cv2.imread``, which says nothing of why a file failed and warns on stderr."""
+    image = yaml_path.parent / name
+    try:
+        data = image.read_bytes()
+    except FileNotFoundError:
+        raise WorldError(f"{yaml_path}: image '{name}' not found ({image})") from None
+    except OSError as e:
+        raise WorldError(f"{yaml_path}: image '{name}': cannot read ({e.strerror})") from None
+    if not data:
+        raise WorldError(f"{yaml_path}: image '{name}' is empty")
+    level = cv2_logging.getLogLevel()
+    cv2_logging.setLogLevel(cv2_logging.LOG_LEVEL_ERROR)  # a damaged file: no warning lines
+    try:
+        raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:           # e.g. more pixels than OpenCV reads
+        raise WorldError(f"{yaml_path}: image '{name}' cannot be decoded "
+                         f"({' '.join(str(getattr(e, 'err', e)).split())})") from None
+    finally:
+        cv2_logging.setLogLevel(level)
+    if raw is None or raw.size == 0:
+        raise WorldError(f"{yaml_path}: image '{name}' is not an image (PGM, PNG, ...) or is "
+                         "damaged")
+    return np.asarray(raw)

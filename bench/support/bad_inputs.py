@@ -7,6 +7,7 @@ Each must end the command with exit code 2 and one line on stderr naming the pro
 from __future__ import annotations
 
 import os
+import random
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -44,6 +45,57 @@ def write_files(folder: Path) -> None:
     (folder / "bad-field.yaml").write_text("bus: {mode: satellite}\n")
     (folder / "open.yaml").write_text(f"bus: {{mode: router, listen: [{OPEN_LISTEN}]}}\n")
     (folder / "nan-start.yaml").write_text("teams: {start_poses: {r1: [0, .nan, 0]}}\n")
+    (folder / "deep.yaml").write_text("[" * 100_000)
+    _bad_maps(folder)
+
+
+#: bad nav2 maps (``map-<problem>.yaml``) -> what the one line says of each
+BAD_MAPS = {
+    "random": "map-random.yaml: not a text file",
+    "empty": "map-empty.yaml: is empty",
+    "truncated": "map-truncated.yaml: not valid YAML",
+    "no-image": "image 'none.pgm' not found",
+    "not-an-image": "image 'notes.pgm' is not an image",
+    "unreadable-image": "image 'unreadable.pgm': cannot read (Permission denied)",
+    "folder": "map-folder.yaml: cannot read (Is a directory)",
+    "unreadable": "map-unreadable.yaml",
+    "deep": "map-deep.yaml: not valid YAML (nested too deeply)",
+    "far": "map-far.yaml: origin",
+}
+
+
+def _bad_maps(folder: Path) -> None:
+    def meta(image: str, origin: str = "[0, 0, 0]") -> str:
+        return f"image: {image}\nresolution: 0.05\norigin: {origin}\n"
+
+    (folder / "map-random.yaml").write_bytes(random.Random(42).randbytes(4096))
+    (folder / "map-empty.yaml").write_bytes(b"")
+    (folder / "map-truncated.yaml").write_text(meta("map.pgm")[:-6])
+    (folder / "map-no-image.yaml").write_text(meta("none.pgm"))
+    (folder / "notes.pgm").write_text("not a picture\n")
+    (folder / "map-not-an-image.yaml").write_text(meta("notes.pgm"))
+    _unreadable(folder / "unreadable.pgm")
+    (folder / "map-unreadable-image.yaml").write_text(meta("unreadable.pgm"))
+    (folder / "map-folder.yaml").mkdir(exist_ok=True)
+    _unreadable(folder / "map-unreadable.yaml")
+    (folder / "map-deep.yaml").write_text("[" * 100_000)
+    (folder / "map-far.yaml").write_text(meta("notes.pgm", "[1.0e+300, 0, 0]"))
+
+
+#: a file that reading fails on with "Permission denied" even for root (write-only)
+WRITE_ONLY = Path("/proc/sys/vm/drop_caches")
+
+
+def _unreadable(path: Path) -> None:
+    """A file nobody may read: mode 000, or for root (who reads anything) a link to a
+    write-only kernel file."""
+    if path.is_symlink() or path.exists():
+        path.unlink()
+    if os.geteuid() == 0:
+        path.symlink_to(WRITE_ONLY)
+    else:
+        path.write_text("secret\n")
+        path.chmod(0)
 
 
 def cases(folder: Path) -> list[BadInput]:
@@ -80,7 +132,17 @@ def cases(folder: Path) -> list[BadInput]:
             BadInput(cmd, "invalid-zenoh-config",
                      (cmd, *rest, "--zenoh-config", f"{f}/bad.json5"), "bad.json5: expected"),
         ]
+    for problem, says in BAD_MAPS.items():
+        world = f"{f}/map-{problem}.yaml"
+        out += [BadInput("world-map", f"map-{problem}", ("world-map", world, "--out", f"{f}/wm"),
+                         says),
+                BadInput("demo", f"map-{problem}", ("demo", "--world", world, "--robot", "r1:0,0",
+                                                    "--out", f"{f}/demo"), says)]
     out += [
+        BadInput("sim", "map-random", ("sim", "--world", f"{f}/map-random.yaml", "--robot",
+                                       "r1:0,0"), BAD_MAPS["random"]),
+        BadInput("server", "deep-config", ("server", "-c", f"{f}/deep.yaml"),
+                 "deep.yaml: not valid YAML (nested too deeply)"),
         BadInput("sim", "out-under-a-file", ("sim", "--world", str(WORLD), "--out",
                                              UNDER_A_FILE), "/etc/passwd is a file"),
         BadInput("demo", "out-under-a-file", ("demo", "--out", UNDER_A_FILE),
