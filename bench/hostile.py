@@ -6,6 +6,8 @@ dict with its measurements and ``goal_met``:
 - ``payloads``, ``payloads_uncapped``, ``stranger``, ``bad_inputs``: the bus, the robots'
   commands and the command line (``bench/hostile_bus.py`` says what each does).
 - ``fake_ids``, ``clocks``: the server's admission and its clocks (``bench/hostile_fleet.py``).
+- ``stop_demo``, ``stop_server``: signals to the demo and the server from outside; is every
+  process of the run gone 5 s later, and the report written (``bench/hostile_stop.py``)?
 
 The whole result is printed as one JSON object, ``{section: {...}}``.
 
@@ -32,9 +34,11 @@ SECTIONS: dict[str, Section] = {}
 
 from hostile_bus import SECTIONS as BUS_SECTIONS  # noqa: E402  (payloads, stranger, bad_inputs)
 from hostile_fleet import SECTIONS as FLEET_SECTIONS  # noqa: E402  (fake_ids, clocks)
+from hostile_stop import SECTIONS as STOP_SECTIONS  # noqa: E402  (stop_demo, stop_server)
 
 SECTIONS.update(BUS_SECTIONS)
 SECTIONS.update(FLEET_SECTIONS)
+SECTIONS.update(STOP_SECTIONS)
 
 
 def main() -> None:

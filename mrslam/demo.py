@@ -285,6 +285,7 @@ def _follow(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any, prog
     reboots: Reboots | None = None
     try:
         sim = _launch(cfg, plan, out, console, procs, server, mon, page, endpoint, live)
+        threading.Thread(target=_warm_report, name="warm-report", daemon=True).start()
         reboots = Reboots(procs, mon, cfg.reboot, cfg.reboot_s, out)
         why = mon.follow(supervisor, sim, cfg.wall_timeout_s, plan["threshold"], console,
                          progress)
@@ -305,6 +306,16 @@ def _follow(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any, prog
     watch["agent_reboots"] = reboots.rows if reboots is not None else []
     watch["server_restarts"] = [_restart_row(e, mon.recovery(e), t0) for e in supervisor.exits]
     return why, watch
+
+
+def _warm_report() -> None:
+    """Import what the report needs while the run goes on: a run stopped by a signal then
+    writes its report at once (the imports alone take a second or two)."""
+    try:
+        import mrslam.report  # noqa: F401
+        import server.outputs  # noqa: F401
+    except Exception:   # the report imports them again and says what failed
+        log.debug("warming the report's imports failed", exc_info=True)
 
 
 def _launch(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,

@@ -7,7 +7,8 @@ were re-parented after their parent died. ``stop`` sends one signal to the comma
 follows the run's processes until none is left.
 
 "Without a terminal" (``sigint_ignored``) is how a shell starts a background job: in its own
-session, with SIGINT ignored (which an exec keeps).
+session, with SIGINT ignored (which an exec keeps). SIGHUP is left as a terminal leaves it
+(not ignored), whatever the caller has (``nohup``).
 """
 
 from __future__ import annotations
@@ -26,9 +27,12 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[2]
 TAG_ENV = "MRSLAM_BENCH_RUN"
 
-#: how a background job of a shell starts: SIGINT ignored, then the command
-_IGNORE_SIGINT = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN); "
-                  "os.execv(sys.executable, [sys.executable, '-m', 'mrslam', *sys.argv[1:]])")
+#: the command with SIGHUP as a terminal leaves it (whatever this process has, e.g. under
+#: nohup) and SIGINT as given: ignored for a shell's background job (exec keeps both)
+_EXEC = ("import os, signal, sys; signal.signal(signal.SIGHUP, signal.SIG_DFL); "
+         "signal.signal(signal.SIGINT, signal.SIG_IGN if sys.argv[1] == 'ignore' "
+         "else signal.SIG_DFL); "
+         "os.execv(sys.executable, [sys.executable, '-m', 'mrslam', *sys.argv[2:]])")
 
 
 def tagged(tag: str) -> dict[int, str]:
@@ -93,8 +97,7 @@ def start(args: list[str], log_path: Path, *, sigint_ignored: bool = False,
           env: dict[str, str] | None = None) -> Run:
     """``python -m mrslam ARGS`` in a session of its own, without a terminal."""
     tag = uuid.uuid4().hex
-    cmd = ([sys.executable, "-c", _IGNORE_SIGINT, *args] if sigint_ignored
-           else [sys.executable, "-m", "mrslam", *args])
+    cmd = [sys.executable, "-c", _EXEC, "ignore" if sigint_ignored else "default", *args]
     with open(log_path, "wb") as out:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdin=subprocess.DEVNULL, stdout=out,
                                 stderr=subprocess.STDOUT, start_new_session=True,
