@@ -17,6 +17,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -28,12 +30,24 @@ GOAL_RATIO = 35.0
 GOAL_MEMORY_MB = 1536.0
 
 
-def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, object]:
-    sys.path.insert(0, str(ROOT))
-    from server.evaluation import evaluate
+@dataclass
+class ChildRun:
+    """One ``mrslam slam-log`` process: its exit code, output, wall and CPU time [s] and peak
+    resident memory [MB]."""
 
-    log = DATA / f"{name}.clf.bz2"
-    cmd = [sys.executable, "-m", "mrslam", "slam-log", str(log), "--out", str(out)]
+    returncode: int
+    stdout: str
+    stderr: str
+    wall_s: float
+    cpu_s: float
+    peak_mb: float
+
+
+def run_child(log: Path, out: Path, core: int, config: Path | None = None,
+              extra: Sequence[str] = (), root: Path = ROOT) -> ChildRun:
+    """Run ``mrslam slam-log`` on ``log`` in a fresh process pinned to one CPU core (its math
+    libraries to one thread), from the checkout at ``root`` (another commit's, to compare)."""
+    cmd = [sys.executable, "-m", "mrslam", "slam-log", str(log), "--out", str(out), *extra]
     if config is not None:
         cmd += ["--config", str(config)]
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1",
@@ -43,20 +57,29 @@ def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, o
         os.sched_setaffinity(0, {core})
 
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
+    proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, preexec_fn=pin)
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     stdout = proc.stdout.read().decode() if proc.stdout else ""
     stderr = proc.stderr.read().decode() if proc.stderr else ""
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    if proc.returncode != 0:
-        return {"log": name, "error": f"exit {proc.returncode}: {stderr.strip()[-500:]}"}
+    return ChildRun(os.waitstatus_to_exitcode(status), stdout, stderr, wall,
+                    usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0)  # Linux: kB
+
+
+def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, object]:
+    sys.path.insert(0, str(ROOT))
+    from server.evaluation import evaluate
+
+    child = run_child(DATA / f"{name}.clf.bz2", out, core, config)
+    if child.returncode != 0:
+        return {"log": name, "error": f"exit {child.returncode}: {child.stderr.strip()[-500:]}"}
     summary = json.loads((out / "summary.json").read_text())
     res = evaluate(out / "poses.txt", DATA / f"{name}.relations")
     duration = float(summary["data_duration_s"])
+    wall = child.wall_s
     ref_t, ref_r = CARTOGRAPHER[name]
-    peak_mb = usage.ru_maxrss / 1024.0  # Linux: kilobytes
+    peak_mb = child.peak_mb
     return {
         "log": name,
         "trans_error_m": round(res.trans_mean_m, 4),
@@ -68,7 +91,7 @@ def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, o
         "cartographer_m_deg": [ref_t, ref_r],
         "accuracy_goal_met": res.trans_mean_m <= ref_t and res.rot_mean_deg <= ref_r,
         "wall_time_s": round(wall, 2),
-        "cpu_time_s": round(usage.ru_utime + usage.ru_stime, 2),
+        "cpu_time_s": round(child.cpu_s, 2),
         "slam_wall_time_s": round(float(summary["wall_time_s"]), 2),
         "data_duration_s": round(duration, 1),
         "realtime_ratio": round(duration / wall, 1),
@@ -79,7 +102,7 @@ def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, o
         "keyframes": summary["keyframes"],
         "loop_closures": summary["loop_closures"],
         "cpu_core": core,
-        "stdout": stdout.strip().splitlines()[-1] if stdout.strip() else "",
+        "stdout": child.stdout.strip().splitlines()[-1] if child.stdout.strip() else "",
     }
 
 

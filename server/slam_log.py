@@ -160,6 +160,10 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
         log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
                     clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])
     lasers = select_stream(clog, cfg.laser)
+    if use_odometry and not clog.odometry and all(r.laser_pose is None for r in lasers):
+        log.warning("%s: no odometry in the log (no pose in its laser lines, no ODOM lines): "
+                    "taking it from scan matching", log_file)
+        use_odometry = False
     if not use_odometry:
         return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans")
     source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
