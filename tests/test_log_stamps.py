@@ -66,18 +66,24 @@ def test_planned_stamps_never_go_back_and_clean_logs_lose_nothing(jumps: list[fl
     assert sorted(plan.keep + plan.dropped_ahead + plan.dropped_behind) == list(range(len(noisy)))
 
 
-@needs_data
-def test_slam_log_on_a_real_log_with_a_jumping_stamp_keeps_the_rest(tmp_path: Path) -> None:
-    """FR079's first 400 scans, once as recorded and once with one scan stamped an hour
-    ahead and a later one a minute behind: every other scan gets its pose, and the same."""
+def fr079_head(n_scans: int) -> list[str]:
+    """The lines of FR079 up to its ``n_scans``-th FLASER line."""
     lines: list[str] = []
     with bz2.open(CARMEN / "fr079.clf.bz2", "rt") as f:
         n = 0
         for line in f:
             lines.append(line)
             n += line.startswith("FLASER")
-            if n == 400:
+            if n == n_scans:
                 break
+    return lines
+
+
+@needs_data
+def test_slam_log_on_a_real_log_with_a_jumping_stamp_keeps_the_rest(tmp_path: Path) -> None:
+    """FR079's first 400 scans, once as recorded and once with one scan stamped an hour
+    ahead and a later one a minute behind: every other scan gets its pose, and the same."""
+    lines = fr079_head(400)
     flaser = [i for i, line in enumerate(lines) if line.startswith("FLASER")]
 
     def restamp(line: str, dt: float) -> str:
@@ -137,14 +143,7 @@ def jittered_fr079(tmp_path: Path, n_scans: int, every: int) -> tuple[Path, Path
     """FR079's first scans as recorded, and with every ``every``-th FLASER line stamped 6 ms
     before the FLASER line above it (as 6.4 % of the Intel log's are). Returns both logs and
     the jittered log's FLASER stamps as written."""
-    lines: list[str] = []
-    with bz2.open(CARMEN / "fr079.clf.bz2", "rt") as f:
-        n = 0
-        for line in f:
-            lines.append(line)
-            n += line.startswith("FLASER")
-            if n == n_scans:
-                break
+    lines = fr079_head(n_scans)
     flaser = [i for i, line in enumerate(lines) if line.startswith("FLASER")]
     bad = list(lines)
     for k in range(every, len(flaser), every):
