@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Literal, TypeVar
 from schemas.codec import decode, encode
 from schemas.errors import SchemaError
 from schemas.messages import Message
+from schemas.tlsfiles import tls_file_problems
 
 if TYPE_CHECKING:
     from schemas.config import BusConfig
@@ -113,6 +114,8 @@ def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] 
         conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
     except zenoh.ZError as e:
         raise BusError(f"Zenoh config {config_file}: {zenoh_message(e)}") from None
+    if problems := tls_file_problems(conf):   # Zenoh would only say "Timeout!"
+        raise BusError(f"Zenoh config {config_file}: {'; '.join(problems)}")
     settings: list[tuple[str, object]] = [("mode", mode)]
     if listen:
         settings.append(("listen/endpoints", list(listen)))

@@ -6,6 +6,7 @@ Each must end the command with exit code 2 and one line on stderr naming the pro
 
 from __future__ import annotations
 
+import json
 import os
 import random
 import subprocess
@@ -20,6 +21,7 @@ UNDER_A_FILE = "/etc/passwd/x"
 #: a TCP port nobody listens on (the discard port: reserved, never served here)
 CLOSED = "tcp/127.0.0.1:9"
 OPEN_LISTEN = "tcp/0.0.0.0:7"
+CLOSED_TLS = "tls/127.0.0.1:9"
 
 
 @dataclass(frozen=True)
@@ -47,6 +49,27 @@ def write_files(folder: Path) -> None:
     (folder / "nan-start.yaml").write_text("teams: {start_poses: {r1: [0, .nan, 0]}}\n")
     (folder / "deep.yaml").write_text("[" * 100_000)
     _bad_maps(folder)
+    _mistyped_certificates(folder)
+
+
+def _mistyped_certificates(folder: Path) -> None:
+    """TLS configs whose key (a robot's) or certificate (the server's) is mistyped."""
+    for name in ("ca.pem", "r1.pem", "r1.key", "server.pem", "server.key"):
+        (folder / name).write_text("-----BEGIN CERTIFICATE-----\n")   # never read by Zenoh
+    tls = {"root_ca_certificate": f"{folder}/ca.pem", "enable_mtls": True}
+    robot = {**tls, "connect_certificate": f"{folder}/r1.pem",
+             "connect_private_key": f"{folder}/r1.kye"}
+    server = {**tls, "listen_certificate": f"{folder}/sever.pem",
+              "listen_private_key": f"{folder}/server.key"}
+    for name, block in (("tls-robot", robot), ("tls-server", server)):
+        (folder / f"{name}.json5").write_text(
+            json.dumps({"transport": {"link": {"tls": block}}}, indent=2))
+    (folder / "tls-robot.yaml").write_text(
+        f"bus: {{zenoh_config: {folder}/tls-robot.json5, connect: [{CLOSED_TLS}], "
+        "connect_timeout_ms: 2000}\n")
+    (folder / "tls-server.yaml").write_text(
+        f"bus: {{mode: router, zenoh_config: {folder}/tls-server.json5, "
+        f"listen: [{CLOSED_TLS}]}}\n")
 
 
 #: bad nav2 maps (``map-<problem>.yaml``) -> what the one line says of each
@@ -143,6 +166,14 @@ def cases(folder: Path) -> list[BadInput]:
                                        "r1:0,0"), BAD_MAPS["random"]),
         BadInput("server", "deep-config", ("server", "-c", f"{f}/deep.yaml"),
                  "deep.yaml: not valid YAML (nested too deeply)"),
+        BadInput("agent", "mistyped-key", ("agent", "-c", f"{f}/tls-robot.yaml"),
+                 "transport.link.tls.connect_private_key: /FOLDER/r1.kye: no such file"
+                 .replace("/FOLDER", f)),
+        BadInput("record", "mistyped-key", ("record", "--out", f"{f}/r.mcap", "--zenoh-config",
+                                            f"{f}/tls-robot.json5", "--connect", CLOSED_TLS),
+                 f"{f}/r1.kye: no such file"),
+        BadInput("server", "mistyped-certificate", ("server", "-c", f"{f}/tls-server.yaml"),
+                 f"transport.link.tls.listen_certificate: {f}/sever.pem: no such file"),
         BadInput("sim", "out-under-a-file", ("sim", "--world", str(WORLD), "--out",
                                              UNDER_A_FILE), "/etc/passwd is a file"),
         BadInput("demo", "out-under-a-file", ("demo", "--out", UNDER_A_FILE),
