@@ -37,10 +37,10 @@ from server.config import ServerConfig
 from server.core import ServerCore
 from server.inbox import NEWCOMER, TRUSTED, Inbox
 from server.journal import JournalWriter
+from server.keeper import StateKeeper
 from server.lockstep import StepBarrier
 from server.operator import OperatorCommand
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
-from server.snapshot import Snapshots
 from server.writer import BackgroundWriter
 
 log = logging.getLogger(__name__)
@@ -57,11 +57,9 @@ class ServerNode:
         self.bus = bus
         self.cfg = cfg
         self.core = core or ServerCore(cfg)
-        self.journal = journal
+        #: the journal and the snapshots, through a full disk (``server.keeper``)
+        self.journal = StateKeeper(journal) if journal is not None else None
         self.outputs = outputs
-        self.snapshots = Snapshots(journal.dir) if journal is not None else None
-        self.snapshot_s: list[float] = []    # how long each took (it holds the worker up)
-        self.snapshot_bytes = 0              # written in all: snapshots and new blobs
         self.clock = ServerClock(cfg.clock.source)
         a, c = cfg.admission, cfg.clock
         self.registry = RobotRegistry(AdmissionPolicy(
@@ -85,7 +83,7 @@ class ServerNode:
         self._planner: ProcessPoolExecutor | None = None
         self._matcher: ProcessPoolExecutor | None = None
         self._cpu_mark = (time.process_time(), time.monotonic())
-        self._writer = BackgroundWriter(lambda kind, e: self._count_error())
+        self._writer = BackgroundWriter(self._write_failed)
         #: one worker of several (``server.cluster``), or None: the only server
         self.cluster = None if cfg.cluster.worker is None else Cluster(
             bus, cfg.cluster, self._on_give, self._on_handover)
@@ -274,13 +272,13 @@ class ServerNode:
                     self._errlog.log(logging.ERROR, type(e).__name__, "processing %s failed",
                                      rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
             now = time.monotonic()
-            if self.journal is not None and now >= self.journal.next_flush:
-                # the chunk goes to the operating system here, to the disk on the writer thread
-                self.guarded("flushing the journal", self.journal.flush, False)
-                self._writer.submit("journal", self.journal.sync)
-            if self.snapshots is not None and now >= next_snapshot:
-                self.guarded("writing a snapshot", self.snapshot, False)
-                next_snapshot = time.monotonic() + self._snapshot_interval_s(now)
+            if self.journal is not None:
+                if self.journal.flush_due(now):
+                    self.journal.flush(self._writer)
+                if now >= next_snapshot:
+                    self.guarded("writing a snapshot", self.snapshot, False)
+                    next_snapshot = time.monotonic() + self._snapshot_interval_s(now)
+                self.guarded("keeping the state", self.journal.maintain, self.core, self._writer)
             if self.outputs is not None and now >= next_outputs:
                 next_outputs = now + self.cfg.outputs_period_s
                 self.guarded("gathering the outputs", self._outputs)
@@ -319,7 +317,7 @@ class ServerNode:
         last_cpu, last_wall = self._cpu_mark
         self._cpu_mark = (cpu, wall)
         used = (cpu - last_cpu) / max(wall - last_wall, 1e-3)   # cores the server uses
-        cost = self.snapshots.last_seconds if self.snapshots is not None else 0.0
+        cost = self.journal.snapshots.last_seconds if self.journal is not None else 0.0
         return max(self.cfg.snapshot_period_s, cost / (0.04 * max(used, 0.05)))
 
     def _outputs(self) -> None:
@@ -457,26 +455,17 @@ class ServerNode:
     def snapshot(self, wait: bool = True) -> None:
         """Snapshot the core as of the journal's next entry (worker thread, or after stop).
         Pickled here; compressed and written here (``wait``) or by the writer thread."""
-        if self.journal is None or self.snapshots is None:
+        if self.journal is not None:
+            self.journal.snapshot(self.core, self._writer, wait)
+
+    def _write_failed(self, kind: str, e: Exception) -> None:
+        """(the writer thread) A background write failed: the state's are the keeper's to
+        count; others (the outputs) are counted as errors, logged at a limited rate."""
+        if kind in ("journal", "snapshot") and self.journal is not None:
+            self.journal.writer_failed(kind, e)
             return
-        snapshots = self.snapshots
-        if not wait and self._writer.busy("snapshot"):
-            return             # the last one is still being written: the next round takes it
-        journal = self.journal
-        journal.flush(sync=False)   # the journal holds everything up to the snapshot ...
-        pending = snapshots.prepare(self.core, journal.sequence)
-
-        def commit() -> None:
-            journal.sync()           # ... on the disk before the snapshot is
-            snapshots.commit(pending)
-            self.snapshot_s.append(snapshots.last_seconds)
-            self.snapshot_bytes += snapshots.last_bytes
-
-        if wait:
-            self._writer.drain()
-            commit()
-        else:
-            self._writer.submit("snapshot", commit)
+        self.errors += 1
+        self._errlog.log(logging.ERROR, f"write:{kind}", "writing the %s failed: %s", kind, e)
 
     def _count_error(self) -> None:
         self.errors += 1
@@ -523,11 +512,4 @@ class ServerNode:
                 "lockstep_barrier_timeouts": self._barrier.timeouts,
                 "cpu_s": round(time.process_time(), 3),
                 "cluster": None if self.cluster is None else self.cluster.summary(),
-                "journal": None if self.journal is None else {
-                    "entries": self.journal.sequence, "bytes": self.journal.bytes,
-                    "journal_s": round(self.journal.seconds, 3),
-                    "snapshots": len(self.snapshot_s),
-                    "snapshot_s_max": round(max(self.snapshot_s, default=0.0), 3),
-                    "snapshot_s_total": round(sum(self.snapshot_s), 3),
-                    "snapshot_bytes": self.snapshots.last_bytes if self.snapshots else 0,
-                    "snapshot_bytes_total": self.snapshot_bytes}}
+                "journal": None if self.journal is None else self.journal.summary()}

@@ -18,6 +18,7 @@ runs code, so it must not be writable by others.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.metadata
 import io
@@ -219,18 +220,32 @@ class Snapshots:
                 + VERSION.encode()[:64].ljust(64, b" "))
         path = self.dir / f"snapshot-{pending.sequence:012d}.pkl"
         tmp = path.with_name(f".{path.name}.tmp")
-        with tmp.open("wb") as f:
-            f.write(head)
-            f.write(struct.pack("<Q", len(body)))
-            f.write(body)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        try:
+            with tmp.open("wb") as f:
+                f.write(head)
+                f.write(struct.pack("<Q", len(body)))
+                f.write(body)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except OSError:
+            tmp.unlink(missing_ok=True)    # a full disk: leave no half snapshot behind
+            raise
         for old in self.paths()[self.keep:]:
             old.unlink(missing_ok=True)
         self.last_seconds = pending.seconds + time.monotonic() - t0
         self.last_bytes = len(body) + pending.blob_bytes
         return path
+
+    def reset(self) -> None:
+        """After a failed write: the blob store is opened afresh, which reads back what is
+        really in it (cutting a torn tail), so no later snapshot refers to an array that
+        never reached the disk."""
+        blobs, self._blobs = self._blobs, None
+        if blobs is not None:
+            # its buffer may not be written either: what is on the disk is read back anew
+            with contextlib.suppress(OSError):
+                blobs.close()
 
     def paths(self) -> list[Path]:
         """The snapshots, newest first."""

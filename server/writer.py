@@ -59,9 +59,10 @@ class BackgroundWriter:
             try:
                 job()
             except Exception as e:   # a full disk must not stop the server
-                log.exception("writing %s failed", kind)
                 if self._on_error is not None:
-                    self._on_error(kind, e)
+                    self._on_error(kind, e)     # counts and logs it as it sees fit
+                else:
+                    log.exception("writing %s failed", kind)
             finally:
                 with self._cv:
                     self._running = None
