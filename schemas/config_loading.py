@@ -120,3 +120,36 @@ def write_resolved(cfg: pydantic.BaseModel, out_dir: str | Path,
     target = out / name
     target.write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
     return target
+
+
+def changed_keys(old: pydantic.BaseModel, new: pydantic.BaseModel,
+                 under: tuple[str, ...] = ()) -> list[tuple[str, Any, Any]]:
+    """The settings that differ between two configs of one model, as ``(dotted.key, old
+    value, new value)`` in the model's order; ``under``: only keys under these top-level
+    ones (all when empty). Lists are values of their own (``robots``, ``bus.listen``)."""
+    a, b = _flat(old.model_dump(mode="json")), _flat(new.model_dump(mode="json"))
+    keys = list(a) + [k for k in b if k not in a]
+    return [(k, a.get(k), b.get(k)) for k in keys
+            if a.get(k) != b.get(k) and (not under or k.split(".", 1)[0] in under)]
+
+
+def describe_changes(changes: list[tuple[str, Any, Any]], shown: int = 4) -> str:
+    """``key (old → new), …`` on one line: the first ``shown``, then "and N more"."""
+    items = [f"{k} ({_short(a)} → {_short(b)})" for k, a, b in changes[:shown]]
+    if len(changes) > shown:
+        items.append(f"and {len(changes) - shown} more")
+    return ", ".join(items)
+
+
+def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(data, dict):
+        return {prefix: data}
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def _short(value: Any, width: int = 40) -> str:
+    text = " ".join(str(value).split())
+    return text if len(text) <= width else text[:width - 1] + "…"

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from schemas.bus import Bus
+from schemas.config_loading import changed_keys, describe_changes
 from schemas.stopping import SignalStop
 from server.config import ServerConfig
 from server.core import ServerCore
@@ -25,6 +26,10 @@ log = logging.getLogger(__name__)
 #: a server asked to stop (SIGTERM, SIGINT, SIGHUP) exits this long after at the latest [s],
 #: its last outputs written or not: its state survives a SIGKILL anyway (the journal)
 STOP_BUDGET_S = 4.0
+#: the parts of the configuration a run's state was made with (its SLAM, maps, exploration
+#: and teams): a resumed run keeps its own; the rest (bus, admission, clocks, outputs) is
+#: this start's
+RUN_KEYS = ("slam", "explore", "control", "teams", "map_period_s")
 
 
 def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None = None,
@@ -73,6 +78,8 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     # open first: robots reconnect while the state loads
     with signals, Bus.from_config(b) as bus:
         core, journal, resumed = _resume(cfg)
+        if resumed and core.teams and all(t.finished for t in core.teams.values()):
+            log.warning("%s", _finished_line(core, cfg))
         node = ServerNode(bus, cfg, core, journal, outputs)
         live = _foxglove_live(bus, foxglove_port)
         console = _console(bus, node, console_port, console_token)
@@ -135,6 +142,28 @@ def _console(bus: Bus, node: ServerNode, port: int | None, token: str | None) ->
     return console
 
 
+def _finished_line(core: ServerCore, cfg: ServerConfig) -> str:
+    """Why a server resumed on a finished run does nothing: every team had ended, and how."""
+    ends = []
+    for team in core.teams.values():
+        whys = {core.fleet.robots[rid].nav.finished_reason for rid in team.robot_ids
+                if rid in core.fleet.robots}
+        why = "; ".join(sorted(w for w in whys if w)) or "finished"
+        at = "" if team.finished_stamp_ns is None else f" at {_when(team.finished_stamp_ns)}"
+        ends.append(f"{team.team_id}: {why}{at}, coverage {team.coverage:.0%}")
+    then = ("so the server stops now (exit_when_done)" if cfg.exit_when_done
+            else "so its robots are given no more targets")
+    return (f"the resumed run had already finished ({'; '.join(ends)}): nothing is left to "
+            f"explore, {then}; an empty state_dir (now {cfg.resolved_state_dir()}) starts a "
+            "new run")
+
+
+def _when(stamp_ns: int) -> str:
+    """A stamp of the server's clock: seconds of simulated time, or a date (the wall clock)."""
+    s = stamp_ns * 1e-9
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s)) if s > 1e9 else f"{s:.1f} s"
+
+
 def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
     """The core as the state folder left it — the newest snapshot that reads back, with the
     journal after it replayed — and the journal to go on with (a new segment)."""
@@ -145,9 +174,10 @@ def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[s
     t0 = time.monotonic()
     loaded = Snapshots(state).load()
     core, since = loaded if loaded is not None else (ServerCore(cfg), 0)
-    if loaded is not None and core.cfg != cfg:
-        log.warning("the configuration differs from the one the resumed run started with; "
-                    "the run goes on with its own")
+    if loaded is not None and (changes := changed_keys(core.cfg, cfg, RUN_KEYS)):
+        log.warning("the configuration differs from the resumed run's in %d setting(s) its "
+                    "state was made with, which keep the run's values: %s (an empty state_dir "
+                    "starts a run with them)", len(changes), describe_changes(changes))
     report = replay(core, state, from_sequence=since)
     resumed: dict[str, Any] = {}
     if report.entries or loaded is not None:
