@@ -32,7 +32,7 @@ class RateLimitedLog:
         if self.seen[kind] > self.burst and now < self._next_s.get(kind, 0.0):
             self._held[kind] += 1
             return False
-        if self.seen[kind] > self.burst:
+        if self.seen[kind] >= self.burst:   # the burst's last line starts the first period
             self._next_s[kind] = now + self.period_s
         held = self._held.pop(kind, 0)
         if held:
