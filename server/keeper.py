@@ -229,6 +229,13 @@ class StateKeeper:
             except OSError as e:
                 self.failed("journal", e)
 
+    def view(self) -> dict[str, Any]:
+        """What the console shows (any thread)."""
+        with self._lock:
+            return {"writing": self.journal is not None,
+                    "failures": sum(self.failures.values()),
+                    "not_journaled": self.not_journaled, "last_error": self.last_error}
+
     def summary(self) -> dict[str, Any]:
         j = self.journal
         out: dict[str, Any] = {

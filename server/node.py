@@ -327,11 +327,13 @@ class ServerNode:
             self._writer.submit("outputs", job)
 
     def health(self) -> dict[str, Any]:
-        """For the console (any thread): per robot the scans accepted and dropped, and the
-        operator's orders."""
+        """For the console (any thread): per robot the scans accepted and dropped, the
+        operator's orders, and whether the state is being written."""
         with self._cv:
             scans = {rid: rec.accepted.get("scan", 0) for rid, rec in self.registry.robots.items()}
-        return {"scans": scans, "dropped": dict(self.dropped), "orders": self.orders_view}
+        state = None if self.journal is None else self.journal.view()
+        return {"scans": scans, "dropped": dict(self.dropped), "orders": self.orders_view,
+                "state": state}
 
     # -- the operator's orders ---------------------------------------------------------------
     def operate(self, cmd: OperatorCommand) -> Future[tuple[int, str]]:

@@ -118,3 +118,10 @@ def test_pages_are_limited_and_each_gets_every_frame() -> None:
     assert qs[0] is not None
     pages.close(qs[0])
     assert pages.open() is not None and pages.counters()["pages"] == 3
+
+
+def test_the_health_frame_says_when_the_state_is_not_written() -> None:
+    state = {"writing": False, "failures": 3, "not_journaled": 120,
+             "last_error": "journal: [Errno 28] No space left on device"}
+    frame = ConsoleModel().health_frame({}, {}, {}, now_wall=0.0, state=state)
+    assert frame.data["state"] == state

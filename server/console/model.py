@@ -137,7 +137,11 @@ class ConsoleModel:
 
     # -- outputs ---------------------------------------------------------------------------
     def health_frame(self, dropped: dict[str, int], orders: dict[str, Any],
-                     counters: dict[str, int], now_wall: float | None = None) -> Frame:
+                     counters: dict[str, int], now_wall: float | None = None,
+                     state: dict[str, Any] | None = None) -> Frame:
+        """Per robot its scans (rate, last seen) and dropped ones, the operator's orders, the
+        console's counters, and whether the server's state is being written
+        (``server.keeper``)."""
         now = time.time() if now_wall is None else now_wall
         rows = {}
         for rid in sorted(set(self.health) | set(self.robots)):
@@ -150,8 +154,8 @@ class ConsoleModel:
                          "dropped_scans": int(dropped.get(rid, 0)),
                          "last_seen_s_ago": (round(now - h.last_seen, 2) if h.last_seen
                                              else None)}
-        return Frame("health", {"robots": rows, "orders": orders, "console": counters},
-                     slot="health")
+        return Frame("health", {"robots": rows, "orders": orders, "console": counters,
+                                "state": state}, slot="health")
 
     def snapshot(self, health: Frame) -> Frame:
         """Everything a page that connects now needs to draw the run so far."""

@@ -182,7 +182,8 @@ class Console:
         health = health if health is not None else self.health()
         counters = {**self.counters, **self.pages.counters(), "cpu_s": round(self.cpu_s, 3)}
         with self._lock:
-            return self.model.health_frame(health["dropped"], health["orders"], counters)
+            return self.model.health_frame(health["dropped"], health["orders"], counters,
+                                           state=health.get("state"))
 
     # -- what the pages ask (their HTTP threads) -------------------------------------------
     def page(self) -> bytes:
