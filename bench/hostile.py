@@ -5,7 +5,9 @@ dict with its measurements and ``goal_met``:
 
 - ``payloads``, ``payloads_uncapped``, ``stranger``, ``bad_inputs``: the bus, the robots'
   commands and the command line (``bench/hostile_bus.py`` says what each does).
-- ``fake_ids``, ``clocks``: the server's admission and its clocks (``bench/hostile_fleet.py``).
+- ``fake_ids``, ``newcomer_flood``, ``clocks``: the server's admission and its clocks
+  (``bench/hostile_fleet.py``).
+- ``full_disk``: the state folder on a disk that fills up (``bench/hostile_disk.py``).
 - ``stop_demo``, ``stop_server``: signals to the demo and the server from outside; is every
   process of the run gone 5 s later, and the report written (``bench/hostile_stop.py``)?
 
@@ -34,10 +36,12 @@ SECTIONS: dict[str, Section] = {}
 
 from hostile_bus import SECTIONS as BUS_SECTIONS  # noqa: E402  (payloads, stranger, bad_inputs)
 from hostile_fleet import SECTIONS as FLEET_SECTIONS  # noqa: E402  (fake_ids, clocks)
+from hostile_disk import SECTIONS as DISK_SECTIONS  # noqa: E402  (full_disk)
 from hostile_stop import SECTIONS as STOP_SECTIONS  # noqa: E402  (stop_demo, stop_server)
 
 SECTIONS.update(BUS_SECTIONS)
 SECTIONS.update(FLEET_SECTIONS)
+SECTIONS.update(DISK_SECTIONS)
 SECTIONS.update(STOP_SECTIONS)
 
 

@@ -60,7 +60,7 @@ class StateKeeper:
         self._lock = threading.Lock()         # failures come from the writer thread too
         self._broken: str | None = None       # a failure the worker has not acted on yet
         self._next_try = 0.0
-        self._snapshot_failed = False
+        self._outage = False     # a failure was logged; the next is not, until writing works
 
     # -- entries (the worker thread) ---------------------------------------------------------
     def scan(self, msg: Scan, now_ns: int | None) -> None:
@@ -141,7 +141,9 @@ class StateKeeper:
             if journal is not None:
                 journal.sync()           # ... on the disk before the snapshot is
             snapshots.commit(pending)
-            self._snapshot_failed = False
+            if self.journal is not None:
+                with self._lock:
+                    self._outage = False     # everything is written again
             self.snapshot_s.append(snapshots.last_seconds)
             self.snapshot_bytes += snapshots.last_bytes
 
@@ -180,17 +182,26 @@ class StateKeeper:
             self.failed("journal", e)
             return
         self.resumed += 1
+        with self._lock:
+            self._outage = False
         log.warning("state: writing works again; journaling resumed from a fresh snapshot "
                     "(%d message(s) were not journaled meanwhile)", self.not_journaled)
 
     def failed(self, what: str, e: Exception) -> None:
         """A write of ``what`` (journal, snapshot) failed; counted (from the writer thread
-        too). A journal's failure suspends journaling at the worker's next round."""
+        too), and logged if it is the first since writing last worked. A journal's failure
+        suspends journaling at the worker's next round."""
         with self._lock:
             self.failures[what] += 1
             self.last_error = f"{what}: {e}"
             if what == "journal":
                 self._broken = "journal"
+            first, self._outage = not self._outage, True
+        if first:
+            log.error("state: writing the %s failed (%s); the robots are still served, and the "
+                      "state is written again once there is room (journaling resumes from a "
+                      "fresh snapshot); failures are counted in summary.json, not logged again",
+                      what, e)
 
     def writer_failed(self, kind: str, e: Exception) -> None:
         """(the writer thread) Its journal sync or snapshot failed."""
@@ -202,24 +213,16 @@ class StateKeeper:
     def _snapshot_failure(self, e: Exception) -> None:
         self.failed("snapshot", e)
         self.snapshots.reset()
-        if not self._snapshot_failed:       # once until a snapshot is written again
-            self._snapshot_failed = True
-            log.error("state: writing a snapshot failed (%s); tried again later, the robots "
-                      "are still served", e)
 
     def _suspend(self) -> None:
         with self._lock:
             self._broken = None
-            error = self.last_error
         j, self.journal = self.journal, None
         if j is not None:
             self.bytes += j.bytes
             self.seconds += j.seconds
             with contextlib.suppress(Exception):
                 j.close()
-            log.error("state: %s; journaling is suspended and resumes from a fresh snapshot "
-                      "once writing works again; the robots are still served (failures are "
-                      "counted in summary.json, not logged again)", error)
         self._next_try = time.monotonic() + self.retry_s
 
     def close(self) -> None:
