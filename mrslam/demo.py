@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import threading
 import time
 from pathlib import Path
@@ -19,7 +18,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import yaml
 from pydantic import Field
 
+from mrslam.console_shot import ConsoleShot
 from mrslam.launch import GroupClosed, Proc, ProcessGroup
+from mrslam.reboots import Reboots
 from mrslam.supervise import Exit, RestartPolicy, Supervisor
 from schemas.config import ConfigModel, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
@@ -249,7 +250,7 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
 
     endpoint = cfg.endpoint or free_local_endpoint()
     _configs(cfg, plan, out, endpoint)
-    page = _ConsoleShot(console_port)
+    page = ConsoleShot(console_port)
     watch: dict[str, Any] = {}
     why = "stopped"
     with ProcessGroup(out / "logs") as procs:
@@ -276,7 +277,7 @@ def _execute(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
 
 
 def _follow(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any, progress: bool,
-            t0: float, procs: ProcessGroup, server: Proc, mon: Monitor, page: _ConsoleShot,
+            t0: float, procs: ProcessGroup, server: Proc, mon: Monitor, page: ConsoleShot,
             endpoint: str, live: list[str]) -> tuple[str, dict[str, Any]]:
     """Start the rest of the run once the server is up, follow it to its end and stop it;
     why it ended, and what the monitor saw."""
@@ -319,7 +320,7 @@ def _warm_report() -> None:
 
 
 def _launch(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
-            procs: ProcessGroup, server: Proc, mon: Monitor, page: _ConsoleShot,
+            procs: ProcessGroup, server: Proc, mon: Monitor, page: ConsoleShot,
             endpoint: str, live: list[str]) -> Proc:
     """The recorder, the agents and the simulator, once the server is up; the simulator."""
     if not mon.wait_for_server(30.0, server.alive):
@@ -348,58 +349,6 @@ def _launch(cfg: DemoConfig, plan: dict[str, Any], out: Path, console: Any,
     return procs.start("sim", *sim_args)
 
 
-class _ConsoleShot:
-    """The demo's console: the server serves it on ``port`` (a free one for 0) with a token
-    made here (or ``MRSLAM_CONSOLE_TOKEN``'s), the address is printed, and a headless
-    browser keeps the page open through the run, so that the page as it ended is saved
-    (``console.png``) even when the server has already stopped. Without a browser
-    (``mrslam.browser``) the screenshot is left out, with a warning."""
-
-    def __init__(self, port: int | None) -> None:
-        self.args: list[str] = []
-        self.env: dict[str, str] = {}
-        self.url = ""
-        self._page: Any = None
-        if port is None:
-            return
-        from server.console.service import TOKEN_ENV, new_token
-
-        if port == 0:     # chosen here: a restarted server must come back on the same one
-            import socket
-
-            with socket.socket() as s:
-                s.bind(("127.0.0.1", 0))
-                port = int(s.getsockname()[1])
-        token = os.environ.get(TOKEN_ENV) or new_token()
-        self.args, self.env = ["--console", str(port)], {TOKEN_ENV: token}
-        self.url = f"http://127.0.0.1:{port}/?token={token}"
-
-    def open(self, console: Any) -> None:
-        if not self.url:
-            return
-        console.print(f"[bold]console[/]: {self.url}")
-        from mrslam.browser import BrowserUnavailable, ConsolePage
-
-        try:
-            self._page = ConsolePage(self.url)
-        except BrowserUnavailable as e:
-            log.warning("no screenshot of the console at the end: %s", e)
-        except Exception as e:   # the run does not depend on it
-            log.warning("no screenshot of the console at the end: the browser failed (%s)", e)
-
-    def close(self, path: Path) -> None:
-        if self._page is None:
-            return
-        try:
-            self._page.screenshot(path)
-            log.info("the console as the run ended: %s", path)
-        except Exception as e:
-            log.warning("the console's screenshot failed: %s", e)
-        finally:
-            self._page.close()
-            self._page = None
-
-
 def _let_server_come_up(supervisor: Supervisor, mon: Monitor, timeout_s: float) -> None:
     """A server restarting as the run ends gets the time to come up (replaying its journal),
     so that, stopped, it writes its outputs; one that died for good or has exited is left."""
@@ -425,69 +374,3 @@ def _restart_row(e: Exit, seen: dict[str, Any], t0: float) -> dict[str, Any]:
             "restart_wall_time_s": (None if e.restarted_at is None
                                     else round(e.restarted_at - t0, 3)),
             "new_pid": e.new_pid, **seen}
-
-
-class Reboots:
-    """Reboots agents as a robot that loses power would: once the simulation passes a robot's
-    time its agent is killed with SIGKILL, and ``down_s`` (wall clock) later it is started
-    again with ``agent_<id>_rebooted.yaml``, its odometry back at zero. One row per reboot in
-    ``rows`` (simulated times as the bus's clock showed them): when it was killed, when it
-    was started again, and the stamp (and odometry) of its first scan after that (when it was
-    back)."""
-
-    def __init__(self, procs: ProcessGroup, mon: Monitor, at_s: dict[str, float],
-                 down_s: float, out: Path) -> None:
-        from schemas import Scan, keys
-
-        self.procs, self.mon, self.down_s, self.out = procs, mon, down_s, out
-        self.rows: list[dict[str, Any]] = []
-        self._plan = sorted(at_s.items(), key=lambda kv: kv[1])
-        self._waiting: dict[str, dict[str, Any]] = {}   # robot -> its row, until it is back
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="reboots", daemon=True)
-        if self._plan:
-            for rid, _ in self._plan:
-                mon.bus.subscribe(keys.robot_scan(rid), Scan, self._on_scan)
-            self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=30.0)
-
-    def _on_scan(self, key: str, msg: Any) -> None:
-        with self._lock:
-            row = self._waiting.pop(msg.robot_id, None)
-            if row is not None:
-                row.update(back_sim_s=round(msg.stamp_ns * 1e-9, 3), back_seq=msg.seq,
-                           back_odom=[round(v, 4) for v in msg.odom_pose])
-
-    def _run(self) -> None:
-        for rid, at_s in self._plan:
-            while self.mon.sim_time_s < at_s:
-                if self._stop.wait(0.02):
-                    return
-            p = next(q for q in self.procs.procs if q.name == f"agent_{rid}")
-            if self._stop.is_set() or p.stopping or not p.alive():
-                return
-            row: dict[str, Any] = {"robot_id": rid, "at_s": at_s,
-                                   "killed_sim_s": round(self.mon.sim_time_s, 3),
-                                   "pid": p.pid}
-            self.rows.append(row)
-            p.popen.kill()   # SIGKILL
-            p.popen.wait()
-            if self._stop.wait(self.down_s):
-                return
-            with self._lock:
-                self._waiting[rid] = row
-            try:
-                self.procs.restart(p, ("agent", "-c",
-                                       str(self.out / f"agent_{rid}_rebooted.yaml")))
-            except GroupClosed:   # the run is stopping
-                return
-            row.update(restarted_sim_s=round(self.mon.sim_time_s, 3), new_pid=p.pid)
-            log.warning("rebooted the agent of %s: killed at %.1f s of sim time, started "
-                        "again at %.1f s (pid %d)", rid, row["killed_sim_s"],
-                        row["restarted_sim_s"], p.pid)
-
