@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 #: fields that vary with the machine's timing, not with what the robots did
-WALL_CLOCK = {"wall_time_s", "decision_ms_median", "bytes_sent", "messages_sent", "scans",
+WALL_CLOCK = {"wall_time_s", "decision_ms_median", "map_query_ms_median", "bytes_sent",
+              "messages_sent", "scans",
               "sim_time_s", "exit_codes", "figures", "world"}
 
 
