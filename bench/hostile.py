@@ -35,8 +35,8 @@ Section = Callable[[Path], dict[str, Any]]
 SECTIONS: dict[str, Section] = {}
 
 from hostile_bus import SECTIONS as BUS_SECTIONS  # noqa: E402  (payloads, stranger, bad_inputs)
-from hostile_fleet import SECTIONS as FLEET_SECTIONS  # noqa: E402  (fake_ids, clocks)
 from hostile_disk import SECTIONS as DISK_SECTIONS  # noqa: E402  (full_disk)
+from hostile_fleet import SECTIONS as FLEET_SECTIONS  # noqa: E402  (fake_ids, clocks)
 from hostile_stop import SECTIONS as STOP_SECTIONS  # noqa: E402  (stop_demo, stop_server)
 
 SECTIONS.update(BUS_SECTIONS)
