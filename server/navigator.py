@@ -20,6 +20,8 @@ from numpy.typing import NDArray
 
 from server.control import (
     STOP,
+    Driver,
+    Obstacles,
     PurePursuit,
     PursuitParams,
     Recovery,
@@ -27,6 +29,7 @@ from server.control import (
     Twist,
     Vfh,
     VfhParams,
+    limit,
 )
 from server.exploration import Decision, Explorer, Finished, VisitedTargets
 from server.exploration.replan import Decided, Replan, Replanned, decide, replan
@@ -67,7 +70,8 @@ class Navigator:
         self.explorer = explorer
         self._own_explorer = explorer      # ``explorer`` may wrap it (a team's coordination)
         self.pursuit = PurePursuit(pursuit)
-        self.vfh = Vfh(vfh) if vfh is not None else None
+        #: makes every twist this navigator sends (``server.control.driver``)
+        self.driver = Driver(Vfh(vfh) if vfh is not None else None)
         self.stuck = stuck
         self.recovery = Recovery()
         self.replan_period_s = replan_period_s
@@ -89,9 +93,9 @@ class Navigator:
         state["_deciding"] = None
         return state
 
-    def step(self, now_s: float, pose: F64, start_pose: F64, points_robot_xy: F64,
+    def step(self, now_s: float, pose: F64, start_pose: F64, obstacles: Obstacles,
              grid: Callable[[], OccupancyGrid], visited: VisitedTargets,
-             others_robot_xy: F64 | None = None, reserved_xy: F64 | None = None,
+             reserved_xy: F64 | None = None,
              planner: Executor | None = None) -> Twist:
         """The command for this scan. ``grid`` is called only when a decision is due.
         ``planner``: where replanning to a kept target runs while the robot follows its
@@ -100,20 +104,20 @@ class Navigator:
         if self.mode == DONE:
             return STOP
         if now_s < self._spin_until_s:
-            return Twist(0.0, self.pursuit.params.omega_max_rps)
+            return limit(Twist(0.0, self.pursuit.params.omega_max_rps))   # looking round
         if self.recovery.active:
             twist = self.recovery.command(now_s)
             if twist is not None:
-                return twist
+                return limit(twist)     # the manoeuvre's own: away from what it hit
             self.stuck.reset()
             self._last_decision_s = -np.inf  # decide afresh after the manoeuvre
         if self.path_xy is not None and self.stuck.update(now_s, pose):
             log.info("stuck near %s; recovering and dropping the target", pose[:2].round(2))
             self._give_up_target(visited)
             self.stats.recoveries += 1
-            self.recovery.start(now_s, points_robot_xy)
+            self.recovery.start(now_s, obstacles.points_xy)
             self.mode = RECOVERING
-            return self.recovery.command(now_s) or STOP
+            return limit(self.recovery.command(now_s) or STOP)
         if self._deciding is not None:
             if not self._deciding.done():
                 return STOP                   # the decision is being made elsewhere
@@ -137,8 +141,8 @@ class Navigator:
         if self.mode == DONE or self.path_xy is None:
             return STOP
         assert self.path_xy is not None
-        follow = self.pursuit.step(pose, self.path_xy)
-        if follow.reached:
+        drive = self.driver.follow(self.pursuit, pose, self.path_xy, obstacles)
+        if drive.reached:
             self.stats.targets_reached += 1
             if self.target_xy is not None:
                 visited.add(self.target_xy)
@@ -146,12 +150,8 @@ class Navigator:
             self._decide(now_s, pose, start_pose, grid(), visited, reserved_xy, planner)
             if self.path_xy is None:
                 return STOP
-            follow = self.pursuit.step(pose, self.path_xy)
-        twist = follow.twist
-        if self.vfh is not None:
-            others = others_robot_xy if others_robot_xy is not None else np.zeros((0, 2))
-            twist = self.vfh.adjust(twist, follow.heading_error_rad, points_robot_xy, others)
-        return twist
+            drive = self.driver.follow(self.pursuit, pose, self.path_xy, obstacles)
+        return drive.twist
 
     def _recheck_period_s(self) -> float:
         """The replanning period, or the explorer's shorter one for looking at its target."""

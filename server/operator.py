@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.se2 import compose
-from server.control import PurePursuit, Twist
+from server.control import Obstacles, PurePursuit, Twist
 from server.exploration.analysis import analyse
 from server.fleet import Fleet, RobotContext
 from server.planning import PlanningError
@@ -227,7 +227,7 @@ class OperatorOrders:
         return Errand(kind, r.team_id, goal_xy, path.xy_m, pursuit)
 
     # -- commands --------------------------------------------------------------------------
-    def command(self, r: RobotContext, fleet: Fleet, points_robot: F64,
+    def command(self, r: RobotContext, fleet: Fleet, obstacles: Obstacles,
                 events: Any, stamp_ns: int) -> Twist | None:
         """Zero for a held robot; the errand's command for a robot on one; None: the robot
         is the navigator's (and the lookout's)."""
@@ -252,19 +252,14 @@ class OperatorOrders:
                         f"{r.robot_id}'s {errand.kind} errand dropped: its map frame changed "
                         f"(team {errand.team_id} -> {r.team_id})", stamp_ns)
             return None
-        follow = errand.pursuit.step(r.pose, errand.path_xy)
-        if follow.reached:
+        drive = r.nav.driver.follow(errand.pursuit, r.pose, errand.path_xy, obstacles)
+        if drive.reached:
             del self.errands[r.robot_id]
             x, y = errand.goal_xy
             events.emit("operator", [r.robot_id], r.team_id,
                         f"{r.robot_id} reached ({x:.2f}, {y:.2f}) ({errand.kind})", stamp_ns)
             r.nav.drop_target()         # explore afresh from here (a done robot stays done)
-            return Twist(0.0, 0.0)
-        twist = follow.twist
-        if r.nav.vfh is not None:
-            twist = r.nav.vfh.adjust(twist, follow.heading_error_rad, points_robot,
-                                     fleet.mates_in_robot_frame(r))
-        return twist
+        return drive.twist
 
 
 def home_xy(r: RobotContext) -> tuple[float, float]:

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from schemas import VelocityCommand
 from schemas.se2 import inverse, transform_points
 from server.config import ServerConfig
-from server.control import Twist
+from server.control import Obstacles, Twist
 from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
@@ -93,46 +93,40 @@ class Steering:
                 pts = np.concatenate([pts, mapped_obstacles(
                     self.fleet.latest_grids.get(r.team_id), r.pose,
                     self.cfg.control.mapped_obstacles_m)])
-            ordered = self.orders.command(r, self.fleet, pts, self.events, stamp_ns)
-            look = None if ordered is not None else self.look(r, stamp_ns * 1e-9, pts)
+            # one set of obstacles for whatever drives the robot (``Driver``)
+            obstacles = Obstacles(pts, self.fleet.others_in_robot_frame(r))
+            ordered = self.orders.command(r, self.fleet, obstacles, self.events, stamp_ns)
+            look = None if ordered is not None else self.look(r, stamp_ns * 1e-9, obstacles)
             if ordered is not None:
                 twist = ordered
             elif look is not None:
                 twist = look
             elif r.meeting is not None:
-                twist = self.meet(r, pts)
+                twist = self.meet(r, obstacles)
             elif r.slam.sweep_due(stamp_ns) and r.nav.mode != NavMode.RECOVERING:
                 twist = Twist(0.0, 0.0)   # still, while its turning camera looks round once
             else:
                 team = self.fleet.team_of(r)
-                twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, pts,
+                twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, obstacles,
                                    lambda: self.fleet.planning_grid(team.team_id),
-                                   team.visited, self.fleet.others_in_robot_frame(r),
-                                   planner=self.planner)
-                twist = Twist(float(np.clip(twist.v_mps, -5, 5)),
-                              float(np.clip(twist.omega_rps, -20, 20)))
+                                   team.visited, planner=self.planner)
         return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=stamp_ns,
                                v_mps=twist.v_mps, omega_rps=twist.omega_rps,
                                ttl_s=self.cfg.control.command_ttl_s)
 
-    def meet(self, r: RobotContext, points_robot: F64) -> Twist:
+    def meet(self, r: RobotContext, obstacles: Obstacles) -> Twist:
         """Drive to a planned meeting's place, then wait there (the lookout turns toward the
         other robot when it comes; see ``server.rendezvous.matchdesk``)."""
         m = r.meeting
         assert m is not None
         if m.path_xy is None or len(m.path_xy) == 0:
             return Twist(0.0, 0.0)
-        follow = r.nav.pursuit.step(r.pose, m.path_xy)
-        if follow.reached:
+        drive = r.nav.driver.follow(r.nav.pursuit, r.pose, m.path_xy, obstacles)
+        if drive.reached:
             m.path_xy = None
-            return Twist(0.0, 0.0)
-        twist = follow.twist
-        if r.nav.vfh is not None:
-            twist = r.nav.vfh.adjust(twist, follow.heading_error_rad, points_robot,
-                                     self.fleet.others_in_robot_frame(r))
-        return twist
+        return drive.twist
 
-    def look(self, r: RobotContext, now_s: float, points_robot: F64) -> Twist | None:
+    def look(self, r: RobotContext, now_s: float, obstacles: Obstacles) -> Twist | None:
         """Turn toward something that moves while robots outside the team remain. A robot
         whose team is done keeps doing so: a robot still alone must be able to join it."""
         if not self.fleet.stages.looks or r.nav.mode == NavMode.RECOVERING:
@@ -146,14 +140,12 @@ class Steering:
                 r.look.reset()
                 r.nav.drop_target()
             return None
-        twist = r.look.step(now_s, r.pose, points_robot, self.fleet.latest_grids.get(r.team_id),
+        twist = r.look.step(now_s, r.pose, obstacles.points_xy,
+                            self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))
         if twist is None:
             if r.look.moved:  # the approach took the robot off its path: decide afresh
                 r.look.moved = False
                 r.nav.drop_target()
             return None
-        if twist.v_mps > 0 and r.nav.vfh is not None:
-            twist = r.nav.vfh.adjust(twist, r.look.heading_error, points_robot,
-                                     self.fleet.others_in_robot_frame(r))
-        return twist
+        return r.nav.driver.avoid(twist, r.look.heading_error, obstacles)

@@ -7,7 +7,7 @@ import pytest
 from numpy.typing import ArrayLike
 
 from server import navigator
-from server.control import PursuitParams, StuckDetector
+from server.control import Obstacles, PursuitParams, StuckDetector
 from server.exploration import (
     Explorer,
     ExplorerParams,
@@ -54,7 +54,7 @@ def run(explorer: Explorer, times_s: list[float], replan_period_s: float = 4.0) 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(navigator, "replan", counting.replan)
         for t in times_s:
-            nav.step(t, START, START, np.zeros((0, 2)), lambda: grid, visited)
+            nav.step(t, START, START, Obstacles(), lambda: grid, visited)
             assert nav.mode == EXPLORING and nav.target_xy is not None
             out.append(counting.analyses)
     return out
@@ -95,16 +95,16 @@ def test_a_replan_in_a_planner_process_gives_the_path_planned_in_line() -> None:
     pose = START + np.array([0.3, 0.0, 0.0])
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
         for nav in (here, away):
-            nav.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, visited)
+            nav.step(0.0, START, START, Obstacles(), lambda: grid, visited)
         assert here.target_xy == away.target_xy and here.path_xy is not None
         first = away.path_xy
-        here.step(1.0, pose, START, np.zeros((0, 2)), lambda: grid, visited)
-        away.step(1.0, pose, START, np.zeros((0, 2)), lambda: grid, visited, planner=pool)
+        here.step(1.0, pose, START, Obstacles(), lambda: grid, visited)
+        away.step(1.0, pose, START, Obstacles(), lambda: grid, visited, planner=pool)
         assert away._replanning is not None and away.path_xy is first   # handed over
         deadline = time.monotonic() + 30
         while not away._replanning.done() and time.monotonic() < deadline:
             time.sleep(0.05)
-        away.step(1.1, pose, START, np.zeros((0, 2)), lambda: grid, visited, planner=pool)
+        away.step(1.1, pose, START, Obstacles(), lambda: grid, visited, planner=pool)
     assert away._replanning is None and away.path_xy is not first
     assert here.path_xy is not None and away.path_xy is not None
     assert np.allclose(away.path_xy, here.path_xy)
@@ -122,15 +122,15 @@ def test_a_robot_alone_stands_while_a_planner_process_decides_for_it() -> None:
                      StuckDetector(), 1.0)
     away = Navigator(VoronoiExplorer(ExplorerParams(lam=1.0)), PursuitParams(), None,
                      StuckDetector(), 1.0)
-    here.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets())
+    here.step(0.0, START, START, Obstacles(), lambda: grid, VisitedTargets())
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        twist = away.step(0.0, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets(),
+        twist = away.step(0.0, START, START, Obstacles(), lambda: grid, VisitedTargets(),
                           planner=pool)
         assert twist.v_mps == 0.0 and twist.omega_rps == 0.0 and away._deciding is not None
         deadline = time.monotonic() + 30
         while not away._deciding.done() and time.monotonic() < deadline:
             time.sleep(0.05)
-        twist = away.step(0.1, START, START, np.zeros((0, 2)), lambda: grid, VisitedTargets(),
+        twist = away.step(0.1, START, START, Obstacles(), lambda: grid, VisitedTargets(),
                           planner=pool)
     assert away._deciding is None and away.mode == EXPLORING
     assert away.target_xy == here.target_xy and away.stats.decisions == 1

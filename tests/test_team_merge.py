@@ -22,7 +22,9 @@ from schemas import TagDetection, TagDetections
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server.config import ServerConfig
+from server.control import Obstacles, PurePursuit
 from server.core import ServerCore
+from server.operator import Errand
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.conftest import DATA
@@ -277,6 +279,30 @@ def test_robots_of_other_teams_that_saw_each_other_keep_clear_of_each_other() ->
     assert len(core.fleet.others_in_robot_frame(r2)) == 0
 
 
+def test_an_operators_errand_keeps_clear_of_a_robot_a_narrow_sensor_saw() -> None:
+    """The operator sends a depth-camera robot straight through where another team's robot
+    stands, which it has just read the tag of: the errand's command keeps clear of that robot
+    as exploring would (one driver, one set of obstacles, for every behaviour)."""
+    core, _ = run(3, cfg=config(min_sightings=100))
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    near = TagDetection(tag_id=2, observed_robot_id="r2", range_m=0.6, bearing_rad=0.0,
+                        yaw_rad=math.pi, sigma_range_m=0.02, sigma_bearing_rad=0.01,
+                        sigma_yaw_rad=0.1)
+    core.on_tags(TagDetections(robot_id="r1", seq=9, stamp_ns=r1.last_stamp_ns,
+                               detections=[near]))
+    r1.slam.narrow = r2.slam.narrow = True
+    (seen,) = core.fleet.others_in_robot_frame(r1)
+    assert math.hypot(*seen) < 0.8 and abs(seen[1]) < 0.2      # straight ahead
+    goal = compose(r1.pose, np.array([3.0, 0.0, 0.0]))[:2]
+    path = np.array([r1.pose[:2], goal])
+    core.orders.errands["r1"] = Errand("goto", r1.team_id, (float(goal[0]), float(goal[1])),
+                                       path, PurePursuit(r1.nav.pursuit.params))
+    beams = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    cmd = core.steering.command(r1, r1.last_stamp_ns, np.full(360, np.inf), beams)
+    free = core.cfg.control.v_mps
+    assert cmd.v_mps < 0.9 * free or abs(cmd.omega_rps) > 0.05, cmd
+
+
 def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
     core, _ = run(3, cfg=config(min_sightings=100))
     r1 = core.robots["r1"]
@@ -286,7 +312,7 @@ def test_a_robot_whose_team_is_done_still_answers_a_robot_left_alone() -> None:
     r1.look.next_s = -math.inf
     r1.look.hear(r1.last_stamp_ns * 1e-9, compose(r1.pose, np.array([-1.5, 0.0, 0.0]))[:2],
                  1.0, sure=False)                           # someone just behind it
-    tw = core.steering.look(r1, r1.last_stamp_ns * 1e-9 + 0.05, np.zeros((0, 2)))
+    tw = core.steering.look(r1, r1.last_stamp_ns * 1e-9 + 0.05, Obstacles())
     assert tw is not None and tw.v_mps == 0.0 and tw.omega_rps != 0.0   # turning to face it
 
 

@@ -1,13 +1,15 @@
-"""Motion control: pure pursuit, VFH obstacle avoidance, stuck detection and recovery.
+"""Motion control: pure pursuit, VFH obstacle avoidance, stuck detection and recovery, and
+the driver that makes every command from them.
 
 All return :class:`Twist` (v [m/s], ω [rad/s]) and do no I/O:
 
-    pp = PurePursuit(PursuitParams(lookahead_m=1.0, v_mps=0.3, omega_max_rps=1.5))
-    step = pp.step(pose, path_xy)                      # twist, reached, heading error
-    twist = Vfh().adjust(step.twist, step.heading_error_rad, scan_points_robot_xy)
+    driver = Driver(Vfh())
+    drive = driver.follow(PurePursuit(params), pose, path_xy,
+                          Obstacles(scan_points_robot_xy, other_robots_robot_xy))
     if stuck.update(stamp_s, pose): recovery.start(stamp_s, scan_points_robot_xy)
 """
 
+from server.control.driver import Drive, Driver, Obstacles, limit
 from server.control.geometry import STOP, Twist, clip, world_to_robot
 from server.control.pure_pursuit import PurePursuit, PursuitParams, PursuitStep, closest_point
 from server.control.stuck import (
@@ -20,6 +22,9 @@ from server.control.vfh import Vfh, VfhParams, VfhResult
 
 __all__ = [
     "STOP",
+    "Drive",
+    "Driver",
+    "Obstacles",
     "PurePursuit",
     "PursuitParams",
     "PursuitStep",
@@ -33,5 +38,6 @@ __all__ = [
     "VfhResult",
     "clip",
     "closest_point",
+    "limit",
     "world_to_robot",
 ]
