@@ -40,11 +40,11 @@ from schemas import (
     VelocityCommand,
 )
 from schemas.se2 import compose, inverse
-from server import heap
 from server.config import ServerConfig
 from server.events import EventLog
 from server.fleet import Fleet, MergeRecord, RobotContext, Team
 from server.operator import OperatorCommand, OperatorError, OperatorOrders
+from server.planner_pool import Pools
 from server.planning import OccupancyGrid as PlanningGrid
 from server.progress import Progress
 from server.rendezvous.counters import RendezvousCounters
@@ -85,15 +85,13 @@ class ServerCore:
         #: again in their map: their scans since
         self.returning: dict[str, int] = {}
 
-    def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update(state)
-        if "matcher" not in state:   # saved before maps were matched between teams
-            self.matcher = MapMatchDesk(self.cfg, self.fleet, self.merger, self.events,
-                                        self.counters)
+    def use_pools(self, pools: Pools) -> None:
+        """Where slow work runs (replanning, map matching): given once, by the node, and
+        after a snapshot is loaded (processes are not state)."""
+        self.steering.pools = self.matcher.pools = pools
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
-        heap.maybe_trim()        # freed memory back to the system, twice a minute at most
         r = self.fleet.robots.get(scan.robot_id) or self.fleet.add_robot(scan.robot_id)
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         # 1. SLAM on the scan without teammates' bodies; a new keyframe is matched against

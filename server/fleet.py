@@ -167,10 +167,6 @@ class Fleet:
         w = cfg.cluster.worker
         self._key_stride, self._key_offset = (1, 0) if w is None else (64, w)
 
-    def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update(state)
-        self.__dict__.setdefault("refusals", {})   # saved before refusals paused seeking
-
     # -- refused merges --------------------------------------------------------------------
     def refused(self, team_a: str, team_b: str, stamp_ns: int) -> None:
         """The maps refused a merge of two teams (see ``seeking_paused``)."""

@@ -27,6 +27,7 @@ from collections import deque
 from typing import Any
 
 from server.inbox import Inbox
+from server.work import TagsWork
 
 ALIVE, TAGS = "#alive:", "#tags:"
 
@@ -72,14 +73,14 @@ class StepBarrier:
 
 def _scan_heads(queues: dict[str, deque[Any]]) -> dict[str, int]:
     """Robot -> stamp of its oldest queued scan."""
-    return {name: q[0][0].stamp_ns for name, q in queues.items()
+    return {name: q[0].scan.stamp_ns for name, q in queues.items()
             if q and not name.startswith("#")}
 
 
-def _count_before(q: deque[Any], stamp_ns: int) -> int:
+def _count_before(q: deque[TagsWork], stamp_ns: int) -> int:
     """How many items at the head of a sightings queue are older than ``stamp_ns``."""
     n = 0
-    while n < len(q) and q[n][0].stamp_ns < stamp_ns:
+    while n < len(q) and q[n].tags.stamp_ns < stamp_ns:
         n += 1
     return n
 
@@ -87,4 +88,4 @@ def _count_before(q: deque[Any], stamp_ns: int) -> int:
 def _leaving(queues: dict[str, deque[Any]]) -> set[str]:
     """Robots whose latest queued liveliness change says they left."""
     return {name[len(ALIVE):] for name, q in queues.items()
-            if name.startswith(ALIVE) and q and not q[-1]}
+            if name.startswith(ALIVE) and q and not q[-1].alive}

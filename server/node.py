@@ -22,7 +22,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import Future
 from typing import Any
 
 import msgspec
@@ -30,7 +30,7 @@ import msgspec
 from schemas import Scan, SimClock, TagDetections, keys
 from schemas.bus import Bus
 from schemas.ratelog import RateLimitedLog
-from server import handover, planner_pool
+from server import handover, heap
 from server.clock import ClockPolicy, ServerClock
 from server.cluster import Cluster, Handover, Route
 from server.config import ServerConfig
@@ -40,7 +40,18 @@ from server.journal import JournalWriter
 from server.keeper import StateKeeper
 from server.lockstep import StepBarrier
 from server.operator import OperatorCommand
+from server.planner_pool import Pools
 from server.registry import AdmissionPolicy, Refused, RobotRegistry
+from server.work import (
+    AdoptWork,
+    AliveWork,
+    GiveWork,
+    OrderWork,
+    ScanWork,
+    TagsWork,
+    Work,
+    robot_of,
+)
 from server.writer import BackgroundWriter
 
 log = logging.getLogger(__name__)
@@ -80,8 +91,9 @@ class ServerNode:
         self._barrier = StepBarrier(cfg.clock.step_barrier_s)
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
-        self._planner: ProcessPoolExecutor | None = None
-        self._matcher: ProcessPoolExecutor | None = None
+        #: where the core's slow work runs, given to it once (none in lockstep)
+        self.pools = Pools(cfg.planner_processes, cfg.teams.map_match, lambda: self._lockstep)
+        self.core.use_pools(self.pools)
         self._cpu_mark = (time.process_time(), time.monotonic())
         self._writer = BackgroundWriter(self._write_failed)
         #: one worker of several (``server.cluster``), or None: the only server
@@ -90,7 +102,7 @@ class ServerNode:
         if self.cluster is not None:
             self.cluster.resumed = set(self.core.robots)
         #: operator's orders waiting for the worker, each with the answer the asker waits on
-        self._orders: deque[tuple[OperatorCommand, Future[tuple[int, str]]]] = deque()
+        self._orders: deque[OrderWork] = deque()
         #: stops asked and not yet taken by the core ("*": every robot): commands are zero
         self._stops_asked: set[str] = set()
         #: the core's orders as the console shows them (replaced whole by the worker)
@@ -99,6 +111,10 @@ class ServerNode:
         #: each robot's own stamp of the last scan the core took (a team that moves here
         #: brings the giver's: what it had not processed yet is taken from those held here)
         self._own_stamps: dict[str, int] = {}
+        #: the worker's handler of each kind of item
+        self._handlers: dict[type, Callable[[Any], None]] = {
+            ScanWork: self._take_scan, TagsWork: self._take_tags, AliveWork: self._take_alive,
+            GiveWork: self._give, AdoptWork: self._adopt, OrderWork: self._operate}
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
@@ -156,14 +172,14 @@ class ServerNode:
 
     # -- a team moving between workers (Zenoh threads) -------------------------------------
     def _on_give(self, query: Any, robots: list[str]) -> None:
-        self._queue_item("#give:", (query, robots))
+        self._queue_control("#give:", GiveWork(query, robots))
 
     def _on_handover(self, h: Handover) -> None:
-        self._queue_item("#adopt:", h)
+        self._queue_control("#adopt:", AdoptWork(h))
 
-    def _queue_item(self, name: str, payload: Any) -> None:
+    def _queue_control(self, name: str, item: Work) -> None:
         with self._cv:
-            self._inbox.put_control(name, payload)
+            self._inbox.put_control(name, item)
             self._cv.notify()
 
     def _enqueue(self, rid: str, ready: list[tuple[str, int, Any]]) -> None:
@@ -172,10 +188,12 @@ class ServerNode:
         tier = TRUSTED if self.registry.trusted(rid) else NEWCOMER
         for stream, stamp_ns, msg in ready:
             self.clock.on_accepted(stamp_ns)
-            name = rid if stream == "scan" else f"#tags:{rid}"
             # the core works in server time; the robot's own stamp goes back in its command
-            self._inbox.put(name, (msgspec.structs.replace(msg, stamp_ns=stamp_ns),
-                                   msg.stamp_ns), tier)
+            mapped = msgspec.structs.replace(msg, stamp_ns=stamp_ns)
+            if stream == "scan":
+                self._inbox.put(rid, ScanWork(mapped, msg.stamp_ns), tier)
+            else:
+                self._inbox.put(f"#tags:{rid}", TagsWork(mapped), tier)
         if ready:
             self._cv.notify()
 
@@ -200,22 +218,51 @@ class ServerNode:
 
     def _queue_alive(self, rid: str, alive: bool) -> None:
         """(the caller holds ``_cv``)"""
-        self._inbox.put_control(f"#alive:{rid}", alive)
+        self._inbox.put_control(f"#alive:{rid}", AliveWork(rid, alive))
         self._cv.notify()
 
     # -- the worker ------------------------------------------------------------------------
-    def _next(self, timeout_s: float) -> list[tuple[str, Any]]:
-        """The next message (queue name, payload); in lockstep, the next step's messages."""
+    def _next(self, timeout_s: float) -> list[Work]:
+        """The next item; in lockstep, the next step's messages."""
         with self._cv:
             if not self._inbox and not self._orders and not self._cv.wait_for(
                     lambda: bool(self._inbox or self._orders), timeout_s):
                 return []
             if self._orders:
-                return [("#operator", self._orders.popleft())]
+                return [self._orders.popleft()]
             if self._lockstep:
-                return self._barrier.take(self._inbox, self._cv, self._live_robots())
-            item = self._inbox.take()
-            return [] if item is None else [item]
+                return [item for _, item in self._barrier.take(self._inbox, self._cv,
+                                                               self._live_robots())]
+            taken = self._inbox.take()
+            return [] if taken is None else [taken[1]]
+
+    # -- the worker's items (``server.work``) ------------------------------------------------
+    def _take_alive(self, item: AliveWork) -> None:
+        if self.journal is not None:
+            self.journal.alive(item.robot_id, item.alive, self.clock.now_ns())
+        self.core.set_alive(item.robot_id, item.alive)
+
+    def _take_tags(self, item: TagsWork) -> None:
+        if self.journal is not None:
+            self.journal.tags(item.tags)
+        self.core.on_tags(item.tags)
+
+    def _take_scan(self, item: ScanWork) -> None:
+        scan, rid = item.scan, item.scan.robot_id
+        if self.cluster is not None and not self.cluster.serves(rid):
+            return      # its team went to another worker meanwhile
+        # (in lockstep the step's own time: the simulator's clock message may come before or
+        # after the step's scans)
+        now = scan.stamp_ns if self._lockstep else (
+            self.clock.now_ns() if self.clock.source != "stamps" else None)
+        if self.journal is not None:
+            self.journal.scan(scan, now)
+        cmd = self.core.on_scan(scan, now)
+        self._own_stamps[rid] = item.own_stamp_ns
+        if self._stops_asked and (rid in self._stops_asked or "*" in self._stops_asked):
+            cmd = msgspec.structs.replace(cmd, v_mps=0.0, omega_rps=0.0)
+        self.bus.publish(keys.robot_cmd_vel(rid),
+                         msgspec.structs.replace(cmd, stamp_ns=item.own_stamp_ns), block=True)
 
     def _live_robots(self) -> set[str]:
         """Robots alive by their liveliness token, or by the core (worker thread)."""
@@ -227,50 +274,17 @@ class ServerNode:
         next_outputs = time.monotonic() + self.cfg.outputs_period_s
         next_snapshot = time.monotonic() + self.cfg.snapshot_period_s
         map_stamp = 0
-        clocked = self.clock.source != "stamps"
         while not self._stop.is_set():
-            for rid, payload in self._next(0.1):
+            for item in self._next(0.1):
                 try:
-                    if rid.startswith("#alive:"):
-                        robot, alive = rid.split(":", 1)[1], bool(payload)
-                        if self.journal is not None:
-                            self.journal.alive(robot, alive, self.clock.now_ns())
-                        self.core.set_alive(robot, alive)
-                    elif rid.startswith("#give:"):
-                        self._give(*payload)
-                    elif rid.startswith("#adopt:"):
-                        self._adopt(payload)
-                    elif rid == "#operator":
-                        self._operate(*payload)
-                    elif rid.startswith("#tags:"):
-                        if self.journal is not None:
-                            self.journal.tags(payload[0])
-                        self.core.on_tags(payload[0])
-                    else:
-                        scan, own_stamp_ns = payload
-                        if self.cluster is not None and not self.cluster.serves(rid):
-                            continue      # its team went to another worker meanwhile
-                        # (in lockstep the step's own time: the simulator's clock message
-                        # may come before or after the step's scans)
-                        now = scan.stamp_ns if self._lockstep else (
-                            self.clock.now_ns() if clocked else None)
-                        if self.journal is not None:
-                            self.journal.scan(scan, now)
-                        self.core.steering.planner = self._planner_now()
-                        self.core.matcher.pool = self._matcher_now()
-                        cmd = self.core.on_scan(scan, now)
-                        self._own_stamps[rid] = own_stamp_ns
-                        if self._stops_asked and (rid in self._stops_asked
-                                                  or "*" in self._stops_asked):
-                            cmd = msgspec.structs.replace(cmd, v_mps=0.0, omega_rps=0.0)
-                        self.bus.publish(keys.robot_cmd_vel(rid),
-                                         msgspec.structs.replace(cmd, stamp_ns=own_stamp_ns),
-                                         block=True)
+                    self._handlers[type(item)](item)
                 except Exception as e:
                     # one robot's failure must not stop the server for the others
                     self.errors += 1
-                    self._errlog.log(logging.ERROR, type(e).__name__, "processing %s failed",
-                                     rid, exc_info=self._errlog.seen[type(e).__name__] <= 3)
+                    self._errlog.log(logging.ERROR, type(e).__name__, "processing %s for %s "
+                                     "failed", type(item).__name__, robot_of(item) or "-",
+                                     exc_info=self._errlog.seen[type(e).__name__] <= 3)
+            heap.maybe_trim()     # freed memory back to the system, twice a minute at most
             now = time.monotonic()
             if self.journal is not None:
                 if self.journal.flush_due(now):
@@ -344,12 +358,13 @@ class ServerNode:
         with self._cv:
             if cmd.action == "stop":
                 self._stops_asked.add(cmd.robot_id or "*")
-            self._orders.append((cmd, answer))
+            self._orders.append(OrderWork(cmd, answer))
             self._cv.notify()
         return answer
 
-    def _operate(self, cmd: OperatorCommand, answer: Future[tuple[int, str]]) -> None:
+    def _operate(self, item: OrderWork) -> None:
         """(the worker) Journal the order, then hand it to the core."""
+        cmd, answer = item.command, item.answer
         try:
             now = self.clock.now_ns()
             if self.journal is not None:
@@ -367,10 +382,11 @@ class ServerNode:
         log.warning("operator: %s", result[1])
 
     # -- a team moving between workers (the worker thread) ---------------------------------
-    def _give(self, query: Any, robots: list[str]) -> None:
+    def _give(self, item: GiveWork) -> None:
         """Another worker asks for a team: the first of ``robots`` served here leaves with its
         whole team (journaled as given); a team that cannot be packed stays."""
         assert self.cluster is not None
+        query, robots = item.query, item.robots
         for rid in robots:
             if not self.cluster.serves(rid) or rid not in self.core.robots:
                 continue
@@ -401,9 +417,10 @@ class ServerNode:
         self.cluster.answer(query, [], None,
                             f"worker {self.cluster.index} does not serve {', '.join(robots)}")
 
-    def _adopt(self, h: Handover) -> None:
+    def _adopt(self, item: AdoptWork) -> None:
         """A team asked for arrived (into the core, journaled whole), or did not (its robots
         are served here afresh); then the robots' held scans that the giver had not taken."""
+        h = item.handover
         assert self.cluster is not None
         adopted: list[str] = []
         if h.parcel is not None:
@@ -434,25 +451,6 @@ class ServerNode:
         if parcel is not None and self.journal is not None:
             self.journal.gave(parcel.robot_ids, self.clock.now_ns())
         log.warning("robot %s left to the other worker that serves it", rid)
-
-    def _planner_now(self) -> ProcessPoolExecutor | None:
-        """The processes replanning runs in (started at the first need), or None: in lockstep
-        (the run must not depend on how fast they answer) or with ``planner_processes: 0``."""
-        if self._lockstep or self.cfg.planner_processes == 0:
-            return None
-        if self._planner is None:
-            self._planner = planner_pool.start(self.cfg.planner_processes)
-        return self._planner
-
-    def _matcher_now(self) -> ProcessPoolExecutor | None:
-        """The process map matching between teams runs in: its own, so that a query of a
-        second or two never holds up the robots' decisions; started once there are two teams
-        to match. None in lockstep or with ``planner_processes: 0`` (it runs here)."""
-        if self._lockstep or self.cfg.planner_processes == 0 or not self.cfg.teams.map_match:
-            return None
-        if self._matcher is None and len(self.core.teams) >= 2:
-            self._matcher = planner_pool.start(1)
-        return self._matcher
 
     def snapshot(self, wait: bool = True) -> None:
         """Snapshot the core as of the journal's next entry (worker thread, or after stop).
@@ -499,10 +497,7 @@ class ServerNode:
         self._stop.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10)
-        for pool in (self._planner, self._matcher):
-            if pool is not None:
-                planner_pool.stop(pool)   # killed, not waited for: no job holds the stop up
-        self._planner = self._matcher = None
+        self.pools.stop()   # killed, not waited for: no job holds the stop up
         self._writer.close()
         if self.journal is not None:
             self.guarded("closing the journal", self.journal.close)

@@ -35,6 +35,7 @@ from schemas.codec import decode
 from schemas.errors import SchemaError
 from schemas.se2 import compose, inverse, wrap_angle
 from schemas.types import ID_PATTERN
+from server import heap
 from server.config import ServerConfig
 from server.core import ServerCore
 from server.fleet import MergeRecord
@@ -221,6 +222,7 @@ def run_merge(first: str | Path, second: str | Path, out: str | Path,
     for _, kind, msg in stream:
         if kind == 0:
             core.on_scan(msg)  # type: ignore[arg-type]
+            heap.maybe_trim()   # a long session: freed memory back to the system now and then
         else:
             core.on_tags(msg)  # type: ignore[arg-type]
     last_ns = stream[-1][0]

@@ -12,6 +12,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 
 PR_SET_PDEATHSIG = 1
@@ -63,3 +64,39 @@ def _follow_parent(parent_pid: int) -> None:
 
 def _warm() -> None:
     import server.exploration.replan  # noqa: F401  (what the jobs run)
+
+
+class Pools:
+    """The processes the core's slow work runs in, given to the core once: replanning and
+    lone robots' decisions (``planner``), map matching between teams (``matcher``). Each is
+    started at its first need, and there is none (the work runs in line) in lockstep, where
+    a run must not depend on how fast they answer, or with ``planner_processes: 0``."""
+
+    def __init__(self, processes: int, map_match: bool, lockstep: Callable[[], bool]) -> None:
+        self.processes = processes
+        self.map_match = map_match
+        self._lockstep = lockstep
+        self._planner: ProcessPoolExecutor | None = None
+        self._matcher: ProcessPoolExecutor | None = None
+
+    def planner(self) -> ProcessPoolExecutor | None:
+        if self._lockstep() or self.processes == 0:
+            return None
+        if self._planner is None:
+            self._planner = start(self.processes)
+        return self._planner
+
+    def matcher(self, teams: int) -> ProcessPoolExecutor | None:
+        """Map matching's own process (a query of a second or two never holds up the robots'
+        decisions), started once there are ``teams`` >= 2 to match."""
+        if self._lockstep() or self.processes == 0 or not self.map_match:
+            return None
+        if self._matcher is None and teams >= 2:
+            self._matcher = start(1)
+        return self._matcher
+
+    def stop(self) -> None:
+        for pool in (self._planner, self._matcher):
+            if pool is not None:
+                stop(pool)      # killed, not waited for: no job holds the stop up
+        self._planner = self._matcher = None

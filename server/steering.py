@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from concurrent.futures import Executor
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +18,7 @@ from server.events import EventLog
 from server.fleet import Fleet, RobotContext
 from server.navigator import NavMode
 from server.operator import OperatorOrders
+from server.planner_pool import Pools
 from server.planning import OccupancyGrid as PlanningGrid
 
 F64 = NDArray[np.float64]
@@ -70,11 +70,12 @@ class Steering:
     def __init__(self, cfg: ServerConfig, fleet: Fleet, orders: OperatorOrders,
                  events: EventLog) -> None:
         self.cfg, self.fleet, self.orders, self.events = cfg, fleet, orders, events
-        #: where navigators replan while their robots drive on (None: on the scan's path)
-        self.planner: Executor | None = None
+        #: where navigators replan while their robots drive on (``ServerCore.use_pools``;
+        #: None: on the scan's path)
+        self.pools: Pools | None = None
 
     def __getstate__(self) -> dict[str, object]:
-        return {**self.__dict__, "planner": None}   # processes are not state
+        return {**self.__dict__, "pools": None}   # processes are not state
 
     def command(self, r: RobotContext, stamp_ns: int, ranges: F64, angles: F64,
                 navigate: bool = True) -> VelocityCommand:
@@ -109,7 +110,8 @@ class Steering:
                 team = self.fleet.team_of(r)
                 twist = r.nav.step(stamp_ns * 1e-9, r.pose, r.start_pose, obstacles,
                                    lambda: self.fleet.planning_grid(team.team_id),
-                                   team.visited, planner=self.planner)
+                                   team.visited,
+                                   planner=None if self.pools is None else self.pools.planner())
         return VelocityCommand(robot_id=r.robot_id, seq=r.scans, stamp_ns=stamp_ns,
                                v_mps=twist.v_mps, omega_rps=twist.omega_rps,
                                ttl_s=self.cfg.control.command_ttl_s)

@@ -12,6 +12,7 @@ from schemas import Scan, TagDetections
 from schemas.messages import quantise_ranges_mm
 from server.inbox import Inbox
 from server.lockstep import StepBarrier
+from server.work import AliveWork, ScanWork, TagsWork
 
 
 def scan(rid: str, stamp_ns: int) -> Scan:
@@ -38,13 +39,16 @@ class Queues:
             self.inbox.put(name, item)
 
     def arrive(self, msg: Scan | TagDetections) -> None:
-        name = msg.robot_id if isinstance(msg, Scan) else f"#tags:{msg.robot_id}"
-        self.put(name, (msg, msg.stamp_ns))
+        if isinstance(msg, Scan):
+            self.put(msg.robot_id, ScanWork(msg, msg.stamp_ns))
+        else:
+            self.put(f"#tags:{msg.robot_id}", TagsWork(msg))
 
 
 def taken(b: StepBarrier, q: Queues, alive: set[str]) -> list[tuple[str, int]]:
     with q.cv:
-        return [(name, item[0].stamp_ns) for name, item in b.take(q.inbox, q.cv, alive)]
+        return [(name, item.scan.stamp_ns if isinstance(item, ScanWork) else
+                 item.tags.stamp_ns) for name, item in b.take(q.inbox, q.cv, alive)]
 
 
 def test_a_step_comes_out_in_robot_order_whatever_the_arrival_order() -> None:
@@ -77,8 +81,8 @@ def test_a_robot_that_misses_a_step_is_waited_for_once() -> None:
 def test_a_robot_leaving_is_not_waited_for_and_its_news_comes_first() -> None:
     q, b = Queues(), StepBarrier(5.0)
     q.arrive(scan("r1", 100))
-    q.put("#alive:r2", False)
+    q.put("#alive:r2", AliveWork("r2", False))
     with q.cv:
         out = b.take(q.inbox, q.cv, {"r1", "r2"})   # at once: r2 is leaving
-    assert [name for name, _ in out] == ["#alive:r2", "r1"] and out[0][1] is False
+    assert [name for name, _ in out] == ["#alive:r2", "r1"] and out[0][1].alive is False
     assert b.timeouts == 0 and len(q.inbox) == 0 and not q.inbox.control

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
-from concurrent.futures import Executor, Future
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,6 +35,7 @@ from schemas.se2 import compose, inverse, transform_points, wrap_angle
 from server.config import ServerConfig
 from server.events import EventLog
 from server.fleet import Fleet, Meeting, MergeRecord, RobotContext
+from server.planner_pool import Pools
 from server.planning.astar import plan
 from server.planning.costmap import build_cost_layer
 from server.planning.errors import PlanningError
@@ -147,15 +148,13 @@ class MapMatchDesk:
         self.query_ms: list[float] = []          # the latest queries' times (one per submap)
         self.memory: dict[tuple[str, str], PairMemory] = {}
         self._job: _Job | None = None
-        #: where queries run (the server's matcher process), None: here
-        self.pool: Executor | None = None
+        #: where queries run (the server's matcher process; ``ServerCore.use_pools``),
+        #: None: here
+        self.pools: Pools | None = None
 
     def __getstate__(self) -> dict[str, object]:
         # a query in flight is asked again; processes are not state
-        return {**self.__dict__, "_job": None, "pool": None}
-
-    def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update({"memory": {}, **state, "_job": None, "pool": None})
+        return {**self.__dict__, "_job": None, "pools": None}
 
     @property
     def params(self) -> MatchParams:
@@ -165,7 +164,7 @@ class MapMatchDesk:
     # -- the period's work -------------------------------------------------------------------
     def tick(self, now_ns: int) -> None:
         t = self.cfg.teams
-        planner = self.pool
+        planner = None if self.pools is None else self.pools.matcher(len(self.fleet.teams))
         self._follow_meetings(now_ns)
         if not t.enabled or not t.map_match:
             return
