@@ -124,14 +124,21 @@ def run(path: Path, out: Path, core: int, root: Path, n_file: int,
     return got
 
 
-def save_map(out: Path, dest: Path, scale: int = 3) -> None:
-    """The map image, enlarged ``scale`` times cell for cell (for the docs)."""
+def save_map(out: Path, dest: Path, scale: int = 4, margin: int = 6) -> None:
+    """The map image cut to what was seen (and ``margin`` cells round it), enlarged ``scale``
+    times cell for cell (for the docs)."""
     import cv2
+    import numpy as np
 
     img = cv2.imread(str(out / "map.png"), cv2.IMREAD_GRAYSCALE)
-    if img is not None:
-        big = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-        cv2.imwrite(str(dest), big, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if img is None:
+        return
+    rows, cols = np.nonzero(img != 205)          # 205: unknown in a nav2 trinary map
+    if len(rows):
+        r0, c0 = max(rows.min() - margin, 0), max(cols.min() - margin, 0)
+        img = img[r0:rows.max() + margin + 1, c0:cols.max() + margin + 1]
+    big = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(dest), big, [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 def on_common_relations(relations: Path, now: Path, base: Path, tmp: Path
