@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -38,7 +37,7 @@ from server.logs.bagmsgs import (
     transform_of,
     yaw_of,
 )
-from server.logs.bagsource import is_bag, read_messages
+from server.logs.bagsource import BagMessages, is_bag, read_messages
 from server.logs.odomcheck import OdometryCheck, OdometryLimits, check_odometry
 from server.logs.odometry import interpolate_pose
 from server.logs.records import (
@@ -106,10 +105,15 @@ def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: 
     return best
 
 
-def _collect(src: Any, scan_topic: str, odom_topic: str | None, echo: Echo,
+def _collect(src: BagMessages, scan_topic: str, odom_topic: str | None, echo: Echo,
              stats: ReadStats) -> _Collected:
     got = _Collected()
-    for number, (topic, msgtype, t_ns, raw) in enumerate(src.messages, start=1):
+    pending = src.messages
+    pending.reverse()          # taken from the end, so that each raw message is freed once read
+    number = 0
+    while pending:
+        topic, msgtype, t_ns, raw = pending.pop()
+        number += 1
         stats.lines += 1
         try:
             msg = src.decode(raw, msgtype)
