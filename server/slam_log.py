@@ -92,11 +92,11 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
         ranges = rec.ranges_m
         if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
             ranges = np.where(ranges >= rec.max_range_m, np.inf, ranges)
-        odom = s.T_odom_laser
-        if odom is None:
-            assert front is not None
-            odom = front.add(stamp_s, ranges, rec.angles_rad)
         try:
+            odom = s.T_odom_laser
+            if odom is None:
+                assert front is not None
+                odom = front.add(stamp_s, ranges, rec.angles_rad)
             slam.add_scan(round(stamp_s * 1e9), odom, ranges, rec.angles_rad)
         except SlamInputError as e:
             rejected += 1

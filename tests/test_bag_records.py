@@ -114,3 +114,27 @@ def test_odometry_from_tf_of_an_old_bag(tmp_path: Path) -> None:
     assert len(blog.lasers) == 10
     # halfway between two transforms: 0.1 k + 0.05, and the laser 0.2 m ahead, turned round
     assert np.allclose(np.asarray(blog.lasers[3].laser_pose), [0.35 + 0.2, 0.0, math.pi])
+
+
+@needs_bags
+def test_garbage_between_chunks_is_passed_over(tmp_path: Path) -> None:
+    """Bytes that are no record (a damaged disk block): reading resumes at the next chunk."""
+    bag = built(tmp_path / "run.bag", None, n=60)
+    data = bag.read_bytes()
+    whole = read_records(bag, lambda ty: True)
+    starts, pos = [], 13                       # after "#ROSBAG V2.0\n": records
+    while pos < len(data):
+        n = int.from_bytes(data[pos:pos + 4], "little")
+        if b"op=\x05" in data[pos + 4:pos + 4 + n]:
+            starts.append(pos)
+        pos += 4 + n
+        pos += 4 + int.from_bytes(data[pos:pos + 4], "little")
+    assert len(starts) >= 3
+    start = starts[2]                           # the third chunk
+    damaged = tmp_path / "damaged.bag"
+    damaged.write_bytes(data[:start] + bytes(range(256)) * 2 + data[start:])
+    rec = read_records(damaged, lambda ty: True)
+    assert rec.messages == whole.messages
+    assert len(rec.lost) == 1 and rec.lost[0].startswith(f"bytes {start}-{start + 512}")
+    blog, info = read_bag(damaged)
+    assert info.reader.startswith("records in file order") and len(blog.lasers) == 60
