@@ -211,3 +211,55 @@ def test_bags_that_cannot_map_exit_2_with_one_line(tmp_path: Path) -> None:
         assert code == 2, (name, output)
         assert what in one_line_failure(output), (name, output)
 
+
+
+def test_a_vertical_scanner_is_not_taken_for_the_map(tmp_path: Path) -> None:
+    """Cartographer's backpack bags carry a horizontal and a vertical multi-echo scanner."""
+    m = Messages(False)
+    msgs = []
+    for k in range(30):
+        t = 10**9 + k * 10**8
+        _, _, _, scan = room_scan(m, t, 0.0)
+        ranges = np.asarray(scan.ranges)  # type: ignore[attr-defined]
+        s = Scan(t, -math.pi, 2 * math.pi / 360, 0.1, 10.0, ranges)
+        msgs.append(("/horizontal_laser_2d", "sensor_msgs/msg/MultiEchoLaserScan", t,
+                     m.multi_echo(s, [[float(r)] for r in ranges])))
+        for j in range(2):   # the vertical one sends more
+            msgs.append(("/vertical_laser_2d", "sensor_msgs/msg/MultiEchoLaserScan", t + j,
+                         m.multi_echo(s, [[1.0]] * 360)))
+    blog, info = read_bag(write_bag(tmp_path / "backpack.bag", msgs))
+    assert info.scan_topic == "/horizontal_laser_2d" and len(blog.lasers) == 30
+
+
+def test_fixed_joints_sent_on_tf_are_the_lasers_mount(tmp_path: Path) -> None:
+    """Before /tf_static, a robot's fixed joints went out on /tf with every update."""
+    m = Messages(False)
+    msgs = []
+    for k in range(20):
+        t = 10**9 + k * 10**8
+        msgs.append(("/tf", "tf2_msgs/msg/TFMessage", t, m.tf([
+            ("odom", "base_link", Pose(t, 0.05 * k, 0.0, 0.0)),
+            ("base_link", "laser", Pose(t, 0.15, 0.0, 0.0))])))
+        msgs.append(room_scan(m, t, 0.05 * k + 0.15))
+    blog, info = read_bag(write_bag(tmp_path / "old.bag", msgs))
+    assert info.odometry == "/tf (base_link in odom)"
+    assert info.laser_pose == [0.15, 0.0, 0.0]
+    assert info.laser_pose_from == "/tf_static and /tf transforms that never change"
+    assert np.allclose(np.asarray(blog.lasers[7].laser_pose), [0.5, 0.0, 0.0])
+
+
+def test_odometry_on_another_clock_gives_way_to_scan_matching(tmp_path: Path) -> None:
+    """Odometry stamped in simulated time beside scans stamped in wall time: nothing to
+    interpolate, so the scans give the odometry."""
+    m = Messages(True)
+    scans = [room_scan(m, 1_700_000_000 * 10**9 + k * 10**8, 0.05 * k) for k in range(21)]
+    odom = [("/odom", "nav_msgs/msg/Odometry", s[2],
+             m.odometry(Pose(5 * 10**9 + k * 10**8, 0.05 * k, 0.0, 0.0)))
+            for k, s in enumerate(scans)]
+    bag = write_bag(tmp_path / "clocks", sorted(scans + odom, key=lambda x: x[2]), "mcap")
+    code, output = slam_log(str(bag), "--out", str(tmp_path / "out"))
+    assert code == 0, output
+    s = summary(tmp_path / "out")
+    assert "the odometry's stamps miss the scans" in s["odometry_source"]
+    poses = np.loadtxt(tmp_path / "out" / "poses.txt")
+    assert np.allclose(poses[:, 1], 0.05 * np.arange(21), atol=0.02)

@@ -84,6 +84,7 @@ class _Collected:
     #: child frame -> (parent frame, pose of the child in the parent)
     static: dict[str, tuple[str, F64]] = field(default_factory=dict)
     dynamic: dict[str, list[Sample]] = field(default_factory=dict)
+    fixed: set[str] = field(default_factory=set)   # children of /tf links that never change
 
 
 def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: str | None,
@@ -98,11 +99,35 @@ def _choose(topics: dict[str, tuple[str, int]], types: tuple[str, ...], wanted: 
     found = {t: n for t, (ty, n) in topics.items() if ty in types}
     if not found:
         return None
-    best = max(found, key=lambda t: found[t])
+    # a scanner mounted on its side (Cartographer's backpack has one) is no use in 2D
+    level = {t: n for t, n in found.items() if "vertical" not in t.lower()} or found
+    best = max(level, key=lambda t: level[t])
     if len(found) > 1:
-        log.warning("several %s topics %s: using %s (the most messages)", what, sorted(found),
-                    best)
+        log.warning("several %s topics %s: using %s (the most messages%s)", what,
+                    sorted(found), best, ", not a vertical one" * (level != found))
     return best
+
+
+def _constant_links(got: _Collected) -> None:
+    """Transforms on /tf that never change are mounts: before /tf_static (ROS Hydro, 2013)
+    fixed joints were sent on /tf again and again."""
+    for child, samples in list(got.dynamic.items()):
+        poses = np.array([s[3] for s in samples])
+        parents = {s[2] for s in samples}
+        if child not in got.static and len(parents) == 1 and len(samples) > 1 and \
+                np.ptp(poses, axis=0).max() < 1e-9:
+            got.static[child] = (samples[0][2], poses[0])
+            got.fixed.add(child)
+            del got.dynamic[child]
+
+
+def _covers(samples: list[Sample], scans: list[LaserRecord], margin_s: float = 1.0) -> bool:
+    """Whether the odometry's stamps span most of the scans' (a bag whose odometry is stamped
+    on another clock, e.g. sim time beside wall time, has nothing to interpolate)."""
+    t = np.array([s[0] for s in samples])
+    stamps = np.array([r.stamp_s for r in scans])
+    inside = (stamps >= t.min() - margin_s) & (stamps <= t.max() + margin_s)
+    return bool(inside.mean() >= 0.5)
 
 
 def _collect(src: BagMessages, scan_topic: str, odom_topic: str | None, echo: Echo,
@@ -147,20 +172,20 @@ def _collect(src: BagMessages, scan_topic: str, odom_topic: str | None, echo: Ec
 
 
 def _mount(static: dict[str, tuple[str, F64]], start: str, base: str | None
-           ) -> tuple[str, F64]:
+           ) -> tuple[str, F64, list[str]]:
     """Walk the static transforms up from ``start`` (to ``base``, or to the first frame with
-    no static parent): that frame and the pose of ``start`` in it."""
+    no static parent): that frame, the pose of ``start`` in it, and the frames walked from."""
     pose = np.zeros(3)
-    seen = {start}
+    walked: list[str] = []
     at = start
     while at != base and at in static:
         parent, T = static[at]
         pose = compose(T, pose)
+        walked.append(at)
         at = parent
-        if at in seen:
+        if at in walked:
             raise BagError(f"/tf_static has a loop through {at!r}")
-        seen.add(at)
-    return at, pose
+    return at, pose, walked
 
 
 def _checked(samples: list[Sample], limits: OdometryLimits, what: str, path: Path
@@ -210,8 +235,9 @@ def read_bag(path: str | Path, scan_topic: str | None = None, odom_topic: str | 
         log.warning("%s: parts of the bag could not be read: %s", p, "; ".join(bag.lost[:3]))
     if not got.scans:
         raise BagError(f"{p}: the topic {scan} holds no readable scan")
+    _constant_links(got)
     samples: list[Sample] = []
-    base = _mount(got.static, got.scan_frame, None)[0]   # the top of the scans' static tree
+    base = _mount(got.static, got.scan_frame, None)[0]   # the top of the scans' fixed tree
     if got.odometry:
         samples, base = got.odometry, got.odom_child or base
         info.odometry = f"{odom} ({base} in {samples[0][2]})"
@@ -220,14 +246,22 @@ def read_bag(path: str | Path, scan_topic: str | None = None, odom_topic: str | 
         info.odometry = f"/tf ({base} in {samples[0][2]})"
     elif use_odometry and odom_topic is not None:
         raise BagError(f"{p}: the topic {odom_topic} holds no readable odometry")
+    if samples and not _covers(samples, got.scans):
+        log.warning("%s: the odometry of %s is stamped %.0f–%.0f s, the scans %.0f–%.0f s: "
+                    "taking odometry from the scans instead", p, info.odometry,
+                    min(s[0] for s in samples), max(s[0] for s in samples),
+                    got.scans[0].stamp_s, got.scans[-1].stamp_s)
+        samples, info.odometry = [], "none: scan matching (the odometry's stamps miss the scans)"
     T_base_laser = np.zeros(3)
     if samples:
         samples, check = _checked(samples, limits or OdometryLimits(), info.odometry, p)
         info.odometry_samples = len(samples) + check.skipped_total
         info.odometry_skipped = {k: int(v) for k, v in check.skipped.items()}
-        top, T = _mount(got.static, got.scan_frame, base)
+        top, T, walked = _mount(got.static, got.scan_frame, base)
         T_base_laser = _laser_pose(info, laser_pose, T if top == base else None,
                                    got.scan_frame, base, p)
+        if top == base and laser_pose is None and set(walked) & got.fixed:
+            info.laser_pose_from = "/tf_static and /tf transforms that never change"
     else:
         info.laser_pose_from = "not needed: scan-matched odometry is the laser's own"
     odometry = [OdometryRecord(text, t, pose, 0) for t, text, _, pose in samples]
