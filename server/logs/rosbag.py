@@ -241,11 +241,11 @@ def read_bag(path: str | Path, scan_topic: str | None = None, odom_topic: str | 
     if got.odometry:
         samples, base = got.odometry, got.odom_child or base
         info.odometry = f"{odom} ({base} in {samples[0][2]})"
+    elif use_odometry and odom_topic is not None:
+        raise BagError(f"{p}: the topic {odom_topic} holds no readable odometry")
     elif base in got.dynamic:
         samples = got.dynamic[base]
         info.odometry = f"/tf ({base} in {samples[0][2]})"
-    elif use_odometry and odom_topic is not None:
-        raise BagError(f"{p}: the topic {odom_topic} holds no readable odometry")
     if samples and not _covers(samples, got.scans):
         log.warning("%s: the odometry of %s is stamped %.0f–%.0f s, the scans %.0f–%.0f s: "
                     "taking odometry from the scans instead", p, info.odometry,
