@@ -72,9 +72,11 @@ def main() -> None:
                 omega_rps=0.2, ttl_s=0.5))
 
         server.subscribe(keys.robot_scan("r1"), Scan, on_scan)
+        # its log (stderr) into a file: a pipe nobody reads while it runs would fill and stall it
+        err_log = (tmp / "agent.log").open("wb")
         proc = subprocess.Popen([sys.executable, "-m", "mrslam.cli", "agent", "-c",
                                  str(tmp / "agent.yaml")], cwd=ROOT,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                stdout=subprocess.DEVNULL, stderr=err_log)
         try:
             time.sleep(a.warmup_s)
             n0, c0, t0 = len(scans), cpu_seconds(proc.pid), time.monotonic()
@@ -85,10 +87,12 @@ def main() -> None:
         finally:
             proc.terminate()
             try:
-                _, err = proc.communicate(timeout=15)
+                proc.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 proc.kill()
-                _, err = proc.communicate()
+                proc.wait()
+            err_log.close()
+            err = (tmp / "agent.log").read_bytes()
     lidar.close()
     mcu.close()
     cpu_percent = 100.0 * (c1 - c0) / (t1 - t0)

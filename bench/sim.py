@@ -102,7 +102,8 @@ def bench_lockstep(sim_s: float) -> dict[str, object]:
                                 str(out)], cwd=ROOT, env=env)
         time.sleep(1.0)
         agents = [subprocess.Popen([*exe, "agent", "--robot-id", f"r{i}", "--connect",
-                                    endpoint], cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+                                    endpoint], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
                   for i in range(1, 6)]
         try:
             sim.wait(timeout=600)

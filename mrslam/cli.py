@@ -98,20 +98,23 @@ def setup_logging(verbose: int, command: str = "", robot_id: str | None = None,
     """Configure the root logger once per process: Rich on a terminal, else plain dated lines
     that never wrap (a daemon's log file). Returns the filter that tags the process's robot.
 
-    Log lines go to standard output, as they always have (Rich's console): standard error
-    carries only the one-line failure of a command (``_fail``)."""
+    Log lines go to standard error, beside a command's one-line failure (``_fail``): standard
+    output is for a command's data (a benchmark's JSON, ``config``'s YAML), which a log line
+    must never break when it is redirected to a file."""
     import sys
 
     if terminal is None:
-        terminal = sys.stdout.isatty()
+        terminal = sys.stderr.isatty()
     handler: logging.Handler
     if terminal:
+        from rich.console import Console
         from rich.logging import RichHandler
 
-        handler = RichHandler(show_path=False, rich_tracebacks=False)
+        handler = RichHandler(console=Console(stderr=True), show_path=False,
+                              rich_tracebacks=False)
         handler.setFormatter(logging.Formatter("%(name)s%(robot)s: %(message)s", "[%X]"))
     else:
-        handler = logging.StreamHandler(sys.stdout)
+        handler = logging.StreamHandler(sys.stderr)
         handler.setFormatter(PlainFormatter())
     tag = RobotTag(robot_id)
     handler.addFilter(tag)
@@ -617,6 +620,8 @@ def lidar_dump(
 ) -> None:
     """Print sweeps of an RPLIDAR: `stamp_ns n angle_0 range_0 ...` (rad, m, no return = inf)."""
     setup_logging(verbose, "lidar-dump")
+    if not verbose:   # its failure line names the device's last problem; once is enough
+        logging.getLogger("robot_agent.drivers.rplidar").setLevel(logging.ERROR)
 
     def body() -> Any:
         from robot_agent.lidar_dump import run

@@ -1,5 +1,6 @@
-"""The daemons' log: plain dated lines that never wrap when it goes to a file; `--help` shows no
-value type after flags; the yaw of a pose on the command line says its unit."""
+"""The daemons' log: plain dated lines on stderr that never wrap when it goes to a file, nothing
+on stdout; `--help` shows no value type after flags; the yaw of a pose on the command line says
+its unit."""
 
 from __future__ import annotations
 
@@ -41,7 +42,9 @@ def test_a_daemon_writes_one_dated_line_per_line_and_never_wraps(
     except ValueError:
         log.exception("a failure")
     log.debug("not at the default level")
-    lines = capsys.readouterr().out.splitlines()
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
     assert lines and all(DATED.match(line) for line in lines), lines
     assert lines[0].endswith(long.strip()) and " INFO    server.some.module: a message" in lines[0]
     assert lines[1].endswith("server.some.module [r7]: the lookout turns")
@@ -54,7 +57,7 @@ def test_an_agent_names_its_robot_on_every_line(
         root_logging: None, capsys: pytest.CaptureFixture[str]) -> None:
     setup_logging(0, "agent", "r2", terminal=False)
     logging.getLogger("robot_agent.runtime").info("connected")
-    (line,) = capsys.readouterr().out.splitlines()
+    (line,) = capsys.readouterr().err.splitlines()
     assert DATED.match(line) and line.endswith("robot_agent.runtime [r2]: connected")
 
 
@@ -66,17 +69,20 @@ def test_daemons_log_info_by_default_the_tools_warnings() -> None:
     assert log_level("slam-log", 1) == logging.INFO
 
 
-def test_a_daemon_whose_stderr_is_a_file_logs_plain_lines(tmp_path: Path) -> None:
-    """The real process, its output a file (as in the demo's run folder): a line of 200
-    characters stays one line (Rich wrapped it at 80 columns)."""
-    err = tmp_path / "server.log"
+def test_a_daemon_whose_stderr_is_a_file_logs_plain_lines_there(tmp_path: Path) -> None:
+    """The real process, its stderr a file (as in the demo's run folder): a line of 200
+    characters stays one line (Rich wrapped it at 80 columns), and stdout, kept for data, gets
+    none of it."""
+    err, out = tmp_path / "server.log", tmp_path / "stdout"
     code = ("import logging, sys; from mrslam.cli import setup_logging; "
             "setup_logging(0, 'server'); "
             "logging.getLogger('server.daemon').info('x' * 200)")
-    with err.open("w") as f:
-        subprocess.run([sys.executable, "-c", code], stdout=f, check=True, timeout=60)
+    with err.open("w") as f, out.open("w") as g:
+        subprocess.run([sys.executable, "-c", code], stdout=g, stderr=f, check=True,
+                       timeout=60)
     (line,) = err.read_text().splitlines()
     assert DATED.match(line) and line.endswith("server.daemon: " + "x" * 200)
+    assert out.read_text() == ""
 
 
 def test_help_shows_no_value_type_after_flags_and_the_yaw_unit() -> None:
