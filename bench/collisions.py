@@ -26,7 +26,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
-#: the large house's five start poses (the package's scenario thesis-case-4)
+#: the large house's five start poses (the package's scenario large-house-5)
 STARTS = [(-23.0, -22.0, 0.0), (22.0, -22.0, math.pi), (22.0, 17.0, math.pi),
           (-5.0, 20.0, 0.0), (-21.0, 22.0, 0.0)]
 GOALS = {"collisions": 0}
@@ -57,7 +57,7 @@ def main() -> None:
 
     out = args.out or Path(tempfile.mkdtemp(prefix="mrslam-collisions-"))
     robots = spawns(args.gap)
-    report = run({"scenario": "thesis-case-4", "robots": {k: list(v) for k, v in robots.items()},
+    report = run({"scenario": "large-house-5", "robots": {k: list(v) for k, v in robots.items()},
                   "seed": args.seed, "out": str(out),
                   "max_sim_time_s": 3600.0 if args.full else args.max_sim_time,
                   "record": False, "wall_timeout_s": 5400,

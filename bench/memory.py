@@ -251,7 +251,7 @@ def main() -> None:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--only", choices=["logs", "mission"], default=None)
     ap.add_argument("--logs", nargs="+", default=list(LOGS))
-    ap.add_argument("--scenario", default="thesis-case-4")
+    ap.add_argument("--scenario", default="large-house-5")
     ap.add_argument("--robots", type=int, default=3)
     ap.add_argument("--sim-hours", type=float, default=2.0)
     ap.add_argument("--every-s", type=float, default=60.0)

@@ -96,7 +96,7 @@ class RunSpec:
     repeat: int = 1          # --runs: the how-many-th run of this group at this seed
     spurious: float = 0.0
     known_starts: bool = False
-    coordination: str = "optimal"
+    coordination: str = "joint"
     packaged: bool = False   # a scenario of the package's scenarios.yaml, not the dissertation's
 
     def demo_config(self, out: Path, max_sim_time_s: float) -> dict[str, Any]:
@@ -154,7 +154,7 @@ def plan_runs(cases: list[str], seeds: list[int], spurious: float = 0.0,
             if thesis_rule:
                 out.append(RunSpec(f"case-{case}-thesis-rule-seed{seed}",
                                    f"{case}-thesis-rule", case, "thesis-rule", seed,
-                                   coordination="thesis"))
+                                   coordination="greedy"))
         for name in scenarios:
             out.append(RunSpec(f"{name}-seed{seed}", name, name, "plain", seed, packaged=True))
             if spurious > 0:
@@ -199,7 +199,7 @@ def figures(r: dict[str, Any]) -> dict[str, Any]:
 
 
 def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
-        known_starts: bool = False, coordination: str = "optimal") -> dict[str, Any]:
+        known_starts: bool = False, coordination: str = "joint") -> dict[str, Any]:
     """One dissertation case as a demo run (raises on failure)."""
     spec = RunSpec(out.name, case, case, "plain", seed, spurious=spurious,
                    known_starts=known_starts, coordination=coordination)
@@ -696,7 +696,7 @@ def main(argv: list[str] | None = None) -> None:
                     "(one team from the start: what coordination alone gains)")
     ap.add_argument("--thesis-rule", action="store_true",
                     help="also run the team cases with the dissertation's target rule "
-                    "(--coordination thesis) instead of the optimal assignment")
+                    "(--coordination greedy) instead of the joint assignment")
     ap.add_argument("--seed", type=int, default=0, help="the one seed, without --seeds")
     ap.add_argument("--seeds", type=int, nargs="+", default=None,
                     help="run every case once per seed (the single-robot cases too)")

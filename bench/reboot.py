@@ -1,6 +1,6 @@
 """Reboot benchmark: a demo whose robot reboots mid-run; prints JSON.
 
-Runs ``mrslam demo`` (lockstep, ``--seed``) on thesis-case-2 and thesis-case-4 (``--scenario``
+Runs ``mrslam demo`` (lockstep, ``--seed``) on small-house-3 and large-house-5 (``--scenario``
 to pick), rebooting one robot's agent (``--robot``, default r2) once the simulation passes
 ``--at`` seconds (default 40): the demo kills the agent with SIGKILL and starts it again
 ``--down`` seconds (wall clock) later with its odometry back at zero, as a robot that lost
@@ -23,7 +23,7 @@ and, beside them, that every run still reaches its threshold without a false mer
 ``--baseline`` each scenario also runs uninterrupted (same seed), for the same robot's errors
 without a reboot.
 
-    python bench/reboot.py [--scenario thesis-case-2 ...] [--robot r2] [--at 40] [--down 3]
+    python bench/reboot.py [--scenario small-house-3 ...] [--robot r2] [--at 40] [--down 3]
                            [--seed 0] [--baseline] [--out DIR]
 """
 
@@ -47,7 +47,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 
 GOALS = {"placed_within_s": 10.0, "final_error_m": 0.15}
-SCENARIOS = ("thesis-case-2", "thesis-case-4")
+SCENARIOS = ("small-house-3", "large-house-5")
 #: wall-clock bound on one demo run [s]
 RUN_TIMEOUT_S = 1800.0
 PLACED = re.compile(r"placed again in its map by scan (\d+)")

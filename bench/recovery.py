@@ -270,7 +270,7 @@ def main() -> None:
     ap.add_argument("--rng-seed", type=int, default=0, help="seed of the kill times")
     ap.add_argument("--out", type=Path, default=None, help="keep the run folders here")
     ap.add_argument("--scenario", default=None,
-                    help="another scenario than the demo's default (e.g. thesis-case-4: the "
+                    help="another scenario than the demo's default (e.g. large-house-5: the "
                     "large house, five robots, a large state to resume)")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="mrslam-recovery-"))
@@ -285,7 +285,7 @@ def main() -> None:
     for k, at_s in enumerate(kill_times):
         run = out / f"killed-{k}"
         killed.append(score(run, demo(run, at_s, args.scenario), base_poses))
-    json.dump({"scenario": args.scenario or "thesis-case-2 (the demo's default)", "seed": 0,
+    json.dump({"scenario": args.scenario or "small-house-3 (the demo's default)", "seed": 0,
                "kills": args.kills, "window_s": list(args.window), "out": str(out),
                "goals": GOALS, "uninterrupted": base, "killed": killed,
                "goal_met": goal_met(base, killed)}, sys.stdout, indent=1)

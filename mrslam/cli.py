@@ -260,7 +260,7 @@ def agent(
 @app.command()
 def sim(
     config: ConfigOpt = None,
-    scenario: Annotated[str | None, typer.Option(help="scenario, e.g. thesis-case-2")] = None,
+    scenario: Annotated[str | None, typer.Option(help="scenario, e.g. small-house-3")] = None,
     world: Annotated[Path | None, typer.Option(help="world file (.world/.sdf/nav2 .yaml)")] = None,
     robot: Annotated[list[str] | None, typer.Option(
         help="robot spawn ID:X,Y[,YAW][:SENSOR]: metres, yaw in radians, sensor lidar "
@@ -318,8 +318,9 @@ def sim(
 
 @app.command()
 def demo(
+    config: ConfigOpt = None,
     scenario: Annotated[str | None, typer.Option(
-        help="scenario of scenarios.yaml (default thesis-case-2 unless --world is given)")] = None,
+        help="scenario of scenarios.yaml (default small-house-3 unless --world is given)")] = None,
     world: Annotated[Path | None, typer.Option(help="world file instead of a scenario")] = None,
     robot: Annotated[list[str] | None, typer.Option(
         help="robot spawn ID:X,Y[,YAW][:SENSOR]: metres, yaw in radians, sensor lidar "
@@ -329,32 +330,39 @@ def demo(
         help="area to cover [m²]: free space plus the wall faces bounding it; default: the "
         "world's")] = None,
     coverage: Annotated[float | None, typer.Option(help="coverage threshold (0..1]")] = None,
-    seed: Annotated[int, typer.Option(help="random seed")] = 0,
-    lockstep: Annotated[bool, typer.Option(
-        "--lockstep/--real-time", help="deterministic lockstep, or real time × --rtf")] = True,
-    rtf: Annotated[float, typer.Option(help="real-time factor with --real-time")] = 5.0,
-    explorer: Annotated[str, typer.Option(help="voronoi or frontier")] = "voronoi",
-    max_sim_time: Annotated[float, typer.Option(help="give up after this sim time [s]")
-                            ] = 3600.0,
-    spurious_detections: Annotated[float, typer.Option(
-        help="share of tag views drawn false by the simulator (0..1)")] = 0.0,
-    coordination: Annotated[str, typer.Option(
-        help="team targets: optimal (assignment on path costs) or thesis")] = "optimal",
-    merge: Annotated[bool, typer.Option("--merge/--no-merge",
-                                        help="merge maps at rendezvous")] = True,
-    known_starts: Annotated[bool, typer.Option(
-        "--known-starts", help="give the server the robots' start poses: one team from the "
-        "start")] = False,
-    record: Annotated[bool, typer.Option("--record/--no-record",
-                                         help="record the run into run.mcap")] = True,
+    seed: Annotated[int | None, typer.Option(help="random seed (default 0)")] = None,
+    lockstep: Annotated[bool | None, typer.Option(
+        "--lockstep/--real-time", help="deterministic lockstep (the default), or real time × "
+        "--rtf")] = None,
+    rtf: Annotated[float | None, typer.Option(
+        help="real-time factor with --real-time (default 5)")] = None,
+    explorer: Annotated[str | None, typer.Option(
+        help="voronoi (the default) or frontier")] = None,
+    max_sim_time: Annotated[float | None, typer.Option(
+        help="give up after this sim time [s] (default 3600)")] = None,
+    spurious_detections: Annotated[float | None, typer.Option(
+        help="share of tag views drawn false by the simulator (0..1, default 0)")] = None,
+    coordination: Annotated[str | None, typer.Option(
+        help="team targets: joint (the default: the free robots assigned together on path "
+        "costs) or greedy (each takes its cheapest target away from the others'; the "
+        "dissertation's rule)")] = None,
+    merge: Annotated[bool | None, typer.Option(
+        "--merge/--no-merge", help="merge maps at rendezvous (the default)")] = None,
+    known_starts: Annotated[bool | None, typer.Option(
+        "--known-starts/--unknown-starts", help="give the server the robots' start poses: one "
+        "team from the start (default: unknown)")] = None,
+    record: Annotated[bool | None, typer.Option(
+        "--record/--no-record", help="record the run into run.mcap (the default)")] = None,
     foxglove: FoxgloveOpt = None,
     console: ConsoleOpt = None,
-    server_restarts: Annotated[int, typer.Option(
-        help="restart a server that dies at most this many times (0: never)")] = 5,
+    server_restarts: Annotated[int | None, typer.Option(
+        help="restart a server that dies at most this many times (0: never; default 5)")
+    ] = None,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
-    """Start server, simulator and agents on loopback and explore a scenario or world."""
+    """Start server, simulator and agents on loopback and explore a scenario or world. The
+    options given replace the config file's keys (`mrslam config demo` lists them all)."""
     setup_logging(verbose, "demo")
     if out is not None:
         check_out("demo", out)
@@ -363,23 +371,16 @@ def demo(
         from mrslam.demo import run
         from sim.config import parse_robot_args
 
-        opts: dict[str, Any] = {"seed": seed, "lockstep": lockstep, "rtf": rtf,
-                                "explorer": explorer, "max_sim_time_s": max_sim_time,
-                                "spurious_detections": spurious_detections,
-                                "coordination": coordination, "merge": merge,
-                                "known_starts": known_starts,
-                                "record": record, "server_restarts": server_restarts}
-        if world is not None:
-            opts.update(world=str(world), scenario=scenario)
-        elif scenario is not None:
-            opts["scenario"] = scenario
+        given = {"scenario": scenario, "world": str(world) if world else None,
+                 "area_m2": area, "coverage": coverage, "seed": seed, "lockstep": lockstep,
+                 "rtf": rtf, "explorer": explorer, "max_sim_time_s": max_sim_time,
+                 "spurious_detections": spurious_detections, "coordination": coordination,
+                 "merge": merge, "known_starts": known_starts, "record": record,
+                 "server_restarts": server_restarts, "out": str(out) if out else None}
+        opts: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         if robot:
             opts["robots"], opts["sensors"] = parse_robot_args(robot)
-        for k, v in (("area_m2", area), ("coverage", coverage),
-                     ("out", str(out) if out else None)):
-            if v is not None:
-                opts[k] = v
-        report = run(opts, foxglove_port=foxglove, console_port=console)
+        report = run(opts, foxglove_port=foxglove, console_port=console, config=config)
         if report.get("stopped_by"):   # as a shell reports a command a signal ended
             import signal
 

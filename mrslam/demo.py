@@ -16,13 +16,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import yaml
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from mrslam.console_shot import ConsoleShot
 from mrslam.launch import GroupClosed, Proc, ProcessGroup
 from mrslam.reboots import Reboots
 from mrslam.supervise import Exit, RestartPolicy, Supervisor
-from schemas.config import ConfigModel, Finite
+from schemas.config import ConfigModel, Coordination, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
 from schemas.stopping import SignalStop
 from sim.config import SensorKind
@@ -44,7 +44,7 @@ class DemoConfig(ConfigModel):
     """Everything a demo run is made of; saved as ``demo_config.yaml`` in the run folder."""
 
     scenario: str | None = Field(
-        "thesis-case-2", description="a case of scenarios_file: world, robots, area, threshold and "
+        "small-house-3", description="a case of scenarios_file: world, robots, area, threshold and "
         "controller settings")
     scenarios_file: str | None = Field(
         None, description="where the scenario is defined; default: the cases that ship with "
@@ -83,8 +83,8 @@ class DemoConfig(ConfigModel):
         None, description="pure pursuit look-ahead; default: the scenario's, else 1.0")
     spurious_detections: float = Field(0.0, ge=0, le=1, description="share of tag views "
                                        "the simulator draws false (merge verification test)")
-    coordination: Literal["optimal", "thesis"] = Field(
-        "optimal", description="team targets: optimal or thesis (the server's teams.coordination)")
+    coordination: Coordination = Field(
+        "joint", description="team targets: joint or greedy (the server's teams.coordination)")
     merge: bool = Field(True, description="False: robots never merge their maps")
     known_starts: bool = Field(False, description="tell the server where the robots start: "
                                "one team from the first scan (no rendezvous needed)")
@@ -119,17 +119,29 @@ class DemoConfig(ConfigModel):
         "server's endpoint: {r2: tcp/127.0.0.1:PORT} (a relay in front of the server, to try "
         "a slow or bursty link)")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _world_without_scenario(cls, data: Any) -> Any:
+        """A world given without a scenario is run without one (not with the default
+        scenario's robots and settings)."""
+        if isinstance(data, dict) and data.get("world") and "scenario" not in data:
+            return {**data, "scenario": None}
+        return data
+
 
 def run(overrides: dict[str, Any] | None = None, progress: bool = True,
-        foxglove_port: int | None = None, console_port: int | None = None) -> dict[str, Any]:
-    """Run one demo; returns the report (also written to ``<out>/report.json``).
+        foxglove_port: int | None = None, console_port: int | None = None,
+        config: str | Path | None = None) -> dict[str, Any]:
+    """Run one demo; returns the report (also written to ``<out>/report.json``). ``config``:
+    a YAML file of ``DemoConfig`` keys (a run folder's ``demo_config.yaml`` repeats that
+    run), which ``overrides`` replace key by key.
     ``foxglove_port``: serve the run live to Foxglove on that loopback port (the recorder
     serves it, else the server). ``console_port``: the server serves the operator console
     there (0: a free port); its address is printed, and a screenshot of the page at the end
     goes to ``<out>/console.png``."""
     from rich.console import Console
 
-    cfg = load_config(DemoConfig, overrides=overrides or {}, environ={})  # bad values: ConfigError
+    cfg = load_config(DemoConfig, config, overrides or {}, environ={})  # bad: ConfigError
     if not cfg.out:
         name = cfg.scenario or Path(cfg.world or "world").stem
         cfg.out = str(Path("runs") / time.strftime(f"{name}-%Y%m%d-%H%M%S"))

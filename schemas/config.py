@@ -3,17 +3,38 @@ of each process's config)."""
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from schemas.bus import DEFAULT_MAX_MESSAGE_SIZE
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7447
 LOOPBACK_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 
 #: a config number that must be finite (NaN or inf would pass a range check unnoticed)
 Finite = Annotated[float, Field(allow_inf_nan=False)]
+
+#: what the coordination modes (``server.coordination``) were called before they were named
+#: for what they do: ``optimal`` was never optimal, ``thesis`` is the dissertation's greedy rule
+COORDINATION_ALIASES = {"optimal": "joint", "thesis": "greedy"}
+
+
+def _coordination(value: object) -> object:
+    """A coordination mode's old name becomes its new one, with a note in the log."""
+    new = COORDINATION_ALIASES.get(value) if isinstance(value, str) else None
+    if new is None:
+        return value
+    log.warning("coordination %r is called %r now; the old name still works", value, new)
+    return new
+
+
+#: how a team's robots share out targets: ``joint`` assigns the free robots together on path
+#: costs, ``greedy`` lets each take its cheapest target away from the others' goals
+Coordination = Annotated[Literal["joint", "greedy"], BeforeValidator(_coordination)]
 
 
 class ConfigModel(BaseModel):

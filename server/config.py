@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import Field, model_validator
 
-from schemas.config import DEFAULT_PORT, BusConfig, ConfigModel, Finite
+from schemas.config import DEFAULT_PORT, BusConfig, ConfigModel, Coordination, Finite
 from server.slam.config import GridConfig, SlamConfig
 
 
@@ -161,11 +161,13 @@ class TeamsConfig(ConfigModel):
     start_pose_sigma_m: float = Field(0.05, gt=0.0, description="how well the start poses "
                                       "are known")
     start_pose_sigma_deg: float = Field(1.0, gt=0.0, description="... and in heading")
-    coordination: Literal["optimal", "thesis"] = Field(
-        "optimal", description="team targets by optimal assignment on path costs, or the "
-        "greedy rule (each next robot: cheapest target ≥ 2 m from the others' goals)")
+    coordination: Coordination = Field(
+        "joint", description="team targets: joint (the team's free robots assigned together "
+        "on path costs, their targets kept apart) or greedy (the dissertation's rule: each "
+        "robot takes its cheapest target ≥ 2 m from the others' goals); the old names optimal "
+        "and thesis still work")
     sensor_weight: float = Field(
-        2.0, ge=0.0, description="optimal assignment: a robot's cost of a target grows by "
+        2.0, ge=0.0, description="joint coordination: a robot's cost of a target grows by "
         "this × how much farther the nearest mapped wall is than its sensor sees, so the "
         "long-range robots take open space and the short-range ones rooms (0: off)")
 

@@ -4,11 +4,13 @@
 that robot needs a target, teammates still heading for an open target keep it (their goals are
 reserved); the robot and every teammate without a target are assigned jointly:
 
-- ``optimal``: minimum total path cost over the team's cost matrix (Hungarian method), with
-  the robots' targets kept the reserve radius apart while each has another to go to; a robot
+- ``joint``: the free robots are assigned together: the minimum total path cost over the
+  team's cost matrix (Hungarian method), then, where two targets lie within the reserve radius,
+  the robot whose giving way costs the team less moves on (``assign_spread``: a heuristic,
+  not an optimum of the whole problem); a robot
   whose sensor sees less far than a target's nearest mapped wall pays for the difference
   (``walls_beyond_reach``), so open space goes to the long-range robots;
-- ``thesis``: the dissertation's rule — the robot takes its cheapest target at least the
+- ``greedy``: the dissertation's rule — the robot takes its cheapest target at least the
   reserve radius (2 m) from the others' goals.
 
 Teammates that received a target this way are redirected at once. A robot left without a
@@ -79,8 +81,8 @@ class TeamExplorer:
     """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
 
     def __init__(self, base: Explorer, robot_id: str, members: Callable[[], Sequence[Member]],
-                 mode: str = "optimal", sensor_weight: float = 2.0) -> None:
-        if mode not in ("optimal", "thesis"):
+                 mode: str = "joint", sensor_weight: float = 2.0) -> None:
+        if mode not in ("joint", "greedy"):
             raise ValueError(f"unknown coordination {mode!r}")
         self.base = base
         self.robot_id = robot_id
@@ -109,7 +111,7 @@ class TeamExplorer:
         others = [m for m in team if m.robot_id != self.robot_id]
         committed = np.array([m.nav.target_xy for m in others if m.nav.target_xy is not None],
                              dtype=np.float64).reshape(-1, 2)
-        if self.mode == "thesis":
+        if self.mode == "greedy":
             return self._alone(grid, robot_pose, start_pose, visited, committed)
         free = [i for i, m in enumerate(team)
                 if i == me or (m.nav.target_xy is None and m.nav.mode != NavMode.DONE)]

@@ -15,7 +15,7 @@ from schemas.textfile import UnreadableFile, read_yaml
 from schemas.types import ID_PATTERN
 from sim.errors import SimError
 
-#: The dissertation's four cases in our own worlds, shipped with the package.
+#: The scenarios that ship with the package, in its own worlds (not the dissertation's).
 DEFAULT_SCENARIOS = Path(__file__).resolve().parent / "worlds" / "scenarios.yaml"
 Pose = tuple[float, float, float]
 
@@ -243,6 +243,8 @@ def _sensors(v: object, scenario: str) -> dict[str, str]:
 
 
 def load_scenario(path: Path, name: str) -> dict[str, object]:
+    """The case ``name`` of a scenarios file; a name the file lists under ``renamed`` fails
+    with its new name."""
     try:
         data = read_yaml(path, "scenarios are YAML text")
     except UnreadableFile as e:
@@ -251,6 +253,11 @@ def load_scenario(path: Path, name: str) -> dict[str, object]:
     if not isinstance(cases, dict):
         raise SimError(f"{path}: expected a 'cases' mapping")
     case = cases.get(name)
+    renamed = data.get("renamed") or {}
+    if case is None and isinstance(renamed, dict) and name in renamed:
+        raise SimError(f"scenario {name!r} is called {renamed[name]!r} now: mrslam's own "
+                       f"building with the poses and settings of the dissertation's {name}, "
+                       "not the dissertation's world (that one is in its own scenarios file)")
     if not isinstance(case, dict) or "world" not in case or not isinstance(
             case.get("robots"), dict):
         known = ", ".join(sorted(str(k) for k in cases))

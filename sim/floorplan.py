@@ -2,7 +2,8 @@
 
 The dissertation's figures are kept as facts: a small house of 20 × 20 m and a large one of
 50 × 50 m, both centred on the origin, walls 0.15 m thick and 2.5 m high, and the spawn poses of
-its four cases (``sim/worlds/scenarios.yaml``). The rooms, doors and corridors are our own.
+its four cases, which the house scenarios of ``sim/worlds/scenarios.yaml`` take. The rooms,
+doors and corridors are our own, so these are not the dissertation's worlds.
 A third world, ``ambiguous_wings`` (30 × 30 m), is ours alone: a self-similar building for
 testing that maps are not merged on a look-alike (see docs/ambiguous-world.md).
 
@@ -116,7 +117,7 @@ def large_house() -> Plan:
         hwall(-1.5, 4.0, c, doors=(7.0, 19.0), width_m=d),
         Wall((-1.5, 4.0), (-4.0, 1.5)), Wall((1.5, 4.0), (4.0, 1.5)),
         Wall((-1.5, -4.0), (-4.0, -1.5)), Wall((1.5, -4.0), (4.0, -1.5)),
-        # north-west wing: r5 in the outer room, r4 (and case 3's robot) beside it
+        # north-west wing: r5 in the outer room, r4 (and large-house-1's robot) beside it
         hwall(13.0, -c, -1.5, doors=(-19.0, -7.0), width_m=d),
         vwall(-13.0, 1.5, c, doors=(7.0, 19.0), width_m=d),
         # north-east wing: r3 in the outer room; a slanted partition, a long room with pillars

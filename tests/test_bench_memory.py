@@ -15,7 +15,7 @@ def test_a_short_mission_prints_memory_against_time_and_keyframes_on_disk(
         tmp_path: Path) -> None:
     proc = subprocess.run(
         [sys.executable, str(ROOT / "bench" / "memory.py"), "--only", "mission",
-         "--scenario", "thesis-case-2", "--robots", "1", "--sim-hours", "0.01",
+         "--scenario", "small-house-3", "--robots", "1", "--sim-hours", "0.01",
          "--every-s", "12", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=600, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]

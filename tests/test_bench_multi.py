@@ -65,7 +65,7 @@ def test_the_plan_runs_every_case_once_per_seed_and_the_single_robot_once_if_ask
     assert amb.packaged and amb.spurious == 0.2
     assert amb.demo_config(Path("/x"), 60.0) == {
         "seed": 1, "out": "/x", "spurious_detections": 0.2, "max_sim_time_s": 60.0,
-        "known_starts": False, "coordination": "optimal", "wall_timeout_s": 5400,
+        "known_starts": False, "coordination": "joint", "wall_timeout_s": 5400,
         "scenario": "ambiguous-2"}
     thesis = next(s for s in specs if s.key == "case-2-seed2").demo_config(Path("/x"), 60.0)
     assert thesis["scenario"] == "thesis-case-2" and "scenarios_file" in thesis

@@ -78,6 +78,29 @@ def test_demo_with_a_value_out_of_range_says_which_and_exits_2() -> None:
     assert "coverage" in res.output and "less than or equal to 1" in res.output
 
 
+def test_demo_takes_a_config_file_and_the_options_given_replace_its_keys(
+        tmp_path: Path) -> None:
+    """``mrslam demo --config FILE`` as every other command; each case fails before a run
+    starts, in one line that shows which value won."""
+    def demo(cfg: dict[str, object], *args: str) -> str:
+        f = tmp_path / "demo.yaml"
+        f.write_text(yaml.safe_dump(cfg))
+        res = CliRunner().invoke(app, ["demo", "--config", str(f), *args])
+        assert res.exit_code == 2, res.output
+        assert len(res.output.strip().splitlines()) == 1, res.output
+        return res.output
+
+    assert "no scenario 'no-such-case'" in demo({"scenario": "no-such-case"})
+    # an option on the command line replaces the file's key ...
+    assert "'thesis-case-2' is called 'small-house-3' now" in demo(
+        {"scenario": "no-such-case"}, "--scenario", "thesis-case-2")
+    # ... and one left out does not put its default over the file's
+    out = demo({"rtf": -1.0})
+    assert "rtf" in out and "demo.yaml" in out
+    # a world without a scenario runs without the default scenario's robots
+    assert "no robots" in demo({"world": "sim/worlds/small_house.world"})
+
+
 def test_unbuilt_command_exits_2_with_message(capsys: pytest.CaptureFixture[str]) -> None:
     def not_built() -> None:
         raise NotImplementedError

@@ -73,7 +73,7 @@ def team(mode: str) -> tuple[TeamExplorer, list[Member]]:
                         mode), members
 
 
-@pytest.mark.parametrize("mode", ["optimal", "thesis"])
+@pytest.mark.parametrize("mode", ["joint", "greedy"])
 def test_a_robot_whose_only_target_is_a_teammates_goes_there_too(mode: str) -> None:
     grid = one_open_end()
     ex, members = team(mode)
@@ -90,7 +90,7 @@ def test_a_robot_whose_only_target_is_a_teammates_goes_there_too(mode: str) -> N
 def test_a_team_with_nothing_open_is_finished() -> None:
     grid = one_open_end()
     grid.data[29:46, 110] = 100                       # both ends walled
-    ex, members = team("optimal")
+    ex, members = team("joint")
     members[0].nav.target_xy = (10.5, 3.75)
     got = ex.decide(grid, members[1].pose, members[1].start_pose, VisitedTargets())
     assert isinstance(got, Finished)
@@ -118,3 +118,20 @@ def test_open_space_goes_to_the_long_range_robot_and_the_room_to_the_short_range
     assert walls_beyond_reach(grid, targets, [8.0, 12.0], 2.0)[:, 0].tolist() == \
         pytest.approx([2 * 1.95, 0.0], abs=0.1)
     assert not walls_beyond_reach(grid, targets, [10.0, 3.0], 0.0).any()
+
+
+def test_the_modes_old_names_still_configure_a_server_and_a_demo(
+        caplog: pytest.LogCaptureFixture) -> None:
+    """``optimal`` (never optimal) and ``thesis`` (the dissertation's greedy rule) were the
+    modes' names before; config files in the wild still say so."""
+    from mrslam.demo import DemoConfig
+    from server.config import ServerConfig
+
+    for old, new in (("optimal", "joint"), ("thesis", "greedy")):
+        assert ServerConfig.model_validate(
+            {"teams": {"coordination": old}}).teams.coordination == new
+        assert DemoConfig.model_validate({"coordination": old}).coordination == new
+        assert f"coordination {old!r} is called {new!r} now" in caplog.text
+    assert ServerConfig().teams.coordination == DemoConfig().coordination == "joint"
+    with pytest.raises(ValueError, match=r"joint.*greedy"):
+        DemoConfig.model_validate({"coordination": "best"})

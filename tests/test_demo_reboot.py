@@ -57,7 +57,7 @@ def test_the_server_tells_when_a_robot_back_after_a_reboot_is_placed_again() -> 
 def test_a_robot_rebooted_mid_run_is_placed_again_and_the_run_goes_on(tmp_path: Path) -> None:
     from mrslam.demo import run
 
-    report = run({"scenario": "thesis-case-2", "reboot": {"r2": 30.0}, "reboot_s": 2.0,
+    report = run({"scenario": "small-house-3", "reboot": {"r2": 30.0}, "reboot_s": 2.0,
                   "record": False, "max_sim_time_s": 200, "wall_timeout_s": 150,
                   "out": str(tmp_path / "run")}, progress=False)
     [rb] = report["agent_reboots"]

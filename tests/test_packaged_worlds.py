@@ -17,12 +17,15 @@ import yaml
 from schemas.occupancy import FREE
 from sim import floorplan
 from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
+from sim.errors import SimError
 from sim.grid import OccupancyGrid, rasterise
 from sim.loader import load_world
 from sim.world import World
 from tests.conftest import DATA
 
-CASES = ["thesis-case-1", "thesis-case-2", "thesis-case-3", "thesis-case-4"]
+#: the house scenarios, and the dissertation's case whose poses and settings each takes
+CASES = {"small-house-1": "thesis-case-1", "small-house-3": "thesis-case-2",
+         "large-house-1": "thesis-case-3", "large-house-5": "thesis-case-4"}
 SIZE_M = {"small_house.world": 20.0, "large_house.world": 50.0}
 RESOLUTION_M = 0.05
 
@@ -75,7 +78,7 @@ def assert_every_room_reachable(grid: OccupancyGrid, robots: dict[str, Any],
     assert (grown & free).sum() >= 0.995 * free.sum()
 
 
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", sorted(CASES))
 def test_each_case_spawns_in_free_space_of_a_closed_connected_house(case: str) -> None:
     world_path, robots = resolve_scene(SimConfig(scenario=case))
     world = load_world(world_path)
@@ -96,13 +99,28 @@ def test_each_case_spawns_in_free_space_of_a_closed_connected_house(case: str) -
 
 
 @pytest.mark.skipif(not (DATA / "worlds" / "thesis").is_dir(), reason="no ../shared/data")
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", sorted(CASES))
 def test_the_cases_keep_the_dissertations_poses_areas_and_settings(case: str) -> None:
     ours = load_scenario(DEFAULT_SCENARIOS, case)
-    theirs = load_scenario(DATA / "worlds" / "thesis" / "scenarios.yaml", case)
+    assert ours["settings_from"] == CASES[case]
+    theirs = load_scenario(DATA / "worlds" / "thesis" / "scenarios.yaml", CASES[case])
     for key in ("robots", "total_area_m2", "coverage_threshold", "grid_cells_per_m", "lambda",
                 "v_mps", "omega_max_rps", "lookahead_m"):
         assert ours[key] == theirs[key], key
     assert "reported" not in ours   # its figures were measured in its worlds, not ours
     cases = yaml.safe_load(DEFAULT_SCENARIOS.read_text())["cases"]
     assert set(CASES) <= set(cases)   # (the package also ships worlds of its own)
+    # the dissertation's names stay with the dissertation's worlds
+    assert not any(name.startswith("thesis-case") for name in cases)
+
+
+def test_an_old_name_fails_with_the_new_one() -> None:
+    """A name the packaged houses had when they were named after the dissertation's cases
+    fails in one line naming the new one: run under the old name, our building would pass
+    for the dissertation's."""
+    renamed = yaml.safe_load(DEFAULT_SCENARIOS.read_text())["renamed"]
+    assert renamed == {v: k for k, v in CASES.items()}
+    for old, new in renamed.items():
+        with pytest.raises(SimError, match=f"'{old}' is called '{new}' now") as e:
+            load_scenario(DEFAULT_SCENARIOS, old)
+        assert "\n" not in str(e.value)

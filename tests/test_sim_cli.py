@@ -25,7 +25,7 @@ def test_sim_process_runs_a_scenario_standalone_and_writes_truth(tmp_path: Path,
                                                                  endpoint: str) -> None:
     out = tmp_path / "run"
     res = subprocess.run(
-        [sys.executable, "-m", "mrslam.cli", "sim", "--scenario", "thesis-case-2", "--listen",
+        [sys.executable, "-m", "mrslam.cli", "sim", "--scenario", "small-house-3", "--listen",
          endpoint, "--rtf", "50", "--duration", "1.0", "--seed", "3", "--out", str(out)],
         cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
@@ -45,7 +45,9 @@ def test_sim_process_runs_a_scenario_standalone_and_writes_truth(tmp_path: Path,
     (["--robot", "r/1:1,2"], "does not match"),
     (["--scenario", "no-such-case"], "no scenario 'no-such-case'"),
     (["--world", "/nonexistent.world", "--robot", "r1:0,0"], "no such world file"),
-    (["--scenario", "thesis-case-1", "--robot", "r1:0,9.9,0"], "spawn inside or touching"),
+    (["--scenario", "small-house-1", "--robot", "r1:0,9.9,0"], "spawn inside or touching"),
+    # the packaged houses were once named after the dissertation's cases, which they are not
+    (["--scenario", "thesis-case-4"], "'thesis-case-4' is called 'large-house-5' now"),
 ])
 def test_sim_expected_failures_exit_2_with_one_line(args: list[str], message: str) -> None:
     res = CliRunner().invoke(app, ["sim", *args])
@@ -58,9 +60,9 @@ def test_robot_specs_and_scenes() -> None:
     with pytest.raises(SimError):
         parse_robot_spec("r2")
     # by default the cases that ship with the package, in our own worlds
-    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4"))
+    world, robots = resolve_scene(SimConfig(scenario="large-house-5"))
     assert world.name == "large_house.world" and world.is_file() and len(robots) == 5
-    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4",
+    world, robots = resolve_scene(SimConfig(scenario="large-house-5",
                                             robots={"r9": (0.0, 0.0, 0.0)}))
     assert list(robots) == ["r9"]
     # the dissertation's worlds when its scenarios file is named

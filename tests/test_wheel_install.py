@@ -52,7 +52,7 @@ def test_a_wheel_installed_elsewhere_runs_the_demo_in_its_own_worlds(tmp_path: P
     wheel = build_wheel(tmp_path)
     with zipfile.ZipFile(wheel) as z:
         assert set(z.namelist()) >= WORLD_FILES
-        assert b"thesis-case-4" in z.read("sim/worlds/scenarios.yaml")
+        assert b"large-house-5" in z.read("sim/worlds/scenarios.yaml")
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
@@ -79,7 +79,7 @@ def test_a_wheel_installed_elsewhere_runs_the_demo_in_its_own_worlds(tmp_path: P
                          cwd=empty, env=env, capture_output=True, text=True, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
-    assert report["scenario"] == "thesis-case-2" and report["reached"]
+    assert report["scenario"] == "small-house-3" and report["reached"]
     assert Path(report["world"]).is_relative_to(venv)          # the packaged world
     assert Path(report["world"]).name == "small_house.world"
     robots = report["robots"].values()

@@ -1,6 +1,6 @@
 """Load generation for ``bench/load.py``: recorded robot tracks and the processes replaying them.
 
-``make_tracks`` drives the robots of the large-house scenario (thesis case 4, the simulator's own
+``make_tracks`` drives the robots of the scenario large-house-5 (the package's own
 world, LIDAR and odometry noise) with a simple reactive wanderer for a while and keeps each step's
 LIDAR ranges (uint16 mm, as the wire carries them) and wheel odometry. That is done once per bench
 run; replaying it costs a struct and an encode per scan.
@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-TRACK_SCENARIO = "thesis-case-4"   # the large house, five spawn poses far apart
+TRACK_SCENARIO = "large-house-5"   # the large house, five spawn poses far apart
 
 
 @dataclass
