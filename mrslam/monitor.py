@@ -110,7 +110,7 @@ class Monitor:
                console: Any, progress: bool) -> str:
         """Block until the run ends; returns why: finished, sim-ended, server-died, timeout,
         stopped (the monitor's ``stop`` was set: a signal). A server that dies is restarted
-        by ``server`` while the run goes on."""
+        by ``server`` while the run goes on. The progress bar's last line says how it ended."""
         from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
         columns = [TextColumn("[bold]coverage"), BarColumn(), TextColumn("{task.fields[cov]}"),
@@ -119,23 +119,47 @@ class Monitor:
         t0 = time.monotonic()
         with Progress(*columns, console=console, disable=not progress, transient=False) as bar:
             task = bar.add_task("run", total=threshold, cov="0.0%", sim="0 s", robots="")
-            while not self.stop.is_set():
+            while True:
+                # a stop signal is heeded before the server is polled (which may restart it)
+                state = None if self.stop.is_set() else server.poll(self.sim_time_s)
+                why = self._ended(state, sim, time.monotonic() - t0 > wall_timeout_s)
                 cov = self.coverage()
-                state = server.poll(self.sim_time_s)
-                robots = (self._robot_line() if state == "running"
-                          else f"server restarting ({server.restarts} so far)")
                 bar.update(task, completed=min(cov, threshold), cov=f"{cov:.1%}",
-                           sim=f"{self.sim_time_s:.0f} s", robots=robots)
-                if state == "done":
-                    return "finished"
-                if state == "failed":
-                    return "server-died"
-                if not sim.alive():
-                    return "sim-ended"
-                if time.monotonic() - t0 > wall_timeout_s:
-                    return "timeout"
+                           sim=f"{self.sim_time_s:.0f} s",
+                           robots=self._status(state, why, server.restarts, wall_timeout_s))
+                if why is not None:
+                    return why
                 self.stop.wait(0.25)
-        return "stopped"
+
+    def _ended(self, state: str | None, sim: Proc, timed_out: bool) -> str | None:
+        """Why the run is over (see ``follow``), or None while it goes on."""
+        if state is None:
+            return "stopped"
+        if state == "done":
+            return "finished"
+        if state == "failed":
+            return "server-died"
+        if not sim.alive():
+            return "sim-ended"
+        return "timeout" if timed_out else None
+
+    def _status(self, state: str | None, why: str | None, restarts: int,
+                wall_timeout_s: float) -> str:
+        """The bar's last column: the robots' modes while the run goes on, then its end."""
+        robots = self._robot_line()
+        if why == "finished":
+            return f"run finished: {robots}"
+        if why == "server-died":
+            return f"run ended: the server died for good ({restarts} restart(s) spent)"
+        if why == "sim-ended":
+            return f"run ended: the simulator stopped first; {robots}"
+        if why == "timeout":
+            return f"run given up after {wall_timeout_s:.0f} s wall; {robots}"
+        if why == "stopped":
+            return "run stopped"
+        if state == "restarting":
+            return f"server restarting ({restarts} so far)"
+        return robots
 
     def _robot_line(self) -> str:
         s = self.states
