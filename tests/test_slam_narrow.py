@@ -84,7 +84,7 @@ def test_a_depth_robot_matches_against_its_lidar_teammates_map() -> None:
     core, worst = run({"r1": "lidar", "r2": "depth"}, 40.0)
     r1, r2 = core.fleet.robots["r1"].slam, core.fleet.robots["r2"].slam
     assert r2.graph is r1.graph and r2.narrow and not r1.narrow
-    local = r2._local_map
+    local = r2.local_map
     assert local is not None
     own, _ = gather(r2.keyframes, r2.keyframe_poses())
     mate, _ = gather(r1.keyframes, r1.keyframe_poses())

@@ -128,3 +128,14 @@ def match_scan(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
         return FrontendMatch(along_odometry(best, T_pred), MatchKind.DEGENERATE,
                              best.information, best.inlier_fraction)
     return FrontendMatch(best.T_map_scan, kind, best.information, best.inlier_fraction)
+
+
+def match_step(scan: ScanPoints, target: PointMap, T_pred: F64, T_last: F64,
+               T_step_velocity: F64, T_step_odom: F64, cfg: MatcherConfig, params: IcpParams,
+               narrow: bool = False) -> FrontendMatch:
+    """``match_scan`` for a scan one odometry step ``T_step_odom`` after the last, with that
+    step's prior (a narrow sensor's, from its smaller base, when ``narrow``) if
+    ``use_odometry_prior``."""
+    prior = odometry_prior(T_step_odom, cfg, narrow) if cfg.use_odometry_prior else None
+    return match_scan(scan, target, T_pred, T_last, T_step_velocity,
+                      odometry_step_suspicious(T_step_odom, cfg), cfg, params, prior)

@@ -1,14 +1,16 @@
-"""Keyframes and the point maps built from them (in the map frame or a keyframe's frame)."""
+"""Keyframes, the point maps built from them (in the map frame or a keyframe's frame), and
+which of them are near a pose."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import between
+from schemas.se2 import between, wrap_angle
 from server.slam.icp import PointMap
 from server.slam.render_store import RenderScan
 from server.slam.scan import ScanPoints
@@ -142,3 +144,24 @@ def points_in_frame(keyframes: Sequence[Keyframe], T_map_kf: F64, T_map_frame: F
         pts, nrm = pts[keep], nrm[keep]
     p, n = voxel_thin(pts, voxel_m, nrm)
     return p, n
+
+
+def nearest_keyframes(T_map_kf: F64, index: int, n: int) -> NDArray[np.int64]:
+    """Indices of the ``n`` keyframes (poses ``T_map_kf``, (K, 3)) nearest keyframe ``index``,
+    itself included, in keyframe order (ties: the earlier)."""
+    d = np.hypot(*(T_map_kf[:, :2] - T_map_kf[index, :2]).T)
+    return np.sort(np.argsort(d, kind="stable")[:n])
+
+
+def reusable_keyframe(T_map_kf: F64, T_map_robot: F64, anchor: int, reuse_m: float,
+                      reuse_deg: float) -> int | None:
+    """The keyframe other than ``anchor`` nearest the robot, within ``reuse_m`` of it and
+    facing within ``reuse_deg`` of its heading: where the robot passes again, the pipeline
+    goes on from it instead of adding a keyframe (``keyframes.reuse``). None if none is."""
+    d = np.hypot(T_map_kf[:, 0] - T_map_robot[0], T_map_kf[:, 1] - T_map_robot[1])
+    turn = np.abs(wrap_angle(T_map_kf[:, 2] - T_map_robot[2]))
+    ok = (d <= reuse_m) & (turn <= math.radians(reuse_deg))
+    ok[anchor] = False
+    if not ok.any():
+        return None
+    return int(np.flatnonzero(ok)[np.argmin(d[ok])])

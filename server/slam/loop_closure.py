@@ -36,6 +36,13 @@ FIELD_CACHE = 24
 LOOP_EDGE_LENGTH_M = 0.1
 
 
+def edge_length_m(T_i_j: F64) -> float:
+    """Length of the path-graph edge between two keyframes ``T_i_j`` apart: the distance [m]
+    plus 0.2 m per radian turned."""
+    d, a = pose_distance(T_i_j)
+    return d + 0.2 * a
+
+
 @dataclass
 class Submap:
     """Keyframes ``members`` in the frame of keyframe ``anchor``."""
