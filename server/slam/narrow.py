@@ -32,8 +32,14 @@ from scipy.spatial import cKDTree
 from schemas.se2 import between, compose, pose_distance, transform_points
 from server.slam.backend import add_constraint
 from server.slam.config import SlamConfig
-from server.slam.frontend import FrontendMatch, MatchKind, icp_params, match_scan, match_step
-from server.slam.frontend import odometry_prior as odometry_information
+from server.slam.frontend import (
+    FrontendMatch,
+    MatchKind,
+    icp_params,
+    match_scan,
+    match_step,
+    odometry_prior,
+)
 from server.slam.heading_ties import HeadingTies
 from server.slam.icp import PointMap
 from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
@@ -126,7 +132,7 @@ class NarrowSensor:
 
     def _prior(self, T_step_odom: F64) -> F64 | None:
         mc = self.cfg.matcher
-        return odometry_information(T_step_odom, mc) if mc.use_odometry_prior else None
+        return odometry_prior(T_step_odom, mc) if mc.use_odometry_prior else None
 
     def _smoothed(self, slam: SlamView, match: FrontendMatch, T_odom_robot: F64
                   ) -> FrontendMatch:
