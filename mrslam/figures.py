@@ -19,16 +19,21 @@ def write_figures(report: dict[str, Any], out: Path, gaps: Gaps) -> list[str]:
     written: list[str] = []
     fig, ax = plt.subplots(figsize=(7, 4))
     capped = False
+    joined = merge_times(report)
     for team_id, team in report["teams"].items():
         h = np.asarray(team["coverage_history"], dtype=np.float64).reshape(-1, 2)
         # the area measured can outgrow the nominal one (wall faces, a bent map): the plot
         # stops at 100 % and says so; report.json keeps the values as measured
         capped |= bool((h[:, 1] > 1.0).any())
-        ax.plot(h[:, 0], 100 * np.minimum(h[:, 1], 1.0),
-                label=f"{team_id} ({', '.join(team['robot_ids'])})")
-    merge_times = [ev["stamp_ns"] * 1e-9 for ev in report.get("events", [])
-                   if ev["kind"] == "merge"]
-    for i, t in enumerate(merge_times):
+        label = f"{team_id} ({', '.join(team['robot_ids'])})"
+        if team.get("merged_into"):   # its curve ends where its robots joined another team
+            at = joined.get(team_id)
+            label += f", into {team['merged_into']}" + (f" at {at:.1f} s" if at else "")
+        ax.plot(h[:, 0], 100 * np.minimum(h[:, 1], 1.0), label=label,
+                lw=1.0 if team.get("merged_into") else 1.8)
+    merged_at = [ev["stamp_ns"] * 1e-9 for ev in report.get("events", [])
+                 if ev["kind"] == "merge"]
+    for i, t in enumerate(merged_at):
         ax.axvline(t, color="grey", ls=":", lw=1, label="merge" if i == 0 else None)
     ax.axhline(100 * report["threshold"], color="k", ls="--", lw=1, label="threshold")
     ax.set_ylim(0, 105)
@@ -77,13 +82,41 @@ def _map_key(plt: Any) -> list[Any]:
             Patch(fc=str(0.8), ec="k", label="unknown")]
 
 
+def merge_times(report: dict[str, Any]) -> dict[str, float]:
+    """Each team merged into another (and not split off again) -> when [sim s]."""
+    return {m["joined_team_id"]: m["sim_time_s"] for m in report.get("merges", [])
+            if m.get("joined_team_id") and not m.get("undone")}
+
+
+def _joined_title(team_id: str, report: dict[str, Any]) -> str:
+    """The teams that merged into ``team_id`` (directly or through another), in order."""
+    into = {tid: t.get("merged_into") for tid, t in report["teams"].items()}
+
+    def ends_in(tid: str | None) -> bool:
+        seen: set[str] = set()
+        while tid is not None and tid not in seen:
+            if tid == team_id:
+                return True
+            seen.add(tid)
+            tid = into.get(tid)
+        return False
+
+    rows = sorted((at, tid) for tid, at in merge_times(report).items()
+                  if tid != team_id and ends_in(into.get(tid)))
+    return ", ".join(f"{tid} joined at {at:.1f} s" for at, tid in rows)
+
+
 def _maps(report: dict[str, Any], out: Path, plt: Any, gaps: Gaps) -> list[str]:
+    """The map of each team that exists at the end; a team merged into another has no map
+    of its own any more (its last one, in a frame that is gone, is left undrawn)."""
     from schemas.occupancy import FREE_BELOW, OCCUPIED_ABOVE, UNKNOWN
     from sim.errors import WorldError
     from sim.grid import read_nav2
 
     written = []
     for team_id, team in report["teams"].items():
+        if team.get("merged_into"):
+            continue
         yml = out / "server" / "maps" / team_id / "map.yaml"
         if not yml.exists():
             continue
@@ -118,7 +151,9 @@ def _maps(report: dict[str, Any], out: Path, plt: Any, gaps: Gaps) -> list[str]:
                     ax.plot(*poses[k, :2], "*", color=c, ms=13, mec="k", mew=0.6)
         ax.legend(handles=[*ax.get_legend_handles_labels()[0], *_map_key(plt)], fontsize=8,
                   loc="best")
-        ax.set_title(f"{team_id}: map and trajectories (map frame)")
+        joined = _joined_title(team_id, report)
+        ax.set_title(f"{team_id}: map and trajectories (map frame)"
+                     + (f"\n{joined}" if joined else ""), fontsize=10)
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         fig.tight_layout()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -92,6 +93,9 @@ class Outputs:
             write_nav2_grid(grid, tdir)
             with replaced(tdir / "points.ply") as tmp:
                 write_ply(tmp, self.clouds[team_id])
+        for team_id in self.summary.get("merged_teams", {}):
+            if team_id not in self.grids:   # its last map, in a team frame that is gone
+                shutil.rmtree(out_dir / "maps" / team_id, ignore_errors=True)
         for name, (stamps, poses) in self.trajectories.items():
             write_trajectory(out_dir / "trajectories" / f"{name}.csv", stamps, poses)
             write_tum(out_dir / "trajectories" / f"{name}.tum", stamps, poses)

@@ -173,3 +173,48 @@ def test_figures_cap_coverage_label_merges_and_key_the_maps(tmp_path: Path) -> N
         assert k in keys
     stars = [ln for ln in m.lines if ln.get_marker() == "*"]
     assert len(stars) == 2 and stars[0].get_xydata()[0][0] > 2.5   # at 1.5 s of 3 s
+
+
+def test_only_the_teams_at_the_end_have_maps_and_theirs_name_who_joined(tmp_path: Path) -> None:
+    """t2 merged into t1 at 1.5 s; the server's last map of t2 (in t2's frame, gone since) is
+    still in the run folder: it is not drawn, and t1's map says t2 joined it then."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from mrslam.figures import write_figures
+    from mrslam.run_files import Gaps
+    from sim.grid import OccupancyGrid, write_nav2
+
+    cells = np.zeros((40, 60), np.int8)
+    for team in ("t1", "t2"):
+        write_nav2(OccupancyGrid(cells, 0.1, (0.0, 0.0, 0.0)), tmp_path / f"server/maps/{team}")
+    history = [[0.0, 0.2], [2.0, 0.5]]
+    report = {"scenario": "s", "threshold": 0.9, "robots": {}, "events": [],
+              "teams": {"t1": {"robot_ids": ["a", "b"], "coverage_history": history},
+                        "t2": {"robot_ids": ["b"], "merged_into": "t1",
+                               "coverage_history": history[:1]}},
+              "merges": [{"team_id": "t1", "joined_team_id": "t2", "robots": ["a", "b"],
+                          "sim_time_s": 1.5, "undone": False}]}
+    titles: dict[str, str] = {}
+    legends: dict[str, list[str]] = {}
+    real_savefig = plt.Figure.savefig
+
+    def keep(fig: object, fname: object, *args: object, **kw: object) -> None:
+        ax = fig.axes[0]  # type: ignore[attr-defined]
+        titles[Path(str(fname)).name] = ax.get_title()
+        legend = ax.get_legend()
+        legends[Path(str(fname)).name] = [t.get_text() for t in legend.get_texts()] \
+            if legend else []
+        real_savefig(fig, fname, *args, **kw)  # type: ignore[arg-type]
+
+    plt.Figure.savefig = keep  # type: ignore[method-assign]
+    try:
+        written = write_figures(report, tmp_path, Gaps(tmp_path))
+    finally:
+        plt.Figure.savefig = real_savefig  # type: ignore[method-assign]
+    assert written == ["coverage.png", "pose_error.png", "map_t1.png"]
+    assert not (tmp_path / "map_t2.png").exists()
+    assert "t2 joined at 1.5 s" in titles["map_t1.png"]
+    assert "t2 (b), into t1 at 1.5 s" in legends["coverage.png"]
