@@ -288,7 +288,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         "exit_codes": watch.get("exit_codes", {}),
         "server_restarts": watch.get("server_restarts", []),
         "missing": gaps.notes,
-        "dissertation": plan.get("reported", {}),
+        # only a case of the dissertation's own scenarios file has its published figures
+        **({"dissertation": beside_dissertation(plan["title"], plan["reported"], robots)}
+           if plan.get("reported") else {}),
     }
     if not figures:
         gaps.note(out / "figures", "not drawn: the run was stopped by a signal")
@@ -300,6 +302,21 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
     except Exception:  # figures are a convenience; the numbers above are the result
         log.exception("could not draw the figures")
     return _without_errors(report, robots)
+
+
+def beside_dissertation(case: str, reported: dict[str, Any], robots: dict[str, Any]
+                        ) -> dict[str, Any]:
+    """The figures the dissertation published for ``case`` (its scenarios file's
+    ``reported``), beside ours of the same kind over all robots: the largest online yaw error,
+    and the largest online position error (the distance, so no smaller than the x and y
+    errors it gives apart)."""
+    def largest(key: str) -> float | None:
+        values = [r[key] for r in robots.values() if r.get(key) is not None]
+        return max(values) if values else None
+
+    return {"case": case, "reported": dict(reported),
+            "measured": {"max_position_error_m": largest("max_position_error_m"),
+                         "max_yaw_error_rad": largest("max_yaw_error_rad")}}
 
 
 def _without_errors(report: dict[str, Any], robots: dict[str, Any]) -> dict[str, Any]:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from mrslam.report import build_report, print_summary
+from mrslam.report import beside_dissertation, build_report, print_summary
 from mrslam.run_files import Gaps, read_json, read_trajectory, read_truth
 from server.outputs import write_trajectory
 
@@ -120,6 +120,19 @@ def test_without_the_servers_outputs_the_report_holds_the_truth_and_names_the_ga
     assert "did NOT reach 95%" in text and "no team known" in text
     assert "server died (SIGKILL)" in text and "not restarted" in text
     assert "server/summary.json: missing" in text
+
+
+def test_the_dissertations_figures_only_beside_one_of_its_own_cases(tmp_path: Path) -> None:
+    """A packaged scenario has no published figures (the key was always ``{}``); a case of
+    the dissertation's scenarios file has them, next to ours of the same kind."""
+    assert "dissertation" not in report_of(run_folder(tmp_path))
+    robots = {"r1": {"max_position_error_m": 0.05, "max_yaw_error_rad": 0.01},
+              "r2": {"max_position_error_m": 0.12, "max_yaw_error_rad": None},
+              "r3": {"max_position_error_m": None, "max_yaw_error_rad": None}}
+    reported = {"iterations_to_finish": 153, "max_abs_position_error_m": 0.2}
+    assert beside_dissertation("thesis-case-2", reported, robots) == {
+        "case": "thesis-case-2", "reported": reported,
+        "measured": {"max_position_error_m": 0.12, "max_yaw_error_rad": 0.01}}
 
 
 def test_a_refresh_left_by_a_dead_server_is_scored_and_its_damage_named(tmp_path: Path) -> None:
