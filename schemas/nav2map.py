@@ -77,18 +77,6 @@ def png_stream(width: int, height: int, strips: Iterable[NDArray[np.uint8]]
     yield _chunk(b"IEND", b"")
 
 
-def png_bytes(img: NDArray[np.uint8]) -> bytes:
-    """An 8-bit greyscale PNG of ``img`` (first row at the top), with zlib only."""
-    h, w = img.shape
-    return b"".join(png_stream(w, h, [img]))
-
-
-def pgm_bytes(img: NDArray[np.uint8]) -> bytes:
-    """A binary (P5) 8-bit PGM of ``img``."""
-    h, w = img.shape
-    return f"P5\n{w} {h}\n255\n".encode() + img.tobytes()
-
-
 def replace_file(path: Path, data: bytes | Iterable[bytes]) -> None:
     """Write ``data`` (bytes, or pieces of it) beside ``path``, flush it to disk, then rename
     it over ``path``."""
