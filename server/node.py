@@ -467,9 +467,6 @@ class ServerNode:
         self.errors += 1
         self._errlog.log(logging.ERROR, f"write:{kind}", "writing the %s failed: %s", kind, e)
 
-    def _count_error(self) -> None:
-        self.errors += 1
-
     def guarded(self, what: str, fn: Callable[..., None], *args: Any) -> None:
         try:
             fn(*args)
