@@ -209,9 +209,6 @@ class MergeVerifier:
         """A team no longer exists (merged into another): its pending evidence goes."""
         self.pairs = {k: v for k, v in self.pairs.items() if team not in k}
 
-    def rejected_total(self) -> int:
-        return sum(v.rejected_by_map for v in self.pairs.values())
-
 
 def _in_x(r: SightingRecord) -> F64:
     """The observed robot's position in the pair's first team's frame."""
