@@ -60,7 +60,3 @@ def inverse(T: np.ndarray) -> np.ndarray:
     out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return out
 
-
-def planar_of(T: np.ndarray) -> tuple[float, float, float]:
-    """Project a 4x4 transform onto the floor plane: (x, y, yaw of its x axis)."""
-    return (float(T[0, 3]), float(T[1, 3]), math.atan2(T[1, 0], T[0, 0]))
