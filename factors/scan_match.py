@@ -65,13 +65,6 @@ def heading_factor(key_i: int, key_j: int, T_i_j: ArrayLike, sigma_rad: float,
     return gtsam.BetweenFactorPose2(key_i, key_j, pose2(T_i_j), robust(noise, "huber", huber_k))
 
 
-def odometry_factor(key_i: int, key_j: int, T_i_j: ArrayLike, sigma_xy_m: float,
-                    sigma_theta_rad: float) -> gtsam.BetweenFactorPose2:
-    """Between-factor from wheel odometry alone (when no scan match could be trusted)."""
-    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_xy_m, sigma_xy_m, sigma_theta_rad]))
-    return gtsam.BetweenFactorPose2(key_i, key_j, pose2(T_i_j), noise)
-
-
 def whitened_chi2(factor: gtsam.NoiseModelFactor, values: gtsam.Values) -> float:
     """Squared Mahalanobis norm of a between factor's error at ``values`` (without the kernel)."""
     err = np.asarray(factor.unwhitenedError(values), dtype=np.float64)

@@ -12,7 +12,6 @@ import pytest
 from factors.noise import MATCH_SIGMA_FLOOR, NoiseError, floored_covariance, gaussian, robust
 from factors.scan_match import (
     loop_closure_factor,
-    odometry_factor,
     pose2,
     prior_factor,
     scan_match_factor,
@@ -37,7 +36,6 @@ def retract(T: np.ndarray, d: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("make", [
     lambda: scan_match_factor(A, B, [1.0, 0.2, 0.3], np.diag([1e4, 4e3, 2e4])),
     lambda: loop_closure_factor(A, B, [1.0, 0.2, 0.3], np.diag([1e4, 4e3, 2e4])),
-    lambda: odometry_factor(A, B, [1.0, 0.2, 0.3], 0.05, 0.02),
 ])
 def test_jacobians_match_finite_differences(make: object) -> None:
     factor = make()  # type: ignore[operator]
