@@ -107,11 +107,6 @@ def sections(model: type[BaseModel], instance: BaseModel | None = None,
         yield from sections(sub, sub_inst, key)
 
 
-def undescribed(model: type[BaseModel]) -> list[str]:
-    """Key paths of the fields without a description."""
-    return [r.key for s in sections(model) for r in s.rows if not r.description]
-
-
 def _doc(model: type[BaseModel]) -> str:
     doc = model.__dict__.get("__doc__") or ""   # a model's own docstring, never its base's
     return _one_line(doc.strip().split("\n\n")[0])
