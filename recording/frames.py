@@ -112,15 +112,6 @@ class FrameTree:
             out.append(Transform(odom_frame(rid), rid, _pose(odom), stamp))
         return out
 
-    def root_of(self, frame: str) -> str:
-        """The frame at the top of ``frame``'s chain (per the latest transforms)."""
-        parents = {t.child: t.parent for t in self.transforms(0)}
-        seen = {frame}
-        while frame in parents and parents[frame] not in seen:
-            frame = parents[frame]
-            seen.add(frame)
-        return frame
-
     # -- helpers ------------------------------------------------------------------------------
     def _odom_at(self, rid: str, stamp_ns: int) -> F64 | None:
         """The odometry of the scan stamped ``stamp_ns`` (else the nearest one kept)."""
