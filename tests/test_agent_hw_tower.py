@@ -118,10 +118,13 @@ def test_lines_carry_an_xor_checksum_and_replies_parse_strictly() -> None:
     assert proto.parse_command(b"PING*10\r") == ("PING", None)
     line = proto.encode("MOVE", -1600)
     assert proto.parse_command(line[:-1]) == ("MOVE", -1600)
-    for r in (proto.Reply("PONG", (42,), "READY"), proto.Reply("POS", (-7, 100), "MOVING"),
-              proto.Reply("ERR", (6410,), "NOTRIGGER"), proto.Reply("ACK", (), "HOME"),
-              proto.Reply("HOMED", (1234,))):
-        assert proto.parse_reply(proto.encode_reply(r)[:-1]) == r
+    # the lines as the fake controller (and the firmware) write them
+    for words, r in ((("PONG", 42, "READY"), proto.Reply("PONG", (42,), "READY")),
+                     (("POS", -7, 100, "MOVING"), proto.Reply("POS", (-7, 100), "MOVING")),
+                     (("ERR", "NOTRIGGER", 6410), proto.Reply("ERR", (6410,), "NOTRIGGER")),
+                     (("ACK", "HOME"), proto.Reply("ACK", (), "HOME")),
+                     (("HOMED", 1234), proto.Reply("HOMED", (1234,)))):
+        assert proto.parse_reply(proto.encode(*words)[:-1]) == r
     bad = {b"PONG 42 READY": "no checksum",
            b"PONG 42 READY*11": "does not match",
            b"PONG 42 READY*1g": "hex",

@@ -130,12 +130,6 @@ def parse_reply(line: bytes) -> Reply:
     return Reply(kind, tuple(ints), word)
 
 
-def encode_reply(r: Reply) -> bytes:
-    schema = REPLIES[r.kind]
-    ints = iter(r.ints)
-    return encode(r.kind, *(next(ints) if t == "i" else r.word for t in schema))
-
-
 def parse_command(line: bytes) -> tuple[str, int | None]:
     """A host line as (command, argument); TowerProtocolError if it is not one exactly."""
     words = split(line)
