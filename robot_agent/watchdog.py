@@ -34,7 +34,3 @@ class Watchdog:
         """The server's liveliness vanished: forget the command, so the robot stays stopped."""
         self.deadline_ns = None
         self.server_losses += 1
-
-    @property
-    def armed(self) -> bool:
-        return self.deadline_ns is not None
