@@ -269,6 +269,7 @@ class RobotSlam:
 
     @narrow.setter
     def narrow(self, narrow: bool) -> None:
+        # as if the latest scan had been such a sensor's (a test's stand-in for a scan)
         self.sensor = self._sensors.narrow if narrow else self._sensors.wide
 
     @property
