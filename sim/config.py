@@ -159,15 +159,6 @@ class SimConfig(ConfigModel):
         return self
 
 
-def parse_robot_spec(spec: str) -> tuple[str, Pose]:
-    """``r1:x,y,yaw`` -> ("r1", (x, y, yaw)); yaw in radians, optional (default 0). A sensor
-    (``r1:x,y,yaw:depth``) is refused here; see ``parse_robot_arg``."""
-    rid, pose, sensor = parse_robot_arg(spec)
-    if sensor is not None:
-        raise SimError(f"--robot {spec!r}: a sensor is not expected here")
-    return rid, pose
-
-
 def parse_robot_args(specs: list[str]) -> tuple[dict[str, Pose], dict[str, str]]:
     """Every ``--robot`` of a command line: spawn poses, and the sensors named."""
     robots: dict[str, Pose] = {}
@@ -201,12 +192,6 @@ def parse_robot_arg(spec: str) -> tuple[str, Pose, str | None]:
     if len(v) not in (2, 3) or not all(math.isfinite(x) for x in v):
         raise SimError(f"--robot {spec!r}: expected 2 or 3 finite numbers")
     return rid, (v[0], v[1], v[2] if len(v) == 3 else 0.0), sensor
-
-
-def resolve_scene(cfg: SimConfig) -> tuple[Path, dict[str, Pose]]:
-    """The world file and spawn poses: the scenario's, replaced by explicit ones."""
-    world, robots, _ = resolve_scene_sensors(cfg)
-    return world, robots
 
 
 def resolve_scene_sensors(cfg: SimConfig) -> tuple[Path, dict[str, Pose], dict[str, str]]:

@@ -16,7 +16,7 @@ import yaml
 
 from schemas.occupancy import FREE
 from sim import floorplan
-from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
+from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene_sensors
 from sim.errors import SimError
 from sim.grid import OccupancyGrid, rasterise
 from sim.loader import load_world
@@ -80,7 +80,7 @@ def assert_every_room_reachable(grid: OccupancyGrid, robots: dict[str, Any],
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_each_case_spawns_in_free_space_of_a_closed_connected_house(case: str) -> None:
-    world_path, robots = resolve_scene(SimConfig(scenario=case))
+    world_path, robots, _ = resolve_scene_sensors(SimConfig(scenario=case))
     world = load_world(world_path)
     # the dissertation's dimensions: a square of 20 or 50 m about the origin
     size = SIZE_M[world_path.name]

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from mrslam.cli import app
 from schemas import SimGroundTruth
-from sim.config import SimConfig, parse_robot_spec, resolve_scene
+from sim.config import SimConfig, parse_robot_arg, resolve_scene_sensors
 from sim.errors import SimError
 from tests.conftest import DATA, ROOT
 
@@ -56,16 +56,16 @@ def test_sim_expected_failures_exit_2_with_one_line(args: list[str], message: st
 
 
 def test_robot_specs_and_scenes() -> None:
-    assert parse_robot_spec("r2:1.5,-2") == ("r2", (1.5, -2.0, 0.0))
+    assert parse_robot_arg("r2:1.5,-2") == ("r2", (1.5, -2.0, 0.0), None)
     with pytest.raises(SimError):
-        parse_robot_spec("r2")
+        parse_robot_arg("r2")
     # by default the cases that ship with the package, in our own worlds
-    world, robots = resolve_scene(SimConfig(scenario="large-house-5"))
+    world, robots, _ = resolve_scene_sensors(SimConfig(scenario="large-house-5"))
     assert world.name == "large_house.world" and world.is_file() and len(robots) == 5
-    world, robots = resolve_scene(SimConfig(scenario="large-house-5",
-                                            robots={"r9": (0.0, 0.0, 0.0)}))
+    world, robots, _ = resolve_scene_sensors(SimConfig(scenario="large-house-5",
+                                                       robots={"r9": (0.0, 0.0, 0.0)}))
     assert list(robots) == ["r9"]
     # the dissertation's worlds when its scenarios file is named
-    world, robots = resolve_scene(SimConfig(scenario="thesis-case-4",
-                                            scenarios_file=str(THESIS / "scenarios.yaml")))
+    world, robots, _ = resolve_scene_sensors(SimConfig(
+        scenario="thesis-case-4", scenarios_file=str(THESIS / "scenarios.yaml")))
     assert world == THESIS / "house_large.world" and len(robots) == 5

@@ -15,7 +15,6 @@ from sim.config import (
     SimConfig,
     parse_robot_arg,
     parse_robot_args,
-    parse_robot_spec,
     resolve_scene_sensors,
 )
 from sim.errors import SimError
@@ -108,8 +107,6 @@ def test_sensors_on_the_command_line() -> None:
         parse_robot_arg("r2:1,2,0:sonar")
     with pytest.raises(SimError, match="given twice"):
         parse_robot_args(["r1:0,0", "r1:1,1"])
-    with pytest.raises(SimError, match="not expected"):
-        parse_robot_spec("r1:0,0,0:depth")
 
 
 def test_sensors_in_scenarios(tmp_path: Path) -> None:

@@ -14,7 +14,7 @@ import pytest
 
 from schemas.occupancy import FREE, OCCUPIED
 from sim import floorplan
-from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene
+from sim.config import DEFAULT_SCENARIOS, SimConfig, load_scenario, resolve_scene_sensors
 from sim.errors import WorldError
 from sim.grid import OccupancyGrid, rasterise
 from sim.loader import load_world
@@ -144,7 +144,7 @@ def test_the_scenarios_spawn_in_free_space_of_one_connected_building(
         name: str, world: World, grid: OccupancyGrid) -> None:
     case = load_scenario(DEFAULT_SCENARIOS, name)
     assert case["world"] == WORLD.name and case["coverage_threshold"] == 0.90
-    path, robots = resolve_scene(SimConfig(scenario=name))
+    path, robots, _ = resolve_scene_sensors(SimConfig(scenario=name))
     assert path == WORLD and len(robots) == int(name.rsplit("-", 1)[1])
     assert_every_room_reachable(grid, robots, RES_M)
     for rid, (x, y, _) in robots.items():
@@ -168,7 +168,7 @@ def surroundings(grid: OccupancyGrid, pose: tuple[float, float, float],
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_the_robots_start_at_mirror_images_whose_surroundings_look_alike(
         name: str, grid: OccupancyGrid) -> None:
-    _, robots = resolve_scene(SimConfig(scenario=name))
+    _, robots, _ = resolve_scene_sensors(SimConfig(scenario=name))
     r1, r2 = robots["r1"], robots["r2"]
     # mirror images in the plane x = 0
     assert r2[0] == pytest.approx(-r1[0]) and r2[1] == pytest.approx(r1[1])
