@@ -133,8 +133,9 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
         foxglove_port: int | None = None, console_port: int | None = None,
         config: str | Path | None = None) -> dict[str, Any]:
     """Run one demo; returns the report (also written to ``<out>/report.json``). ``config``:
-    a YAML file of ``DemoConfig`` keys (a run folder's ``demo_config.yaml`` repeats that
-    run), which ``overrides`` replace key by key.
+    a YAML file of ``DemoConfig`` keys, which ``overrides`` replace key by key (a run folder's
+    ``demo_config.yaml`` repeats that run given another ``out``: in its own folder the server
+    would resume the old run's journal).
     ``foxglove_port``: serve the run live to Foxglove on that loopback port (the recorder
     serves it, else the server). ``console_port``: the server serves the operator console
     there (0: a free port); its address is printed, and a screenshot of the page at the end
