@@ -28,7 +28,7 @@ from typing import Any
 import msgspec
 
 from schemas import Scan, SimClock, TagDetections, keys
-from schemas.bus import Bus
+from schemas.bus import Bus, Polled
 from schemas.ratelog import RateLimitedLog
 from server import handover, heap
 from server.clock import ClockPolicy, ServerClock
@@ -88,6 +88,7 @@ class ServerNode:
         self._stop = threading.Event()
         self._latest_maps: list[Any] = []
         self._lockstep = False   # the simulator's clock says it steps in lockstep
+        self._sim_clock: Polled[SimClock] | None = None   # its clock messages, if sim
         self._barrier = StepBarrier(cfg.clock.step_barrier_s)
         self._errlog = RateLimitedLog(log)
         self._worker = threading.Thread(target=self._work, name="server-core", daemon=True)
@@ -120,7 +121,9 @@ class ServerNode:
     def start(self) -> None:
         self.bus.declare_alive(keys.SERVER_ALIVE)
         if self.clock.source == "sim":
-            self.bus.subscribe_received(keys.SIM_CLOCK, SimClock, self._on_sim_clock)
+            # drained before each message is placed in simulated time (and by the worker):
+            # a callback of its own could run after a scan that came later
+            self._sim_clock = self.bus.subscribe_polled(keys.SIM_CLOCK, SimClock)
         self.bus.subscribe_received(keys.ALL_SCANS, Scan, self._on_message)
         self.bus.subscribe_received(keys.ALL_TAGS, TagDetections, self._on_message)
         self.bus.watch_alive(keys.ALL_ALIVE, self._on_alive)
@@ -132,15 +135,20 @@ class ServerNode:
             self.cluster.start()
         self._worker.start()
 
-    def _on_sim_clock(self, _key: str, msg: SimClock, received_ns: int) -> None:
-        with self._cv:
+    def _take_sim_clock(self) -> None:
+        """The simulator's clock messages that came since the last call (the caller holds
+        ``_cv``)."""
+        if self._sim_clock is None:
+            return
+        for msg, received_ns in self._sim_clock.drain():
             self.clock.on_sim_clock(msg.stamp_ns, received_ns, msg.dt_ns,
                                     0.0 if msg.lockstep else msg.real_time_factor)
-        self._lockstep = msg.lockstep
+            self._lockstep = msg.lockstep
 
     def _on_message(self, key: str, msg: Scan | TagDetections, received_ns: int) -> None:
         stream = "scan" if isinstance(msg, Scan) else "tags"
         with self._cv:
+            self._take_sim_clock()   # every clock message that came before this one
             # the receipt as the router stamped it, not when this callback got to run
             server_ns, slack_ns = self.clock.receive_ns(received_ns)
             try:
@@ -225,9 +233,11 @@ class ServerNode:
     def _next(self, timeout_s: float) -> list[Work]:
         """The next item; in lockstep, the next step's messages."""
         with self._cv:
+            self._take_sim_clock()
             if not self._inbox and not self._orders and not self._cv.wait_for(
                     lambda: bool(self._inbox or self._orders), timeout_s):
                 return []
+            self._take_sim_clock()
             if self._orders:
                 return [self._orders.popleft()]
             if self._lockstep:

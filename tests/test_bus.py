@@ -139,3 +139,22 @@ def test_clients_retry_their_router_soon_unless_their_config_file_says(tmp_path:
     own.write_text('{ connect: { retry: { period_init_ms: 5000 } } }')
     conf = zenoh_config("client", connect=["tcp/127.0.0.1:7447"], config_file=str(own))
     assert json.loads(conf.get_json("connect/retry"))["period_init_ms"] == 5000
+
+
+def test_a_polled_subscription_holds_what_came_until_drained_with_its_receipt(
+        router: Bus, endpoint: str) -> None:
+    """What a polled subscription holds is there as soon as it arrives, whatever Python's
+    threads are doing, with the router's own receipt; garbage is counted, not kept."""
+    polled = router.subscribe_polled(keys.ALL_SCANS, Scan)
+    with Bus.open("client", connect=[endpoint]) as client:
+        assert client.wait_for_subscribers(keys.robot_scan("r1"), 5.0)
+        t0 = time.time_ns()
+        for seq in range(5):
+            client.publish(keys.robot_scan("r1"), scan("r1", seq=seq), block=True)
+        client.session.put(keys.robot_scan("r1"), b"\x00garbage")
+        got: list[tuple[Scan, int]] = []
+        assert within(lambda: bool(got.extend(polled.drain())) or len(got) >= 5, 5.0)
+    assert [m.seq for m, _ in got] == [0, 1, 2, 3, 4]
+    receipts = [t for _, t in got]
+    assert receipts == sorted(receipts) and t0 <= receipts[0] <= time.time_ns()
+    assert polled.drain() == [] and router.stats.rejected["Scan"] == 1
