@@ -114,8 +114,6 @@ def zenoh_config(mode: Mode, listen: Iterable[str] = (), connect: Iterable[str] 
         conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
     except zenoh.ZError as e:
         raise BusError(f"Zenoh config {config_file}: {zenoh_message(e)}") from None
-    if problems := tls_file_problems(conf):   # Zenoh would only say "Timeout!"
-        raise BusError(f"Zenoh config {config_file}: {'; '.join(problems)}")
     settings: list[tuple[str, object]] = [("mode", mode)]
     if listen:
         settings.append(("listen/endpoints", list(listen)))
@@ -258,6 +256,10 @@ class Bus:
         conf = zenoh_config(mode, listen, connect, config_file,
                             connect_timeout_ms=connect_timeout_ms,
                             max_message_size=max_message_size)
+        # checked where the session opens, not where a config is validated (that may be on
+        # another machine than the one it is for): Zenoh would only say "Timeout!"
+        if problems := tls_file_problems(conf):
+            raise BusError(f"Zenoh config {config_file}: {'; '.join(problems)}")
         sec = listen_security(conf)
         if not sec.secure:
             log.warning(insecure_listen_warning(sec))
