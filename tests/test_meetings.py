@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from schemas.se2 import compose, inverse
+from server.control import Obstacles
 from server.core import ServerCore
 from server.fleet import MergeRecord
 from server.rendezvous.mapmatch import Candidate, Hypothesis
@@ -72,7 +73,7 @@ def test_a_meeting_sends_both_robots_to_one_place(core: ServerCore) -> None:
     assert math.hypot(*(w1[:2] - w2[:2])) < 0.05
     assert r2.meeting.path_xy is not None and len(r2.meeting.path_xy) >= 2
     # r2 is steered along its path (the navigator's own target is not used meanwhile)
-    cmd = core.steering.meet(r2, np.zeros((0, 2)))
+    cmd = core.steering.meet(r2, Obstacles())
     assert cmd.v_mps > 0 or abs(cmd.omega_rps) > 0
     assert core.tag_counters["meetings"] == 1
     assert [ev.kind for ev in core.event_log][-1] == "meeting"
