@@ -108,8 +108,8 @@ def pose_sigma_cost(run: Path) -> dict[str, Any]:
     from schemas.config_loading import load_config
     from server.config import ServerConfig
     from server.core import ServerCore
-    from server.journal import replay
-    from server.snapshot import Snapshots
+    from server.runtime.journal import replay
+    from server.runtime.snapshot import Snapshots
 
     state = run / "server" / "state"
     loaded = Snapshots(state).load()

@@ -29,12 +29,12 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 DATA = ROOT.parent / "shared" / "data" / "carmen"
 
-from server.evaluation import evaluate  # noqa: E402
-from server.logs import attach_odometry, read_log, select_stream  # noqa: E402
+from server.offline.evaluation import evaluate  # noqa: E402
+from server.offline.logs import attach_odometry, read_log, select_stream  # noqa: E402
+from server.offline.slam_log import process  # noqa: E402
 from server.slam import frontend  # noqa: E402
 from server.slam.config import SlamConfig  # noqa: E402
 from server.slam.icp import IcpParams, MatchResult, PointMap, translation_degeneracy  # noqa: E402
-from server.slam_log import process  # noqa: E402
 
 O3D_RADIUS_M = 0.3
 

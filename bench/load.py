@@ -17,9 +17,9 @@ tracks. After ``--warmup-s`` the bench measures for ``--window-s``:
   second; ``server_rss_mb`` (VmRSS at the window's end, the whole process tree) and its peak;
 - the generators' own rate: a run whose slowest robot sent below 95 % of the rate is invalid.
 
-With ``--workers K`` the server is split over K worker processes (``server.cluster``): worker
-0 is the router the robots connect to, the others connect to it; CPU and memory are summed
-over all of them, and each run lists how many robots each worker served.
+With ``--workers K`` the server is split over K worker processes (``server.runtime.cluster``):
+worker 0 is the router the robots connect to, the others connect to it; CPU and memory are
+summed over all of them, and each run lists how many robots each worker served.
 
 The series stops after the first N that fails both limits widely (p99 over ``WIDE`` × the limit
 and dropped over ``WIDE`` × the limit). ``capacity_robots`` is the largest valid N with
@@ -227,8 +227,8 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
 
 
 def start_servers(folder: Path, config: dict[str, Any], workers: int) -> list[ServerProcess]:
-    """One server, up; or ``workers`` worker processes of one (``server.cluster``), all up and
-    seeing each other: worker 0 is the Zenoh router the robots connect to, the others its
+    """One server, up; or ``workers`` worker processes of one (``server.runtime.cluster``),
+    all up and seeing each other: worker 0 is the Zenoh router the robots connect to, the others its
     clients (started once it listens)."""
     if workers <= 1:
         srv = ServerProcess(folder, config)
@@ -342,7 +342,8 @@ def main() -> None:
                     help="a scan not answered within this counts as dropped")
     ap.add_argument("--robots-per-process", type=int, default=25)
     ap.add_argument("--workers", type=int, default=1,
-                    help="split the server over this many worker processes (server.cluster)")
+                    help="split the server over this many worker processes "
+                    "(server.runtime.cluster)")
     ap.add_argument("--track-steps", type=int, default=1200,
                     help="length of the recorded tracks, in LIDAR periods")
     ap.add_argument("--server-config", default=None,

@@ -13,7 +13,7 @@ server's core on a long simulated mission; prints JSON (one line per part, then 
   (``bench.support.mission``: explore, then patrol), sampling RSS every ``--every-s`` of
   simulated time. Per robot is (RSS − the process's RSS before the first step) / robots: what
   the server's state costs, without the interpreter, the libraries and the simulator. At the
-  end it exports every team's map as the server does (``server.outputs``) and reports the
+  end it exports every team's map as the server does (``server.runtime.outputs``) and reports the
   export's rise as above. Goal: ≤ 300 MB per robot after two hours, growing sub-linearly once
   the building is explored (``growth_last_half``: MB per robot-hour over the second half,
   against the first half's).
@@ -95,8 +95,8 @@ def keyframe_bytes(keyframes: Any) -> dict[str, float]:
 
 
 def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
+    from server.offline.slam_log import SlamLogConfig, _read, process
     from server.slam.export import write_nav2, write_ply
-    from server.slam_log import SlamLogConfig, _read, process
 
     cfg = SlamLogConfig()
     _, scans, _, _ = _read(DATA / f"{name}.clf.bz2", cfg, None, None)
@@ -138,7 +138,7 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
 def child_mission(scenario: str, robots: int, sim_hours: float, every_s: float,
                   out: Path, reuse: bool) -> dict[str, Any]:
     from bench.support.mission import scenario_mission
-    from server.outputs import write_nav2_grid
+    from server.runtime.outputs import write_nav2_grid
 
     def keyframes(data: dict[str, Any]) -> dict[str, Any]:
         return {**data, "slam": {**data["slam"], "keyframes": {"reuse": reuse}}}
@@ -190,7 +190,7 @@ def run_child(args: list[str]) -> dict[str, Any]:
 
 
 def logs_part(names: list[str], every_s: float, out: Path) -> list[dict[str, Any]]:
-    from server.evaluation import evaluate
+    from server.offline.evaluation import evaluate
 
     rows = []
     for name in names:

@@ -89,7 +89,7 @@ def jittered(name: str, out_dir: Path, every: int = 15, behind_s: float = 0.006)
 
 def scans_in_file(path: Path) -> int:
     """Scans of the stream ``slam-log`` maps, as this checkout's reader finds them."""
-    from server.slam_log import SlamLogConfig, read_recording
+    from server.offline.slam_log import SlamLogConfig, read_recording
 
     return len(read_recording(path, SlamLogConfig()).scans)
 
@@ -97,7 +97,7 @@ def scans_in_file(path: Path) -> int:
 def run(path: Path, out: Path, core: int, root: Path, n_file: int,
         relations: Path | None) -> dict[str, Any]:
     """One ``slam-log`` run of the checkout at ``root``, with its figures."""
-    from server.evaluation import evaluate
+    from server.offline.evaluation import evaluate
 
     child = run_child(path, out, core, root=root)
     got: dict[str, Any] = {"seconds": round(child.wall_s, 2), "cpu_seconds": round(child.cpu_s, 2)}
@@ -145,7 +145,7 @@ def on_common_relations(relations: Path, now: Path, base: Path, tmp: Path
                         ) -> dict[str, Any] | None:
     """Both runs' errors on the relations both scored (a run that dropped scans scores fewer
     relations, and its mean is then over other ones): the like-for-like comparison."""
-    from server.evaluation import (
+    from server.offline.evaluation import (
         DEFAULT_TOLERANCE_S,
         EvaluationError,
         evaluate,

@@ -72,7 +72,7 @@ def demo(run: Path, scenario: str, robot: str, at_s: float | None, down_s: float
 def position_errors(run: Path, rid: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Stamps [ns] and position errors [m] of the server's online poses of ``rid``."""
     from mrslam.run_files import Gaps, read_trajectory, read_truth
-    from server.scoring import anchor_transform, match_truth, pose_errors
+    from server.offline.scoring import anchor_transform, match_truth, pose_errors
 
     gaps = Gaps(run)
     truth = read_truth(run / "sim" / "truth.jsonl", gaps).get(rid)

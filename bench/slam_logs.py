@@ -69,7 +69,7 @@ def run_child(log: Path, out: Path, core: int, config: Path | None = None,
 
 def run_one(name: str, out: Path, core: int, config: Path | None) -> dict[str, object]:
     sys.path.insert(0, str(ROOT))
-    from server.evaluation import evaluate
+    from server.offline.evaluation import evaluate
 
     child = run_child(DATA / f"{name}.clf.bz2", out, core, config)
     if child.returncode != 0:

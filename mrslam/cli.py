@@ -220,7 +220,7 @@ def server(
     setup_logging(verbose, "server")
 
     def body() -> Any:
-        from server.daemon import run
+        from server.runtime.daemon import run
 
         return run(config, {"bus": {"insecure_listen": True}} if insecure else None,
                    foxglove_port=foxglove, console_port=console,
@@ -505,7 +505,7 @@ def merge(
     def body() -> Any:
         from schemas.config_loading import load_config
         from server.config import ServerConfig
-        from server.offline_merge import run_merge
+        from server.offline.offline_merge import run_merge
 
         cfg = load_config(ServerConfig, config)
         rep = run_merge(first, second, out, marker, cfg)
@@ -553,7 +553,7 @@ def slam_log(
             _fail(f"slam-log: --laser-pose {laser_pose!r}: give X,Y,YAW (metres, radians)")
 
     def body() -> Any:
-        from server.slam_log import run
+        from server.offline.slam_log import run
 
         return run(log_file, out, config, scan_topic, odom_topic, echo=echo, laser_pose=pose,
                    odometry=odometry)
@@ -602,7 +602,7 @@ def eval_relations(
     translational [m] and rotational [deg] relation errors."""
 
     def body() -> Any:
-        from server.evaluation import run
+        from server.offline.evaluation import run
 
         return run(poses, relations, tolerance_s=tolerance, as_json=json_out)
 

@@ -327,7 +327,7 @@ def _warm_report() -> None:
     writes its report at once (the imports alone take a second or two)."""
     try:
         import mrslam.report  # noqa: F401
-        import server.outputs  # noqa: F401
+        import server.runtime.outputs  # noqa: F401
     except Exception:   # the report imports them again and says what failed
         log.debug("warming the report's imports failed", exc_info=True)
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from mrslam.run_files import Gaps, read_json, read_trajectory, read_truth
 from schemas.se2 import compose, inverse, pose_distance
-from server.scoring import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
+from server.offline.scoring import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
 
 log = logging.getLogger(__name__)
 
@@ -358,7 +358,7 @@ def is_false_merge(row: dict[str, Any]) -> bool:
 def write_truth_tum(truth: dict[str, Any], out_dir: Path) -> list[Path]:
     """Each robot's true trajectory in TUM format (``<id>_truth.tum``), to hold the server's
     ``trajectories/*.tum`` against with evo (docs/evo.md)."""
-    from server.outputs import write_tum
+    from server.runtime.outputs import write_tum
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []

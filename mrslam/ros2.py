@@ -243,8 +243,8 @@ def export_carmen(log_file: Path, out: Path, laser: str = "front", odometry: str
     """The scans of one laser of a CARMEN log with the odometry ``slam-log`` would use: an
     ``Odometry`` of ``base_link`` at each scan's stamp and the laser's mount on ``/tf_static``
     (``PARAM robot_<laser>laser_offset``)."""
-    from server.logs import attach_odometry, choose_odometry_source, read_log, select_stream
-    from server.slam_log import laser_offset
+    from server.offline.logs import attach_odometry, choose_odometry_source, read_log, select_stream
+    from server.offline.slam_log import laser_offset
 
     clog = read_log(log_file)
     lasers = select_stream(clog, laser)

@@ -1,6 +1,6 @@
 """Readers of a demo run's files, shared by the report and its figures: the simulator's
 ground truth (``sim/truth.jsonl``), the server's summary and trajectories (``trajectories/*.csv``,
-as ``server.outputs`` writes them).
+as ``server.runtime.outputs`` writes them).
 
 A run may end without some of these (a server that died and could not be restarted leaves no
 outputs, or only those of its last periodic refresh) or with a damaged one. Each reader then

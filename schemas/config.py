@@ -18,7 +18,7 @@ LOOPBACK_ENDPOINT = f"tcp/127.0.0.1:{DEFAULT_PORT}"
 #: a config number that must be finite (NaN or inf would pass a range check unnoticed)
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
-#: what the coordination modes (``server.coordination``) were called before they were named
+#: what the coordination modes (``server.fleet.coordination``) were called before they were named
 #: for what they do: ``optimal`` was never optimal, ``thesis`` is the dissertation's greedy rule
 COORDINATION_ALIASES = {"optimal": "joint", "thesis": "greedy"}
 

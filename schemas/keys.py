@@ -58,7 +58,7 @@ ALL_ALIVE = f"{ROOT}/robot/*/alive"
 ALL_CMD_VEL = f"{ROOT}/robot/*/cmd_vel"
 
 
-# the workers of a server split over several processes (server.cluster)
+# the workers of a server split over several processes (server.runtime.cluster)
 def cluster_worker(index: int) -> str:
     """Liveliness token of worker ``index``."""
     return f"{ROOT}/cluster/worker/{int(index)}"

@@ -173,7 +173,8 @@ class TeamsConfig(ConfigModel):
 
 
 class ClockConfig(ConfigModel):
-    """Time: the server's own clock, and how robots' stamps are held to it (server.clock)."""
+    """Time: the server's own clock, and how robots' stamps are held to it
+    (server.runtime.clock)."""
 
     source: Literal["wall", "sim", "stamps"] = Field(
         "wall", description="the server's clock: this machine's (wall), the simulator's "
@@ -202,7 +203,7 @@ class ClockConfig(ConfigModel):
 
 
 class AdmissionConfig(ConfigModel):
-    """Who is served: unknown robots, newcomers, robots that left (server.registry)."""
+    """Who is served: unknown robots, newcomers, robots that left (server.runtime.registry)."""
 
     probation_messages: int = Field(3, ge=1, description="a new robot without a liveliness "
                                     "token is admitted after this many messages (held, not "
@@ -223,7 +224,7 @@ class AdmissionConfig(ConfigModel):
 
 class ClusterConfig(ConfigModel):
     """A server split over several worker processes, on one machine or several
-    (server.cluster; docs/scale.md)."""
+    (server.runtime.cluster; docs/scale.md)."""
 
     worker: int | None = Field(None, ge=0, lt=64, description="this worker's number, unique "
                                "among the server's workers (0-63); null: the only server")
@@ -268,12 +269,12 @@ class ServerConfig(ConfigModel):
                                   "the server accepted; a server started on a folder that "
                                   "holds one resumes where it was (null: <out>/state, or no "
                                   "journal without out)")
-    journal: bool = Field(True, description="keep the journal (server.journal)")
+    journal: bool = Field(True, description="keep the journal (server.runtime.journal)")
     snapshot_period_s: float = Field(5.0, gt=0.0, description="a snapshot of the server's "
                                      "state this often (wall time; longer when snapshots "
                                      "would take more than ~4 % of the CPU the server uses), "
                                      "so a restart replays only the journal since "
-                                     "(server.snapshot)")
+                                     "(server.runtime.snapshot)")
     outputs_period_s: float = Field(10.0, gt=0.0, description="maps, trajectories and the "
                                     "summary are rewritten this often while running (wall "
                                     "time; each file replaced whole), so a crash leaves the "

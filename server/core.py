@@ -10,7 +10,8 @@ One call per scan does the robot's whole loop (see ``ServerCore.on_scan``):
     cmd   = steering.command(...)         # the operator's orders, the lookout, or
                                           # explore → plan → pursue → avoid
 
-Stamps reach the core in the server's time (``server.node`` maps each robot's clock onto it).
+Stamps reach the core in the server's time (``server.runtime.node`` maps each robot's clock
+onto it).
 Periodic work (coverage and termination, map and state messages) runs on the ``now_ns`` the
 caller passes: the server's own clock (the simulator's in lockstep, so a lockstep simulation
 gives the same run every time); offline callers pass none and it runs on the scans' stamps.
@@ -24,6 +25,8 @@ and the ``EventLog``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from concurrent.futures import Executor
 
 import msgspec
 import numpy as np
@@ -40,20 +43,19 @@ from schemas import (
     VelocityCommand,
 )
 from schemas.se2 import compose, inverse
+from server.command.operator import OperatorCommand, OperatorError, OperatorOrders
+from server.command.steering import Steering
 from server.config import ServerConfig
-from server.events import EventLog
-from server.fleet import Fleet, MergeRecord, RobotContext, Team
-from server.operator import OperatorCommand, OperatorError, OperatorOrders
-from server.planner_pool import Pools
+from server.fleet.events import EventLog
+from server.fleet.model import Fleet, MergeRecord, RobotContext, Team
+from server.fleet.progress import Progress
+from server.fleet.stages import Stages
 from server.planning import OccupancyGrid as PlanningGrid
-from server.progress import Progress
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.desk import SightingDesk
 from server.rendezvous.matchdesk import MapMatchDesk
 from server.rendezvous.merger import Merger
 from server.rendezvous.surgery import GraphSurgery
-from server.stages import Stages
-from server.steering import Steering
 
 F64 = NDArray[np.float64]
 
@@ -76,7 +78,7 @@ class ServerCore:
                                  self.stages.pose_sigmas)
         self.matcher = MapMatchDesk(cfg, self.fleet, self.merger, self.events, self.counters)
         self.progress = Progress(cfg, self.fleet, self.events)
-        #: what the operator ordered (``server.operator``): it wins over every other command
+        #: what the operator ordered (``server.command.operator``): it wins over every other command
         self.orders = OperatorOrders()
         self.steering = Steering(cfg, self.fleet, self.orders, self.events)
         #: each robot's pose σ (x, y, θ) at its newest keyframe: (keyframes, σ)
@@ -85,10 +87,13 @@ class ServerCore:
         #: again in their map: their scans since
         self.returning: dict[str, int] = {}
 
-    def use_pools(self, pools: Pools) -> None:
-        """Where slow work runs (replanning, map matching): given once, by the node, and
-        after a snapshot is loaded (processes are not state)."""
-        self.steering.pools = self.matcher.pools = pools
+    def use_pools(self, planner: Callable[[], Executor | None],
+                  matcher: Callable[[int], Executor | None]) -> None:
+        """Where slow work runs: ``planner()`` for replanning and lone robots' decisions,
+        ``matcher(teams)`` for map matching between teams (None: here, in line). Given once,
+        by the node, and after a snapshot is loaded (processes are not state)."""
+        self.steering.planner = planner
+        self.matcher.matcher = matcher
 
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
@@ -167,7 +172,7 @@ class ServerCore:
         self.desk.receive(msg)
 
     def operate(self, cmd: OperatorCommand, stamp_ns: int) -> tuple[int, str]:
-        """Carry out an operator's order (``server.operator``); an event says what was done
+        """Carry out an operator's order (``server.command.operator``); an event says what was done
         or why not. Returns (200, that line), or the refusal's status (``OperatorError``)
         and its line."""
         try:

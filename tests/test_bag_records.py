@@ -1,4 +1,4 @@
-"""ROS 1 bags read record by record in file order (``server.logs.bagfile``), for bags whose
+"""ROS 1 bags read record by record in file order (``server.offline.logs.bagfile``), for bags whose
 index the rosbags library cannot read: the same messages as rosbags where it can, the
 scan_tools demo bag where it cannot, and the intact part of a bag cut short."""
 
@@ -14,8 +14,8 @@ from rosbags.highlevel import AnyReader
 from typer.testing import CliRunner
 
 from mrslam.cli import app
-from server.logs.bagfile import deserializer, read_records
-from server.logs.rosbag import read_bag
+from server.offline.logs.bagfile import deserializer, read_records
+from server.offline.logs.rosbag import read_bag
 from tests.bagbuild import FUSE, HOKUYO, Messages, Pose, Scan, real_scans, write_bag
 
 needs_bags = pytest.mark.skipif(not FUSE.is_file(), reason="no ../shared/data/bags")

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from mrslam.cli import app
 from schemas.se2 import compose
-from server.logs.rosbag import read_bag
+from server.offline.logs.rosbag import read_bag
 from tests.bagbuild import FUSE, HOKUYO, OKO, Messages, Pose, Scan, real_scans, write_bag
 
 needs_bags = pytest.mark.skipif(not FUSE.is_file(), reason="no ../shared/data/bags")

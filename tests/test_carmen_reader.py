@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server.logs import (
+from server.offline.logs import (
     CarmenError,
     attach_odometry,
     guess_beam_angles,
@@ -167,8 +167,8 @@ def test_real_logs_first_lines(tmp_path: Path) -> None:
 
 
 def test_readings_at_the_sensor_maximum_are_no_returns(tmp_path: Path) -> None:
+    from server.offline.slam_log import process
     from server.slam.config import SlamConfig
-    from server.slam_log import process
 
     # ROBOTLASER1 with maximum_range 4 m: the 4.0 readings are "nothing seen", not walls
     lines = []

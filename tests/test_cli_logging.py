@@ -76,12 +76,12 @@ def test_a_daemon_whose_stderr_is_a_file_logs_plain_lines_there(tmp_path: Path) 
     err, out = tmp_path / "server.log", tmp_path / "stdout"
     code = ("import logging, sys; from mrslam.cli import setup_logging; "
             "setup_logging(0, 'server'); "
-            "logging.getLogger('server.daemon').info('x' * 200)")
+            "logging.getLogger('server.runtime.daemon').info('x' * 200)")
     with err.open("w") as f, out.open("w") as g:
         subprocess.run([sys.executable, "-c", code], stdout=g, stderr=f, check=True,
                        timeout=60)
     (line,) = err.read_text().splitlines()
-    assert DATED.match(line) and line.endswith("server.daemon: " + "x" * 200)
+    assert DATED.match(line) and line.endswith("server.runtime.daemon: " + "x" * 200)
     assert out.read_text() == ""
 
 

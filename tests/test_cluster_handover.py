@@ -19,12 +19,12 @@ from schemas import Scan, TagDetection, TagDetections, VelocityCommand, keys
 from schemas.bus import Bus, free_local_endpoint
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
-from server import handover
-from server.cluster import _rank
 from server.config import ServerConfig
 from server.core import ServerCore
-from server.journal import JournalWriter, replay
-from server.node import ServerNode
+from server.runtime import handover
+from server.runtime.cluster import _rank
+from server.runtime.journal import JournalWriter, replay
+from server.runtime.node import ServerNode
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.test_team_merge import SPAWN, WORLD, config

@@ -1,4 +1,4 @@
-"""A server split over two worker processes (``server.cluster``). Worker 1, started before
+"""A server split over two worker processes (``server.runtime.cluster``). Worker 1, started before
 its router, waits for it. Killed with SIGKILL and restarted on its state folder within the
 timeout, it takes its robots back with their maps (worker 0 waits for it); stopped on purpose,
 it hands its teams to worker 0, maps and all; killed for good, worker 0 serves its robots
@@ -16,7 +16,7 @@ import pytest
 from bench.support.fleet import RoomRobot, ServerProcess
 from schemas import keys
 from schemas.bus import free_local_endpoint
-from server.cluster import _rank
+from server.runtime.cluster import _rank
 from tests.waiting import within
 
 pytestmark = pytest.mark.e2e

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from schemas import Scan, TagDetections
+from server.command.operator import OperatorCommand, OperatorError, parse
 from server.core import ServerCore
-from server.journal import JournalWriter, replay
-from server.navigator import NavMode
-from server.operator import OperatorCommand, OperatorError, parse
-from server.snapshot import Snapshots
+from server.exploration.navigator import NavMode
+from server.runtime.journal import JournalWriter, replay
+from server.runtime.snapshot import Snapshots
 from tests.test_server_journal import config, messages
 
 STOP_ALL = OperatorCommand("stop")

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from server.control import PursuitParams, StuckDetector
-from server.coordination import Member, TeamExplorer, walls_beyond_reach
 from server.exploration import (
     Decision,
     ExplorerParams,
@@ -18,7 +17,8 @@ from server.exploration import (
     assign_optimal,
     assign_spread,
 )
-from server.navigator import Navigator
+from server.exploration.navigator import Navigator
+from server.fleet.coordination import Member, TeamExplorer, walls_beyond_reach
 from server.planning import OccupancyGrid
 from tests.test_exploration_skeleton import t_corridor
 

@@ -172,7 +172,7 @@ def test_robot_can_publish_only_under_its_own_keys(
 
 def test_a_server_worker_may_serve_robots_and_a_robot_may_not_pose_as_one(
         secured: tuple[Bus, str, Path], certs: Path) -> None:
-    """Another worker of the server (``server.cluster``) claims robots and answers for teams
+    """Another worker of the server (``server.runtime.cluster``) claims robots and answers for teams
     through the router; a robot's certificate cannot claim anything there."""
     server, endpoint, tmp = secured
     owners: list[tuple[str, bool]] = []

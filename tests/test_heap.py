@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from server import heap
+from server.runtime import heap
 
 
 def rss_kb() -> int:

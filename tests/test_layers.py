@@ -20,13 +20,16 @@ from tests.conftest import ROOT
 
 LIBRARY = ("server", "sim", "robot_agent", "recording", "factors", "schemas")
 PROJECT = (*LIBRARY, "mrslam", "bench", "tests")
+#: the server's algorithm groups: no I/O, no processes (docs/development.md)
+SERVER_ALGORITHMS = ("server.slam", "server.planning", "server.control", "server.exploration",
+                     "server.lookout", "server.fleet", "server.rendezvous", "server.command")
 #: what ``schemas/se2.py`` may import: the bottom of the stack, numbers only
 SE2_ALLOWED = ("__future__", "math", "typing", "collections.abc", "numpy")
 
 
 @dataclass(frozen=True)
 class Import:
-    module: str          # the importing module, e.g. ``server.daemon``
+    module: str          # the importing module, e.g. ``server.runtime.daemon``
     path: str            # its file, relative to the checkout
     line: int
     name: str            # the module it imports, absolute: ``schemas.config_loading``
@@ -117,6 +120,22 @@ RULES = [
          lambda m: m == "schemas.se2", _se2_breaks),
     Rule("factors never imports server, sim or robot_agent",
          lambda m: under(m, "factors"), lambda n: under(n, "server", "sim", "robot_agent")),
+    # the server's groups (docs/development.md): runtime, offline and console around the core;
+    # the core over commands, the fleet and its merging; those over the algorithms
+    Rule("the server's core and algorithms never import its runtime, offline tools or console",
+         lambda m: under(m, *SERVER_ALGORITHMS, "server.core"),
+         lambda n: under(n, "server.runtime", "server.offline", "server.console")),
+    Rule("only the server's runtime and console talk to Zenoh",
+         lambda m: under(m, "server") and not under(m, "server.runtime", "server.console"),
+         lambda n: under(n, "zenoh", "schemas.bus")),
+    Rule("slam, planning and control never import exploration, the fleet, teams, commands or "
+         "the core", lambda m: under(m, "server.slam", "server.planning", "server.control"),
+         lambda n: under(n, "server.exploration", "server.lookout", "server.fleet",
+                         "server.rendezvous", "server.command", "server.core")),
+    Rule("the offline tools run without a bus: never the node, the daemon or the cluster",
+         lambda m: under(m, "server.offline"),
+         lambda n: under(n, "server.runtime.node", "server.runtime.daemon",
+                         "server.runtime.cluster", "server.console")),
 ]
 
 
@@ -213,9 +232,9 @@ def test_no_import_cycle_among_the_cli_modules(imports: list[Import], lazy: bool
 
 def test_a_lazy_import_of_the_cli_from_library_code_is_caught() -> None:
     src = "import numpy\n\ndef run():\n    from mrslam.config import load_config\n"
-    found = imports_in(src, "server.daemon", "server/daemon.py")
+    found = imports_in(src, "server.runtime.daemon", "server/runtime/daemon.py")
     bad = RULES[0].violations(found)
-    assert [str(i) for i in bad] == ["server/daemon.py:4 imports mrslam.config"]
+    assert [str(i) for i in bad] == ["server/runtime/daemon.py:4 imports mrslam.config"]
     assert not bad[0].at_import_time
 
 
@@ -235,3 +254,10 @@ def test_a_cycle_is_found_and_a_lazy_import_does_not_close_one() -> None:
                                        "mrslam/b.py:1 imports mrslam.a"}
     lazy = imports_in("def g():\n    import mrslam.a\n", "mrslam.b", "mrslam/b.py")
     assert import_cycles(a + lazy, "mrslam") == []
+
+
+def test_a_server_algorithm_importing_the_runtime_or_zenoh_is_caught() -> None:
+    src = "from server.runtime.node import ServerNode\nimport zenoh\n"
+    found = imports_in(src, "server.slam.robot", "server/slam/robot.py")
+    broken = {r.name for r in RULES for _ in r.violations(found)}
+    assert broken == {RULES[6].name, RULES[7].name}

@@ -1,4 +1,5 @@
-"""Logs whose stamps jump: the outlier goes, not the run (``server.logs.stamps``, slam-log)."""
+"""Logs whose stamps jump: the outlier goes, not the run (``server.offline.logs.stamps``,
+slam-log)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,8 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from mrslam.cli import app
-from server.evaluation import evaluate
-from server.logs.stamps import EARLY_NUDGE_S, plan_stamps
+from server.offline.evaluation import evaluate
+from server.offline.logs.stamps import EARLY_NUDGE_S, plan_stamps
 from tests.conftest import DATA
 
 CARMEN = DATA / "carmen"

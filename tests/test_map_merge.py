@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from schemas.se2 import compose, inverse, pose_distance
-from server import planner_pool
 from server.core import ServerCore
+from server.runtime import planner_pool
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.test_cluster_handover import step_messages

@@ -13,7 +13,7 @@ import pytest
 from schemas.se2 import compose, inverse
 from server.control import Obstacles
 from server.core import ServerCore
-from server.fleet import MergeRecord
+from server.fleet.model import MergeRecord
 from server.rendezvous.mapmatch import Candidate, Hypothesis
 from server.rendezvous.matchdesk import HypothesisEntry
 from sim.loader import load_world

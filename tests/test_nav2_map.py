@@ -13,8 +13,8 @@ import yaml
 
 from schemas import nav2map
 from schemas.occupancy import OCCUPIED, UNKNOWN
-from server.outputs import write_nav2_grid
 from server.planning import OccupancyGrid as PlanningGrid
+from server.runtime.outputs import write_nav2_grid
 from server.slam.export import write_nav2 as write_slam_map
 from server.slam.grid import GridParams
 from server.slam.grid import OccupancyGrid as SlamGrid

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from numpy.typing import ArrayLike
 
-from server import navigator
 from server.control import Obstacles, PursuitParams, StuckDetector
 from server.exploration import (
     Explorer,
@@ -15,9 +14,10 @@ from server.exploration import (
     MapAnalysis,
     VisitedTargets,
     VoronoiExplorer,
+    navigator,
 )
+from server.exploration.navigator import EXPLORING, Navigator
 from server.exploration.replan import Replan, Replanned, replan
-from server.navigator import EXPLORING, Navigator
 from server.planning import OccupancyGrid
 from tests.test_exploration_skeleton import t_corridor
 

@@ -1,5 +1,5 @@
 """A late network is not a stepped clock: a robot behind a relay that stalls, jitters and cuts
-its link, against a real server process (``server.clock``, ``bench.support.relay``).
+its link, against a real server process (``server.runtime.clock``, ``bench.support.relay``).
 
 The relay holds the robot's bytes as a Wi-Fi link does while the robot roams between access
 points, then lets them through at once. Its stamps were right all along: the server must not

@@ -1,5 +1,5 @@
 """Corrupt odometry samples are skipped and counted, and nothing else is
-(``server.logs.odomcheck``; ``slam-log`` on bags)."""
+(``server.offline.logs.odomcheck``; ``slam-log`` on bags)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from mrslam.cli import app
-from server.logs.odomcheck import OdometryLimits, check_odometry
-from server.logs.rosbag import BagError, read_bag
+from server.offline.logs.odomcheck import OdometryLimits, check_odometry
+from server.offline.logs.rosbag import BagError, read_bag
 from tests.bagbuild import OKO, Messages, Pose, Scan, write_bag
 
 needs_bags = pytest.mark.skipif(not OKO.is_file(), reason="no ../shared/data/bags")

@@ -32,7 +32,7 @@ from schemas.se2 import between, pose_distance
 from schemas.tags import CameraMount, TagLayout
 from server.config import ServerConfig
 from server.core import ServerCore
-from server.offline_merge import MergeError, load_session, rename_clashes, run_merge
+from server.offline.offline_merge import MergeError, load_session, rename_clashes, run_merge
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.conftest import DATA

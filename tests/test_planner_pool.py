@@ -13,7 +13,7 @@ from tests.waiting import within
 
 SERVER_LIKE = """
 import os, sys, time
-from server import planner_pool
+from server.runtime import planner_pool
 pool = planner_pool.start(2)
 pool.submit(os.getpid).result()
 print(" ".join(str(p) for p in pool._processes), flush=True)

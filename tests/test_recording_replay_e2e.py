@@ -22,8 +22,8 @@ from schemas.bus import Bus, free_local_endpoint
 from schemas.config import BusConfig
 from schemas.config_loading import load_config
 from server.config import ServerConfig
-from server.node import ServerNode
-from server.outputs import write_outputs
+from server.runtime.node import ServerNode
+from server.runtime.outputs import write_outputs
 from tests.test_demo_e2e import three_rooms
 
 #: starts other processes (the CLI, the server, the simulator, agents, scripts): the e2e tier

@@ -117,7 +117,7 @@ def test_a_folder_that_cannot_hold_the_file_falls_back_to_temp_then_to_memory(
 def test_the_server_puts_the_file_in_its_state_folder(monkeypatch: pytest.MonkeyPatch,
                                                      tmp_path: Path) -> None:
     from server.config import ServerConfig
-    from server.daemon import _resume
+    from server.runtime.daemon import _resume
 
     monkeypatch.delenv("MRSLAM_RENDER_DIR", raising=False)
     monkeypatch.setattr(render_store, "_store", None)

@@ -132,7 +132,7 @@ def test_figures_cap_coverage_label_merges_and_key_the_maps(tmp_path: Path) -> N
 
     from mrslam.figures import write_figures
     from mrslam.run_files import Gaps
-    from server.outputs import write_trajectory
+    from server.runtime.outputs import write_trajectory
     from sim.grid import OccupancyGrid, write_nav2
 
     cells = np.zeros((40, 60), np.int8)

@@ -19,10 +19,10 @@ from recording.writer import McapRecorder
 from schemas import keys
 from schemas.codec import encode
 from schemas.messages import MapUpdate, RobotEstimate, RobotStates, Scan, quantise_ranges_mm
-from server.logs import attach_odometry, choose_odometry_source, read_log, select_stream
-from server.logs.rosbag import BagError, compose, read_bag, yaw_of
-from server.slam_log import laser_offset
-from server.slam_log import run as slam_log
+from server.offline.logs import attach_odometry, choose_odometry_source, read_log, select_stream
+from server.offline.logs.rosbag import BagError, compose, read_bag, yaw_of
+from server.offline.slam_log import laser_offset
+from server.offline.slam_log import run as slam_log
 from tests.conftest import DATA
 
 CARMEN = DATA / "carmen"

@@ -15,7 +15,7 @@ from rich.console import Console
 
 from mrslam.report import beside_dissertation, build_report, print_summary
 from mrslam.run_files import Gaps, read_json, read_trajectory, read_truth
-from server.outputs import write_trajectory
+from server.runtime.outputs import write_trajectory
 
 
 def test_a_trajectory_reads_back_what_the_server_wrote(tmp_path: Path) -> None:

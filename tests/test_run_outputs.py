@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from server.outputs import Outputs
 from server.planning import OccupancyGrid
+from server.runtime.outputs import Outputs
 
 
 def test_a_merged_teams_last_map_goes_at_the_next_write(tmp_path: Path) -> None:

@@ -1,5 +1,5 @@
-"""Odometry from the scans alone (``server.logs.scan_odometry``): known motions in a room, the
-constant-velocity prediction where a scan cannot be matched, and a CARMEN log without any
+"""Odometry from the scans alone (``server.offline.logs.scan_odometry``): known motions in a
+room, the constant-velocity prediction where a scan cannot be matched, and a CARMEN log without any
 odometry mapped by ``slam-log``."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from mrslam.cli import app
 from schemas.se2 import between, compose, wrap_angle
-from server.logs.scan_odometry import ScanOdometry
+from server.offline.logs.scan_odometry import ScanOdometry
 from tests.conftest import DATA
 
 CARMEN = DATA / "carmen"

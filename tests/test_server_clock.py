@@ -1,4 +1,5 @@
-"""Robot clocks against the server's (``server.clock``): a late message is not a stepped clock.
+"""Robot clocks against the server's (``server.runtime.clock``): a late message is not a
+stepped clock.
 
 Each robot here streams at 10 Hz on a clock of its own; the tests give each message the time
 the server received it, as a network that holds messages, jitters or delivers in bursts would,
@@ -13,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from server.clock import ClockPolicy, RobotClock, ServerClock, StampRefused
+from server.runtime.clock import ClockPolicy, RobotClock, ServerClock, StampRefused
 
 S = 1_000_000_000
 MS = 1_000_000

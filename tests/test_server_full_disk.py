@@ -1,7 +1,7 @@
 """A full disk degrades the server's state, never its robots: the state folder on a small
 tmpfs fills up, the robots keep being answered, the failure is logged once and counted, and
 once there is room again journaling resumes from a fresh snapshot, so a server killed after
-that resumes with everything (``server.keeper``)."""
+that resumes with everything (``server.runtime.keeper``)."""
 
 from __future__ import annotations
 

@@ -1,9 +1,9 @@
-"""The worker's queues (``server.inbox``): robots take turns, trusted robots first, control
+"""The worker's queues (``server.runtime.inbox``): robots take turns, trusted robots first, control
 items ahead of all, and a robot's backlog is bounded."""
 
 from __future__ import annotations
 
-from server.inbox import NEWCOMER, TRUSTED, Inbox
+from server.runtime.inbox import NEWCOMER, TRUSTED, Inbox
 
 
 def drain(inbox: Inbox) -> list[str]:

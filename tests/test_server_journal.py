@@ -14,8 +14,8 @@ import pytest
 from schemas import Scan, TagDetection, TagDetections
 from server.config import ServerConfig
 from server.core import ServerCore
-from server.journal import JournalWriter, ReplayReport, read_journal, replay
-from server.snapshot import Snapshots
+from server.runtime.journal import JournalWriter, ReplayReport, read_journal, replay
+from server.runtime.snapshot import Snapshots
 from tests.test_rendezvous_merger import BEAMS, WALLS, ranges_from
 
 SPAWN = {"r1": (2.5, 3.0), "r2": (7.5, 6.0)}
@@ -187,7 +187,7 @@ def test_a_snapshot_and_the_journal_after_it_resume_the_core(tmp_path: Path) -> 
 
 
 def test_a_state_folder_that_cannot_be_one_is_a_typed_error(tmp_path: Path) -> None:
-    from server.journal import JournalError
+    from server.runtime.journal import JournalError
 
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
@@ -247,7 +247,7 @@ def test_a_snapshot_written_by_other_code_is_passed_over(tmp_path: Path,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """The header holds mrslam's version and a digest of the server's code: an upgraded (or
     edited) server does not unpickle objects whose classes changed, it replays the journal."""
-    import server.snapshot as snapshot
+    import server.runtime.snapshot as snapshot
 
     assert "+" in snapshot.VERSION          # version + code digest
     live = ServerCore(config(), navigate=False)
@@ -275,3 +275,13 @@ def test_a_scan_the_server_gets_to_too_late_is_mapped_but_answered_with_a_stop()
     r = core.robots["r1"]
     assert r.late_scans == 1 and r.scans == len(scans)          # mapped as any other
     assert len(r.slam.keyframes) >= keyframes
+
+
+def test_a_snapshot_is_tied_to_a_digest_of_the_servers_code() -> None:
+    """The version a snapshot carries hashes the server's, the factors' and the schemas'
+    sources: a digest of nothing would let another version's snapshot load."""
+    import hashlib
+
+    from server.runtime import snapshot
+
+    assert snapshot.VERSION.split("+")[1] != hashlib.blake2b(digest_size=8).hexdigest()

@@ -10,9 +10,9 @@ import numpy as np
 
 from schemas import Scan, TagDetections
 from schemas.messages import quantise_ranges_mm
-from server.inbox import Inbox
-from server.lockstep import StepBarrier
-from server.work import AliveWork, ScanWork, TagsWork
+from server.runtime.inbox import Inbox
+from server.runtime.lockstep import StepBarrier
+from server.runtime.work import AliveWork, ScanWork, TagsWork
 
 
 def scan(rid: str, stamp_ns: int) -> Scan:

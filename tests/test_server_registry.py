@@ -7,7 +7,7 @@ import logging
 
 import pytest
 
-from server.registry import AdmissionPolicy, Refused, RobotRegistry
+from server.runtime.registry import AdmissionPolicy, Refused, RobotRegistry
 
 S = 1_000_000_000  # one second [ns]
 T0 = 1_800_000_000 * S  # the server's clock at the start of these tests
@@ -84,7 +84,7 @@ def test_silent_robots_are_forgotten_and_start_afresh() -> None:
 def test_a_flood_of_new_ids_keeps_no_real_robot_out_and_logs_few_lines(
         caplog: pytest.LogCaptureFixture) -> None:
     reg = RobotRegistry(AdmissionPolicy(max_newcomers=500))
-    with caplog.at_level(logging.INFO, logger="server.registry"):
+    with caplog.at_level(logging.INFO, logger="server.runtime.registry"):
         for i in range(2000):
             assert reg.admit(f"x{i}", f"x{i}", "scan", T0, T0) == []
             with pytest.raises(Refused):

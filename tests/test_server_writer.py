@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 
-from server.writer import BackgroundWriter
+from server.runtime.writer import BackgroundWriter
 
 
 def test_a_newer_job_of_a_kind_replaces_the_waiting_one_and_errors_are_counted() -> None:

@@ -12,7 +12,7 @@ import yaml
 from typer.testing import CliRunner
 
 from mrslam.cli import app
-from server.evaluation import evaluate, match_stamps, relation_errors
+from server.offline.evaluation import evaluate, match_stamps, relation_errors
 from tests.conftest import DATA
 
 CARMEN = DATA / "carmen"

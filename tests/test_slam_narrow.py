@@ -12,6 +12,7 @@ import pytest
 from bench.support.mission import scan_of
 from schemas.occupancy import OCCUPIED, UNKNOWN
 from schemas.se2 import between
+from server.command.steering import ObstacleMemory, mapped_obstacles
 from server.config import ServerConfig
 from server.core import ServerCore
 from server.planning import OccupancyGrid as PlanningGrid
@@ -19,7 +20,6 @@ from server.slam.config import MatcherConfig
 from server.slam.frontend import is_narrow, min_points
 from server.slam.keyframes import gather
 from server.slam.scan import scan_to_points
-from server.steering import ObstacleMemory, mapped_obstacles
 from sim.config import SimConfig
 from sim.loader import load_world
 from sim.process import params_from_config

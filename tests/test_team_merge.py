@@ -21,10 +21,10 @@ from robot_agent.aruco import TagDetector
 from schemas import TagDetection, TagDetections
 from schemas.se2 import between, compose, pose_distance
 from schemas.tags import CameraMount, TagLayout
+from server.command.operator import Errand
 from server.config import ServerConfig
 from server.control import Obstacles, PurePursuit
 from server.core import ServerCore
-from server.operator import Errand
 from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.conftest import DATA
@@ -530,7 +530,7 @@ def test_a_team_merged_on_sightings_snapshots_and_comes_back(tmp_path: Path) -> 
     """The server's snapshot of a team joined by tag sightings (rendezvous factors, kept in
     its graph here) reads back: same teams and merges, poses to well under a millimetre."""
     from factors.rendezvous import RecipeFactor
-    from server.snapshot import Snapshots
+    from server.runtime.snapshot import Snapshots
 
     core, _ = run(250, cfg=config(retire_sightings_after=0))
     assert len(core.teams) == 1
@@ -599,7 +599,7 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
     # a clock stepped back before the latest refusal does not hold the pause for that long
     assert not core.fleet.seeking_paused("team-r1", "team-r2", now - 1)
     # a robot on its way to a meeting planned before goes on with it
-    from server.fleet import Meeting
+    from server.fleet.model import Meeting
 
     r1.meeting = Meeting("go", "r2", 0, now * 1e-9 + 60.0)
     assert not core.fleet.others_paused(r1, now)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from mrslam.report import write_truth_tum
-from server.outputs import tum_lines, write_trajectory, write_tum
+from server.runtime.outputs import tum_lines, write_trajectory, write_tum
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -40,7 +40,7 @@ def test_the_stamp_keeps_every_nanosecond() -> None:
 
 
 def test_the_server_writes_tum_beside_each_csv(tmp_path: Path) -> None:
-    from server.outputs import Outputs
+    from server.runtime.outputs import Outputs
 
     stamps = np.arange(5, dtype=np.int64) * 10**8
     poses = np.column_stack([np.arange(5) * 0.1, np.zeros(5), np.full(5, 0.5)])

@@ -21,9 +21,9 @@ import numpy as np
 from schemas import Scan
 from schemas.messages import quantise_ranges_mm
 from schemas.occupancy import FREE_BELOW
+from server.command.operator import OperatorCommand
 from server.config import ServerConfig
 from server.core import ServerCore
-from server.operator import OperatorCommand
 from sim.config import DEFAULT_SCENARIOS, load_scenario
 from sim.loader import load_world
 from sim.simulator import Observation, SimParams, Simulator

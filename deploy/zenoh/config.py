@@ -19,7 +19,7 @@ It may never publish a command: only the server commands a robot. It is told whi
 ``mrslam/`` have subscribers (declarations only, no data): without that, a client's declared
 publisher delivers its first put at most and drops the rest. Names passed with ``--observer``
 (dashboards, loggers) may read everything and write nothing; names passed with ``--worker``
-(the server's other worker processes, ``server.cluster``) may do what the server does.
+(the server's other worker processes, ``server.runtime.cluster``) may do what the server does.
 Everything else is denied. The server's own session is the router, so its publications and
 subscriptions are local and always allowed.
 
@@ -81,7 +81,7 @@ def access_control(robots: list[str], observers: list[str],
     subjects: list[dict[str, object]] = []
     policies: list[dict[str, object]] = []
     if workers:
-        # the server's other worker processes (server.cluster) do what the server does
+        # the server's other worker processes (server.runtime.cluster) do what the server does
         everything = WRITE + SUBSCRIBE
         rules += [_rule("worker-in", "ingress", everything, ["mrslam/**"]),
                   _rule("worker-out", "egress", everything + RECEIVE, ["mrslam/**"])]

@@ -141,7 +141,7 @@ class ConsoleModel:
                      state: dict[str, Any] | None = None) -> Frame:
         """Per robot its scans (rate, last seen) and dropped ones, the operator's orders, the
         console's counters, and whether the server's state is being written
-        (``server.keeper``)."""
+        (``server.runtime.keeper``)."""
         now = time.time() if now_wall is None else now_wall
         rows = {}
         for rid in sorted(set(self.health) | set(self.robots)):

@@ -36,10 +36,10 @@ from schemas.bus import Bus
 from schemas.codec import decode
 from schemas.errors import SchemaError
 from schemas.ratelog import RateLimitedLog
+from server.command.operator import OperatorCommand, OperatorError, parse
 from server.console.clients import Pages, encode
 from server.console.model import ConsoleModel, Frame
 from server.console.web import ConsoleHTTPServer
-from server.operator import OperatorCommand, OperatorError, parse
 
 log = logging.getLogger(__name__)
 

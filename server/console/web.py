@@ -5,7 +5,7 @@
 | `/` | GET | the page (one self-contained HTML file) |
 | `/stream` | GET | server-sent events: a `snapshot`, then `map`, `robots`, `event`, `health` |
 | `/state` | GET | the snapshot as one JSON document |
-| `/command` | POST | an operator's order (JSON, ``server.operator``) |
+| `/command` | POST | an operator's order (JSON, ``server.command.operator``) |
 
 Every request carries the token: ``Authorization: Bearer <token>`` or ``?token=<token>``
 (the page passes on the one in its own address). Without it, or with a wrong one, the answer

@@ -11,6 +11,7 @@ All return :class:`Twist` (v [m/s], ω [rad/s]) and do no I/O:
 
 from server.control.driver import Drive, Driver, Obstacles, limit
 from server.control.geometry import STOP, Twist, clip, world_to_robot
+from server.control.memory import ObstacleMemory
 from server.control.pure_pursuit import PurePursuit, PursuitParams, PursuitStep, closest_point
 from server.control.stuck import (
     Recovery,
@@ -24,6 +25,7 @@ __all__ = [
     "STOP",
     "Drive",
     "Driver",
+    "ObstacleMemory",
     "Obstacles",
     "PurePursuit",
     "PursuitParams",

@@ -24,7 +24,7 @@ from factors.rendezvous import Sighting
 from schemas import TagDetection, TagDetections
 from schemas.se2 import compose, inverse, transform_points
 from server.config import ServerConfig
-from server.fleet import Fleet, RobotContext, Sighted
+from server.fleet.model import Fleet, RobotContext, Sighted
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import (
     CHI2_3DOF_99,

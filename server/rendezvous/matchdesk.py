@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import logging
 import math
-from concurrent.futures import Future
+from collections.abc import Callable
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -33,9 +34,8 @@ from numpy.typing import NDArray
 
 from schemas.se2 import compose, inverse, transform_points, wrap_angle
 from server.config import ServerConfig
-from server.events import EventLog
-from server.fleet import Fleet, Meeting, MergeRecord, RobotContext
-from server.planner_pool import Pools
+from server.fleet.events import EventLog
+from server.fleet.model import Fleet, Meeting, MergeRecord, RobotContext
 from server.planning.astar import plan
 from server.planning.costmap import build_cost_layer
 from server.planning.errors import PlanningError
@@ -150,11 +150,11 @@ class MapMatchDesk:
         self._job: _Job | None = None
         #: where queries run (the server's matcher process; ``ServerCore.use_pools``),
         #: None: here
-        self.pools: Pools | None = None
+        self.matcher: Callable[[int], Executor | None] | None = None
 
     def __getstate__(self) -> dict[str, object]:
         # a query in flight is asked again; processes are not state
-        return {**self.__dict__, "_job": None, "pools": None}
+        return {**self.__dict__, "_job": None, "matcher": None}
 
     @property
     def params(self) -> MatchParams:
@@ -164,7 +164,7 @@ class MapMatchDesk:
     # -- the period's work -------------------------------------------------------------------
     def tick(self, now_ns: int) -> None:
         t = self.cfg.teams
-        planner = None if self.pools is None else self.pools.matcher(len(self.fleet.teams))
+        planner = None if self.matcher is None else self.matcher(len(self.fleet.teams))
         self._follow_meetings(now_ns)
         if not t.enabled or not t.map_match:
             return

@@ -20,13 +20,13 @@ from numpy.typing import NDArray
 
 from schemas.se2 import compose, inverse, transform_points
 from server.config import ServerConfig
-from server.events import EventLog
-from server.fleet import Fleet, Link, MergeRecord, RobotContext, Team
+from server.fleet.events import EventLog
+from server.fleet.model import Fleet, Link, MergeRecord, RobotContext, Team
+from server.fleet.stages import Stages
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal, MergeVerifier, SightingRecord
 from server.rendezvous.maps import cross_matches, map_agreement
 from server.rendezvous.surgery import GraphSurgery
-from server.stages import Stages
 
 log = logging.getLogger(__name__)
 

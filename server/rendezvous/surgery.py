@@ -22,7 +22,7 @@ from factors.rendezvous import rendezvous_factor
 from factors.scan_match import loop_closure_factor, pose2, whitened_chi2
 from schemas.se2 import compose, inverse
 from server.config import ServerConfig
-from server.fleet import Fleet, Link, RobotContext, Team
+from server.fleet.model import Fleet, Link, RobotContext, Team
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import SightingRecord
 from server.rendezvous.maps import cross_matches

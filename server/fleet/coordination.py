@@ -1,0 +1,158 @@
+"""Targets for a team: the robots of a merged team decide together.
+
+``TeamExplorer`` stands in for a robot's explorer once its team has more than one robot. When
+that robot needs a target, teammates still heading for an open target keep it (their goals are
+reserved); the robot and every teammate without a target are assigned jointly:
+
+- ``joint``: the free robots are assigned together: the minimum total path cost over the
+  team's cost matrix (Hungarian method), then, where two targets lie within the reserve radius,
+  the robot whose giving way costs the team less moves on (``assign_spread``: a heuristic,
+  not an optimum of the whole problem); a robot
+  whose sensor sees less far than a target's nearest mapped wall pays for the difference
+  (``walls_beyond_reach``), so open space goes to the long-range robots;
+- ``greedy``: the dissertation's rule — the robot takes its cheapest target at least the
+  reserve radius (2 m) from the others' goals.
+
+Teammates that received a target this way are redirected at once. A robot left without a
+target of its own goes where a teammate goes rather than stand idle: the space behind one
+frontier can be a whole room, and the team is not done until its coverage is reached.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from schemas.occupancy import OCCUPIED_ABOVE
+from server.exploration import (
+    Decision,
+    Explorer,
+    ExplorerParams,
+    Finished,
+    VisitedTargets,
+    assign_spread,
+)
+from server.exploration.navigator import Navigator, NavMode
+from server.planning import OccupancyGrid
+
+log = logging.getLogger(__name__)
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class Member:
+    robot_id: str
+    pose: F64
+    start_pose: F64
+    nav: Navigator
+    #: how far its range sensor sees (a depth camera's few metres, a LIDAR's ten or more)
+    sensor_range_m: float = math.inf
+
+
+def walls_beyond_reach(grid: OccupancyGrid, targets_xy: F64, ranges_m: Sequence[float],
+                       weight: float) -> F64:
+    """Extra cost (R, K) for each robot at each target: ``weight`` × how much farther the
+    nearest mapped wall is from the target than the robot's sensor reaches, beyond what the
+    team's longest-range sensor misses there too. A robot that sees a few metres must drive
+    through open space to map it, where a long-range one sweeps it in passing; in rooms and
+    corridors (walls within reach of both), and in a team of like sensors, nothing changes."""
+    out = np.zeros((len(ranges_m), len(targets_xy)))
+    r = np.minimum(np.asarray(ranges_m, dtype=np.float64), 1e3)
+    if not len(targets_xy) or weight <= 0 or np.ptp(r) == 0:
+        return out
+    rows, cols = np.nonzero(grid.data > OCCUPIED_ABOVE)
+    if len(rows) == 0:
+        return out
+    res = grid.resolution_m
+    walls = np.column_stack([grid.origin_xy[0] + (cols + 0.5) * res,
+                             grid.origin_xy[1] + (rows + 0.5) * res])
+    d, _ = cKDTree(walls).query(targets_xy)
+    return weight * (np.maximum(0.0, d[None, :] - r[:, None]) - np.maximum(0.0, d - r.max()))
+
+
+class TeamExplorer:
+    """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
+
+    def __init__(self, base: Explorer, robot_id: str, members: Callable[[], Sequence[Member]],
+                 mode: str = "joint", sensor_weight: float = 2.0) -> None:
+        if mode not in ("joint", "greedy"):
+            raise ValueError(f"unknown coordination {mode!r}")
+        self.base = base
+        self.robot_id = robot_id
+        self.members = members
+        self.mode = mode
+        self.sensor_weight = sensor_weight
+        self.assignments = 0
+
+    @property
+    def params(self) -> ExplorerParams:
+        return self.base.params
+
+    def __getattr__(self, name: str) -> object:
+        # everything but the decision is the robot's own explorer's (map analysis, ...);
+        # not while unpickling, before ``base`` is there
+        if name.startswith("__") or "base" not in self.__dict__:
+            raise AttributeError(name)
+        return getattr(self.base, name)
+
+    def decide(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
+               visited: VisitedTargets, reserved_xy: ArrayLike = ()) -> Decision | Finished:
+        team = list(self.members())
+        me = next((i for i, m in enumerate(team) if m.robot_id == self.robot_id), None)
+        if me is None or len(team) < 2:
+            return self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=reserved_xy)
+        others = [m for m in team if m.robot_id != self.robot_id]
+        committed = np.array([m.nav.target_xy for m in others if m.nav.target_xy is not None],
+                             dtype=np.float64).reshape(-1, 2)
+        if self.mode == "greedy":
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
+        free = [i for i, m in enumerate(team)
+                if i == me or (m.nav.target_xy is None and m.nav.mode != NavMode.DONE)]
+        tc = self.base.team_costs(grid, [team[i].pose for i in free],
+                                  [team[i].start_pose for i in free], visited)
+        if tc.cost.shape[1] == 0:
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
+        cost = tc.cost + walls_beyond_reach(grid, tc.targets_xy,
+                                            [team[i].sensor_range_m for i in free],
+                                            self.sensor_weight)
+        if len(committed):
+            r = self.params.reserve_radius_m
+            near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],
+                            tc.targets_xy[:, None, 1] - committed[None, :, 1]).min(axis=1) < r
+            cost[:, near] = np.inf
+        assignment = assign_spread(cost, tc.targets_xy, self.params.reserve_radius_m)
+        mine = assignment[free.index(me)]
+        if mine is None:
+            return self._alone(grid, robot_pose, start_pose, visited, committed)
+        self.assignments += 1
+        for row, i in enumerate(free):
+            k = assignment[row]
+            if i == me or k is None:
+                continue
+            try:
+                path = tc.path(row, k)
+            except Exception as e:  # a teammate that cannot be planned for decides alone
+                log.info("no path for %s to its assigned target: %s", team[i].robot_id, e)
+                continue
+            xy = (float(tc.targets_xy[k, 0]), float(tc.targets_xy[k, 1]))
+            team[i].nav.redirect(xy, path.xy_m)
+        xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
+        return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
+                        (), None)
+
+    def _alone(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
+               visited: VisitedTargets, committed: F64) -> Decision | Finished:
+        """The robot's own decision away from its teammates' goals, or next to one of them
+        when that is all there is."""
+        out = self.base.decide(grid, robot_pose, start_pose, visited, reserved_xy=committed)
+        if isinstance(out, Finished) and len(committed) and not (
+                out.coverage is not None and out.coverage >= self.params.coverage_threshold):
+            out = self.base.decide(grid, robot_pose, start_pose, visited)
+        return out

@@ -1,0 +1,253 @@
+"""``mrslam slam-log``: the robot SLAM of the server run offline on a CARMEN log or a ROS bag
+(``server.offline.logs.rosbag``).
+
+Writes into the output folder: ``poses.txt`` (``timestamp x y theta`` per laser scan: the
+log's own stamp as written, and the laser pose in the map frame after the final
+optimisation), ``map.png``/``map.yaml`` (nav2), ``cloud.ply``, ``summary.json`` and the resolved
+``config.yaml``. How a recording is read, step by step: ``docs/real-data.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from server.offline.logs import (
+    CarmenError,
+    CarmenLog,
+    LaserRecord,
+    OdometryScan,
+    attach_odometry,
+    choose_odometry_source,
+    read_log,
+    select_stream,
+)
+from server.offline.logs.records import F64
+from server.offline.logs.scan_odometry import ScanOdometry
+from server.offline.logs.stamps import StampPlan, plan_stamps
+from server.offline.slam_log_config import SlamLogConfig
+from server.runtime.heap import HeapTrimmer
+from server.slam.config import SlamConfig
+from server.slam.export import write_nav2, write_ply
+from server.slam.robot import RobotSlam, SlamInputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SlamLogConfig", "laser_offset", "process", "run"]
+
+
+class LogScan(Protocol):
+    """A scan of a log and the laser's odometry pose at it (None: the log has none)."""
+
+    @property
+    def record(self) -> LaserRecord: ...
+    @property
+    def T_odom_laser(self) -> F64 | None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class BareScan:
+    """A scan whose recording has no odometry: the scans give it (``ScanOdometry``)."""
+
+    record: LaserRecord
+    T_odom_laser: None = None
+
+
+def laser_offset(clog: CarmenLog, laser: str) -> float:
+    """Laser position ahead of the robot [m] (PARAM robot_<front|rear>laser_offset)."""
+    raw = clog.params.get(f"robot_{laser}laser_offset", "0")
+    try:
+        return float(raw)
+    except ValueError:
+        return 0.0
+
+
+def process(scans: Sequence[LogScan], cfg: SlamConfig,
+            progress: Callable[[int], None] | None = None, *, jitter_fraction: float = 0.5,
+            front: ScanOdometry | None = None
+            ) -> tuple[RobotSlam, list[str], int, StampPlan]:
+    """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
+    it (``plan_stamps``); a scan a little early is fed just after the one before it. Scans
+    without odometry get it from ``front`` (made here if not given). Returns the SLAM, the
+    stamps (text) of the scans it accepted, how many it rejected as bad input, and the stamp
+    plan (what it kept early, dropped or re-based)."""
+    slam = RobotSlam("a", cfg)
+    accepted: list[str] = []
+    rejected = 0
+    plan = plan_stamps([s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
+    _log_stamp_plan(plan, scans, jitter_fraction)
+    if front is None and any(s.T_odom_laser is None for s in scans):
+        front = ScanOdometry(cfg)
+    heap = HeapTrimmer(every_s=5.0)
+    for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
+        s = scans[i]
+        rec = s.record
+        ranges = rec.ranges_m
+        if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
+            ranges = np.where(ranges >= rec.max_range_m, np.inf, ranges)
+        try:
+            odom = s.T_odom_laser
+            if odom is None:
+                assert front is not None
+                odom = front.add(stamp_s, ranges, rec.angles_rad)
+            slam.add_scan(round(stamp_s * 1e9), odom, ranges, rec.angles_rad)
+        except SlamInputError as e:
+            rejected += 1
+            log.warning("line %d: scan skipped: %s", rec.line_no, e)
+            continue
+        accepted.append(rec.stamp_text)
+        heap.maybe()
+        if progress is not None and n % 25 == 0:
+            progress(i)
+    return slam, accepted, rejected, plan
+
+
+def _log_stamp_plan(plan: StampPlan, scans: Sequence[LogScan], fraction: float) -> None:
+    dropped = sorted(plan.dropped_ahead + plan.dropped_behind)
+    for j in dropped[:5]:
+        log.warning("line %d: scan skipped: its stamp %s is out of line with its neighbours'",
+                    scans[j].record.line_no, scans[j].record.stamp_text)
+    if len(dropped) > 5:
+        log.warning("%d scans skipped in all for stamps out of line", len(dropped))
+    if plan.early:
+        j = plan.early[0]
+        log.info("%d scans stamped a little before the one above them (less than %.0f %% of "
+                 "the %.3f s period, e.g. line %d, %s) are kept in file order",
+                 len(plan.early), 100 * fraction, plan.period_s, scans[j].record.line_no,
+                 scans[j].record.stamp_text)
+    for i, shift in plan.steps:
+        log.warning("line %d: the log's clock stepped back; later stamps shifted by %+.3f s",
+                    scans[i].record.line_no, shift)
+
+
+@dataclass
+class Read:
+    """A recording read: its records, its scans, and where their odometry came from."""
+
+    clog: CarmenLog
+    scans: list[LogScan]
+    laser: str
+    source: str
+    bag: dict[str, object] | None = None   # ``BagInfo`` of a bag, for the summary
+
+
+def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = None,
+                   odom_topic: str | None = None) -> Read:
+    """The scans of a CARMEN log or a ROS bag with their odometry (``cfg.odometry``)."""
+    from server.offline.logs.odomcheck import OdometryLimits
+    from server.offline.logs.rosbag import is_bag, read_bag
+
+    use_odometry = cfg.odometry != "scans"
+    if is_bag(log_file):
+        pose = np.asarray(cfg.laser_pose, dtype=np.float64) if cfg.laser_pose else None
+        blog, info = read_bag(log_file, scan_topic, odom_topic, cfg.echo, pose,
+                              OdometryLimits(**cfg.odometry_limits.model_dump()), use_odometry)
+        scans: list[LogScan] = [OdometryScan(r, r.laser_pose) if r.laser_pose is not None
+                                else BareScan(r) for r in blog.lasers]
+        return Read(blog, scans, blog.lasers[0].kind, info.source, asdict(info))
+    if scan_topic or odom_topic or cfg.laser_pose:
+        raise CarmenError(f"{log_file}: --scan-topic, --odom-topic and --laser-pose are for ROS "
+                          f"bags")
+    clog = read_log(log_file)
+    if clog.stats.skipped_total:
+        log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
+                    clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])
+    lasers = select_stream(clog, cfg.laser)
+    if use_odometry and not clog.odometry and all(r.laser_pose is None for r in lasers):
+        log.warning("%s: no odometry in the log (no pose in its laser lines, no ODOM lines): "
+                    "taking it from scan matching", log_file)
+        use_odometry = False
+    if not use_odometry:
+        return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans")
+    source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
+    scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser), source))
+    return Read(clog, scans, lasers[0].kind, source)
+
+
+def _read(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None,
+          odom_topic: str | None) -> tuple[CarmenLog, list[LogScan], str, str]:
+    """``read_recording`` as a tuple: records, scans, laser and odometry source."""
+    r = read_recording(log_file, cfg, scan_topic, odom_topic)
+    return r.clog, r.scans, r.laser, r.source
+
+
+def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str | None = None,
+        odom_topic: str | None = None, **overrides: object) -> dict[str, object]:
+    """Run SLAM on ``log_file`` (a CARMEN log or a ROS bag) and write the results into
+    ``out``; returns the summary. ``overrides`` replace keys of the config (``echo``,
+    ``laser_pose``, ``odometry``...)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from schemas.config_loading import load_config, validate, write_resolved
+
+    t0 = time.perf_counter()
+    cfg = load_config(SlamLogConfig, config)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if given:
+        cfg = validate(SlamLogConfig, {**cfg.model_dump(), **given})
+    rec = read_recording(Path(log_file), cfg, scan_topic, odom_topic)
+    scans = rec.scans
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_resolved(cfg, out)
+    t_read = time.perf_counter()
+    front = ScanOdometry(cfg.slam, cfg.scan_odometry.params()) \
+        if any(s.T_odom_laser is None for s in scans) else None
+    with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
+                  "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
+        task = bar.add_task("scans", total=len(scans))
+        slam, stamps, rejected, plan = process(
+            scans, cfg.slam, lambda i: bar.update(task, completed=i),
+            jitter_fraction=cfg.stamp_jitter_fraction, front=front)
+        bar.update(task, completed=len(scans))
+    t_slam = time.perf_counter()
+    _, poses = slam.scan_poses()
+    with open(out / "poses.txt", "w") as f:
+        for text, (x, y, th) in zip(stamps, poses, strict=True):
+            f.write(f"{text} {x:.6f} {y:.6f} {th:.6f}\n")
+    if cfg.write_maps:
+        write_nav2(slam.occupancy_grid(), out, "map")
+        write_ply(out / "cloud.ply", slam.point_cloud())
+    duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
+    stats = rec.clog.stats
+    summary: dict[str, object] = {
+        "log": str(log_file),
+        "laser": rec.laser,
+        "odometry_source": rec.source,
+        "scans_in_log": len(scans),
+        "scans": len(stamps),
+        "scans_posed_percent": round(100.0 * len(stamps) / max(len(scans), 1), 3),
+        "scans_rejected": rejected,
+        "stamps_early_kept": len(plan.early),
+        "stamps_dropped_ahead": len(plan.dropped_ahead),
+        "stamps_dropped_behind": len(plan.dropped_behind),
+        "clock_steps": [{"scan": i, "shift_s": d} for i, d in plan.steps],
+        "keyframes": slam.stats.keyframes,
+        "loop_closures": slam.stats.loop_closures,
+        "loop_closures_removed": slam.stats.loop_closures_removed,
+        "matches": slam.stats.matches,
+        "loop_search": asdict(slam.loop_stats),
+        "scan_odometry": asdict(front.stats) if front is not None else None,
+        "bag": rec.bag,
+        "lines": stats.lines,
+        "lines_skipped": stats.skipped_total,
+        "lines_skipped_by_reason": dict(stats.skipped),
+        "stream_truncated": stats.truncated_stream,
+        "data_duration_s": duration,
+        "read_time_s": t_read - t0,
+        "slam_time_s": t_slam - t_read,
+        "output_time_s": time.perf_counter() - t_slam,
+        "wall_time_s": time.perf_counter() - t0,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    print(f"{Path(log_file).name}: {len(stamps)} of {len(scans)} scans posed, "
+          f"{slam.stats.keyframes} keyframes, {slam.stats.loop_closures} loop closures, "
+          f"{summary['wall_time_s']:.1f} s → {out}")
+    return summary
