@@ -26,7 +26,8 @@ sys.path.insert(0, str(_HERE.parent))
 
 from bench.support.scanned import box_pairs, scanned_map  # noqa: E402
 from schemas.se2 import compose, inverse  # noqa: E402
-from server.rendezvous.mapmatch import MatchParams, match_pair, transform_error  # noqa: E402
+from server.rendezvous.mapmatch import MatchParams, transform_error  # noqa: E402
+from server.rendezvous.submaps import match_pair  # noqa: E402
 from sim.loader import load_world  # noqa: E402
 from sim.raycast import RayCaster  # noqa: E402
 

@@ -14,6 +14,7 @@ from schemas.se2 import compose, inverse
 from server.control import Obstacles
 from server.core import ServerCore
 from server.fleet.model import MergeRecord
+from server.rendezvous import meetings
 from server.rendezvous.mapmatch import Candidate, Hypothesis
 from server.rendezvous.matchdesk import HypothesisEntry
 from sim.loader import load_world
@@ -56,7 +57,7 @@ def _plan(core: ServerCore, T: np.ndarray) -> HypothesisEntry:
     e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", T, 3, 2, 1, 0, 0.99)
     desk.log.append(e)
     # the place: between the two robots, in free space of both maps
-    desk._plan_meeting(e, _hypothesis(T, [(1.0, -0.5), (0.8, -0.3), (1.2, -0.6)]),
+    meetings.arrange(desk, e, _hypothesis(T, [(1.0, -0.5), (0.8, -0.3), (1.2, -0.6)]),
                        core.robots["r1"].last_stamp_ns)
     return e
 
@@ -106,7 +107,7 @@ def test_a_meeting_that_does_not_happen_in_time_refutes_it(core: ServerCore) -> 
     assert r1.meeting is None and core.robots["r2"].meeting is None
     assert core.tag_counters["meetings_refuted"] == 1
     # a refuted transform is never used again: the same hypothesis plans no meeting
-    core.matcher._plan_meeting(e, _hypothesis(T_TRUE, [(1.0, -0.5)]), late)
+    meetings.arrange(core.matcher, e, _hypothesis(T_TRUE, [(1.0, -0.5)]), late)
     assert e.status == "refuted" and r1.meeting is None
 
 
@@ -114,7 +115,7 @@ def test_a_meeting_too_far_away_is_not_planned(core: ServerCore) -> None:
     far = T_TRUE + np.array([0.0, 0.0, 0.0])
     e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", far, 3, 2, 1, 0, 0.99)
     core.matcher.log.append(e)
-    core.matcher._plan_meeting(e, _hypothesis(far, [(60.0, 60.0)]),
+    meetings.arrange(core.matcher, e, _hypothesis(far, [(60.0, 60.0)]),
                                core.robots["r1"].last_stamp_ns)
     assert e.status == "pending" and core.robots["r1"].meeting is None
 

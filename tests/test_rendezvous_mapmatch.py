@@ -13,15 +13,8 @@ import pytest
 import sim
 from bench.support.scanned import box_pairs, scanned_map
 from schemas.se2 import compose, inverse
-from server.rendezvous.mapmatch import (
-    Candidate,
-    MatchParams,
-    best_hypothesis,
-    hough_spectrum,
-    match_pair,
-    rotation_peaks,
-    transform_error,
-)
+from server.rendezvous.mapmatch import Candidate, MatchParams, best_hypothesis, transform_error
+from server.rendezvous.submaps import hough_spectrum, match_pair, rotation_peaks
 from server.slam.grid import OccupancyGrid
 from sim.loader import load_world
 from sim.raycast import RayCaster

@@ -32,13 +32,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import compose, inverse, transform_points, wrap_angle
+from schemas.se2 import compose, inverse, transform_points
 from server.config import ServerConfig
 from server.fleet.events import EventLog
-from server.fleet.model import Fleet, Meeting, MergeRecord, RobotContext
-from server.planning.astar import plan
-from server.planning.costmap import build_cost_layer
-from server.planning.errors import PlanningError
+from server.fleet.model import Fleet
+from server.rendezvous import meetings
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal
 from server.rendezvous.mapmatch import (
@@ -47,17 +45,16 @@ from server.rendezvous.mapmatch import (
     MatchParams,
     PairResult,
     best_hypothesis,
-    submap_candidates,
+    same_transform,
 )
 from server.rendezvous.merger import Merger
+from server.rendezvous.submaps import submap_candidates
 
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
 #: σ of a map-matched transform as the merger weighs it (the keyframe matches then refine it)
 MAP_SIGMA_M, MAP_SIGMA_DEG = 0.3, 2.0
-#: how far two hypotheses of a pair may differ and still be the same one
-SAME_M, SAME_DEG = 1.0, 3.0
 
 
 @dataclass
@@ -125,16 +122,6 @@ class PairMemory:
         return [c for cs in self.cands.values() for c in cs]
 
 
-def same_transform(T1: F64, T2: F64, at_b: F64) -> bool:
-    """Two transforms (b -> a) place the point ``at_b`` (b's frame) within SAME_M and turn
-    within SAME_DEG of each other."""
-    if abs(wrap_angle(T1[2] - T2[2])) > math.radians(SAME_DEG):
-        return False
-    p1 = transform_points(T1, at_b[None, :])[0]
-    p2 = transform_points(T2, at_b[None, :])[0]
-    return math.hypot(*(p1 - p2)) <= SAME_M
-
-
 class MapMatchDesk:
     """Map-matched merges and planned meetings between teams (see the module docstring)."""
 
@@ -165,7 +152,7 @@ class MapMatchDesk:
     def tick(self, now_ns: int) -> None:
         t = self.cfg.teams
         planner = None if self.matcher is None else self.matcher(len(self.fleet.teams))
-        self._follow_meetings(now_ns)
+        meetings.follow(self, now_ns)
         if not t.enabled or not t.map_match:
             return
         job = self._job
@@ -251,7 +238,7 @@ class MapMatchDesk:
                 min(h.side_support("a"), h.side_support("b")) >= 1 and \
                 h.support > h.rival_support:
             # more places than any rival, seen from both maps, but not clearly enough: meet
-            self._plan_meeting(entry, h, now_ns)
+            meetings.arrange(self, entry, h, now_ns)
 
     def _entry(self, a: str, b: str, anchor_a: str, anchor_b: str, h: Hypothesis,
                now_ns: int) -> HypothesisEntry:
@@ -282,7 +269,7 @@ class MapMatchDesk:
         T_own = compose(compose(inverse(ra.own_frame_in_team()), t_ab), rb.own_frame_in_team())
         T_team, link = self.merger.surgery.own_frames_link(e.anchor_a, e.anchor_b, T_own, sig,
                                                            "map", now_ns)
-        self._end_meetings(e)
+        meetings.end(self, e)
         rec = self.merger.try_merge(MergeProposal(e.team_a, e.team_b, (), T_team,
                                                   np.diag(sig ** 2), T_team), now_ns, (link,),
                                     kind="map")
@@ -292,130 +279,6 @@ class MapMatchDesk:
         e.status = "accepted"
         self.counters.map_merges += 1
 
-    # -- meetings ----------------------------------------------------------------------------
-    def _plan_meeting(self, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
-        """One robot of each team to one place of the overlap, if some pair of them can get
-        there within ``teams.meet_max_detour_m`` (the farther of the two paths)."""
-        fleet, t = self.fleet, self.cfg.teams
-        if e.status != "pending":
-            return      # refuted, refused, merged, or already being met
-        if fleet.seeking_paused(e.team_a, e.team_b, now_ns):
-            return      # their maps keep refusing a merge (see Fleet.seeking_paused)
-        busy = any(fleet.robots[r].meeting is not None
-                   for tm in (e.team_a, e.team_b) for r in fleet.teams[tm].robot_ids)
-        if busy:
-            return
-        side_a = [fleet.robots[r] for r in fleet.teams[e.team_a].robot_ids
-                  if fleet.robots[r].alive]
-        side_b = [fleet.robots[r] for r in fleet.teams[e.team_b].robot_ids
-                  if fleet.robots[r].alive]
-        places = [c.centre_a for c in h.members]
-        best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
-        tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
-                             math.hypot(*(transform_points(e.T_ab, rb.pose[None, :2])[0] - p))),
-                         i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
-                        for k, p in enumerate(places)), key=lambda x: x[0])
-        for straight, i, j, k in tries[:6]:
-            if straight > t.meet_max_detour_m:
-                break
-            ra, rb, p = side_a[i], side_b[j], places[k]
-            p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
-            path_a, path_b = self._path(ra, p), self._path(rb, p_b)
-            if path_a is None or path_b is None:
-                continue
-            cost = max(_length(path_a), _length(path_b))
-            if cost <= 1.5 * t.meet_max_detour_m and (best is None or cost < best[0]):
-                best = (cost, ra, rb, p, p_b, path_a, path_b)
-        if best is None:
-            return
-        _, ra, rb, p, p_b, path_a, path_b = best
-        cost, v = best[0], ra.nav.pursuit.params.v_mps
-        until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
-        idx = self.log.index(e)
-        ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
-        rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
-        e.status = "meeting"
-        self.counters.meetings += 1
-        msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to one place "
-               f"({e.support} places of the maps agree on where it is)")
-        log.info("%s; %s at %s, %s at %s", msg, ra.robot_id, p.round(2), rb.robot_id,
-                 p_b.round(2))
-        self.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
-
-    def _path(self, r: RobotContext, goal: F64) -> F64 | None:
-        grid = self.fleet.planning_grid(r.team_id)
-        try:
-            layer = build_cost_layer(grid, r.nav.own_explorer.params.analysis.cost)
-            return plan(layer, r.pose[:2], goal, timeout_s=0.5).xy_m
-        except PlanningError:
-            return None
-
-    def _follow_meetings(self, now_ns: int) -> None:
-        """Settle meetings: merged (confirmed), out of time (refuted), a robot gone."""
-        fleet = self.fleet
-        for r in fleet.robots.values():
-            m = r.meeting
-            if m is None:
-                continue
-            e = self.log[m.hypothesis] if 0 <= m.hypothesis < len(self.log) else None
-            other = fleet.robots.get(m.other)
-            if e is None or other is None:
-                self._stop(r)
-                continue
-            if other.team_id == r.team_id:
-                rec = fleet.merges[-1] if fleet.merges else None
-                if rec is not None and self._agrees(e, rec):
-                    if rec.kind == "tags":
-                        rec.kind = "meeting"
-                    self._settle(e, "confirmed", "the tags merged the teams at the meeting",
-                                 now_ns)
-                else:
-                    self._settle(e, "refuted", "the teams merged under another transform",
-                                 now_ns)
-            elif not (r.alive and other.alive):
-                self._settle(e, "pending", "a robot of the meeting went silent", now_ns)
-            elif r.team_id != m.team_id:
-                self._settle(e, "pending", "another merge moved the meeting's frame", now_ns)
-            elif now_ns * 1e-9 > m.until_s:
-                self._settle(e, "refuted", "the robots did not meet where the maps said",
-                             now_ns)
-
-    def _agrees(self, e: HypothesisEntry, rec: MergeRecord) -> bool:
-        """The merge joined the hypothesis' two teams under (about) its transform."""
-        if (rec.team_id, rec.joined_team_id) == (e.team_a, e.team_b):
-            T = rec.T_joint
-        elif (rec.team_id, rec.joined_team_id) == (e.team_b, e.team_a):
-            T = inverse(rec.T_joint)
-        else:
-            return False
-        at_b = transform_points(inverse(e.T_ab), np.zeros((1, 2)))[0]
-        return same_transform(T, e.T_ab, at_b)
-
-    def _settle(self, e: HypothesisEntry, status: str, why: str, now_ns: int) -> None:
-        robots = [r.robot_id for r in self._end_meetings(e)]
-        e.status, e.reason = status, why
-        if status == "refuted":
-            self.counters.meetings_refuted += 1
-        log.info("meeting of %s: %s", robots, why)
-        self.events.emit("meeting", robots, e.team_a, f"meeting of {', '.join(robots)}: {why}",
-                         now_ns)
-
-    def _end_meetings(self, e: HypothesisEntry) -> list[RobotContext]:
-        idx = self.log.index(e)
-        ended = [r for r in self.fleet.robots.values()
-                 if r.meeting is not None and r.meeting.hypothesis == idx]
-        for r in ended:
-            self._stop(r)
-        return ended
-
-    @staticmethod
-    def _stop(r: RobotContext) -> None:
-        r.meeting = None
-        r.nav.drop_target()      # decide afresh: the map and the team may have changed
-
     def hypotheses(self) -> list[dict[str, Any]]:
         return [e.as_dict() for e in self.log]
 
-
-def _length(path: F64) -> float:
-    return float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(path) > 1 else 0.0

@@ -1,0 +1,157 @@
+"""Meetings planned on a map-matched transform (``server.rendezvous.matchdesk``): one robot
+of each team driven to one place of the overlap their maps agree on, and the meeting settled
+when the tags merge the teams there (confirmed), under another transform or not in time
+(refuted), or when a robot goes silent or another merge moves the frame (pending again).
+Each takes the desk it works for."""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.se2 import inverse, transform_points
+from server.fleet.model import Meeting, MergeRecord, RobotContext
+from server.planning import plan
+from server.planning.costmap import build_cost_layer
+from server.planning.errors import PlanningError
+from server.rendezvous.mapmatch import Hypothesis, same_transform
+
+if TYPE_CHECKING:
+    from server.rendezvous.matchdesk import HypothesisEntry, MapMatchDesk
+
+F64 = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+
+def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
+    """One robot of each team to one place of the overlap, if some pair of them can get
+    there within ``teams.meet_max_detour_m`` (the farther of the two paths)."""
+    fleet, t = desk.fleet, desk.cfg.teams
+    if e.status != "pending":
+        return      # refuted, refused, merged, or already being met
+    if fleet.seeking_paused(e.team_a, e.team_b, now_ns):
+        return      # their maps keep refusing a merge (see Fleet.seeking_paused)
+    busy = any(fleet.robots[r].meeting is not None
+               for tm in (e.team_a, e.team_b) for r in fleet.teams[tm].robot_ids)
+    if busy:
+        return
+    side_a = [fleet.robots[r] for r in fleet.teams[e.team_a].robot_ids
+              if fleet.robots[r].alive]
+    side_b = [fleet.robots[r] for r in fleet.teams[e.team_b].robot_ids
+              if fleet.robots[r].alive]
+    places = [c.centre_a for c in h.members]
+    best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
+    tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
+                         math.hypot(*(transform_points(e.T_ab, rb.pose[None, :2])[0] - p))),
+                     i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
+                    for k, p in enumerate(places)), key=lambda x: x[0])
+    for straight, i, j, k in tries[:6]:
+        if straight > t.meet_max_detour_m:
+            break
+        ra, rb, p = side_a[i], side_b[j], places[k]
+        p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
+        path_a, path_b = _path(desk, ra, p), _path(desk, rb, p_b)
+        if path_a is None or path_b is None:
+            continue
+        cost = max(_length(path_a), _length(path_b))
+        if cost <= 1.5 * t.meet_max_detour_m and (best is None or cost < best[0]):
+            best = (cost, ra, rb, p, p_b, path_a, path_b)
+    if best is None:
+        return
+    _, ra, rb, p, p_b, path_a, path_b = best
+    cost, v = best[0], ra.nav.pursuit.params.v_mps
+    until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
+    idx = desk.log.index(e)
+    ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
+    rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
+    e.status = "meeting"
+    desk.counters.meetings += 1
+    msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to one place "
+           f"({e.support} places of the maps agree on where it is)")
+    log.info("%s; %s at %s, %s at %s", msg, ra.robot_id, p.round(2), rb.robot_id,
+             p_b.round(2))
+    desk.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
+
+
+def _path(desk: MapMatchDesk, r: RobotContext, goal: F64) -> F64 | None:
+    grid = desk.fleet.planning_grid(r.team_id)
+    try:
+        layer = build_cost_layer(grid, r.nav.own_explorer.params.analysis.cost)
+        return plan(layer, r.pose[:2], goal, timeout_s=0.5).xy_m
+    except PlanningError:
+        return None
+
+
+def follow(desk: MapMatchDesk, now_ns: int) -> None:
+    """Settle meetings: merged (confirmed), out of time (refuted), a robot gone."""
+    fleet = desk.fleet
+    for r in fleet.robots.values():
+        m = r.meeting
+        if m is None:
+            continue
+        e = desk.log[m.hypothesis] if 0 <= m.hypothesis < len(desk.log) else None
+        other = fleet.robots.get(m.other)
+        if e is None or other is None:
+            stop(r)
+            continue
+        if other.team_id == r.team_id:
+            rec = fleet.merges[-1] if fleet.merges else None
+            if rec is not None and _agrees(desk, e, rec):
+                if rec.kind == "tags":
+                    rec.kind = "meeting"
+                settle(desk, e, "confirmed", "the tags merged the teams at the meeting",
+                             now_ns)
+            else:
+                settle(desk, e, "refuted", "the teams merged under another transform",
+                             now_ns)
+        elif not (r.alive and other.alive):
+            settle(desk, e, "pending", "a robot of the meeting went silent", now_ns)
+        elif r.team_id != m.team_id:
+            settle(desk, e, "pending", "another merge moved the meeting's frame", now_ns)
+        elif now_ns * 1e-9 > m.until_s:
+            settle(desk, e, "refuted", "the robots did not meet where the maps said",
+                         now_ns)
+
+
+def _agrees(desk: MapMatchDesk, e: HypothesisEntry, rec: MergeRecord) -> bool:
+    """The merge joined the hypothesis' two teams under (about) its transform."""
+    if (rec.team_id, rec.joined_team_id) == (e.team_a, e.team_b):
+        T = rec.T_joint
+    elif (rec.team_id, rec.joined_team_id) == (e.team_b, e.team_a):
+        T = inverse(rec.T_joint)
+    else:
+        return False
+    at_b = transform_points(inverse(e.T_ab), np.zeros((1, 2)))[0]
+    return same_transform(T, e.T_ab, at_b)
+
+
+def settle(desk: MapMatchDesk, e: HypothesisEntry, status: str, why: str, now_ns: int) -> None:
+    robots = [r.robot_id for r in end(desk, e)]
+    e.status, e.reason = status, why
+    if status == "refuted":
+        desk.counters.meetings_refuted += 1
+    log.info("meeting of %s: %s", robots, why)
+    desk.events.emit("meeting", robots, e.team_a, f"meeting of {', '.join(robots)}: {why}",
+                     now_ns)
+
+
+def end(desk: MapMatchDesk, e: HypothesisEntry) -> list[RobotContext]:
+    idx = desk.log.index(e)
+    ended = [r for r in desk.fleet.robots.values()
+             if r.meeting is not None and r.meeting.hypothesis == idx]
+    for r in ended:
+        stop(r)
+    return ended
+
+
+def stop(r: RobotContext) -> None:
+    r.meeting = None
+    r.nav.drop_target()      # decide afresh: the map and the team may have changed
+
+
+def _length(path: F64) -> float:
+    return float(np.hypot(*np.diff(path, axis=0).T).sum()) if len(path) > 1 else 0.0
