@@ -10,12 +10,17 @@ venv:
 demo: venv
 	$(VENV)/mrslam demo $(ARGS)
 
-test: venv lint
-	$(VENV)/python -m pytest -q
+# on several processes, a test file per process at a time (its module's missions run once);
+# PYTEST_WORKERS=0 runs them one by one
+PYTEST_WORKERS ?= 3
+XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
 
-# everything but the tests that start other processes (pytest -m e2e runs those)
+test: venv lint
+	$(VENV)/python -m pytest -q $(XDIST)
+
+# the quick tier: no other processes (e2e), no closed-loop missions or whole recordings (slow)
 test-fast: venv lint
-	$(VENV)/python -m pytest -q -m "not e2e"
+	$(VENV)/python -m pytest -q $(XDIST) -m "not e2e and not slow"
 
 lint: venv
 	$(VENV)/ruff check .

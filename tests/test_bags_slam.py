@@ -19,6 +19,9 @@ from schemas.se2 import compose
 from server.offline.logs.rosbag import read_bag
 from tests.bagbuild import FUSE, HOKUYO, OKO, Messages, Pose, Scan, real_scans, write_bag
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 needs_bags = pytest.mark.skipif(not FUSE.is_file(), reason="no ../shared/data/bags")
 
 

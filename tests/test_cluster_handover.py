@@ -30,6 +30,9 @@ from sim.simulator import SimParams, Simulator
 from tests.test_team_merge import SPAWN, WORLD, config
 from tests.waiting import within
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 
 def worker_config(index: int) -> ServerConfig:
     return ServerConfig.model_validate({**config().model_dump(), "cluster": {"worker": index}})

@@ -16,6 +16,9 @@ from sim.simulator import SimParams, Simulator
 from tests.test_cluster_handover import step_messages
 from tests.test_team_merge import WORLD, config
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 #: case 2's first two robots: 5 m apart, facing away from each other
 SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-3.0, 9.0, 3 * math.pi / 2)}
 

@@ -37,6 +37,9 @@ from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.conftest import DATA
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 WORLD = DATA / "worlds" / "thesis" / "house_large.world"
 SPAWN = {"r1": (-5.0, 20.0, 0.0), "r2": (-2.5, 19.5, math.pi)}
 T_TRUE = between(np.array(SPAWN["r1"]), np.array(SPAWN["r2"]))

@@ -25,6 +25,9 @@ from server.offline.slam_log import laser_offset
 from server.offline.slam_log import run as slam_log
 from tests.conftest import DATA
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 CARMEN = DATA / "carmen"
 T0 = 1_700_000_000_000_000_000
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import msgspec
@@ -13,8 +14,10 @@ from schemas import MESSAGE_TYPES, SchemaError, decode, encode
 from tests.examples import all_examples
 
 EXAMPLES = all_examples()
-FUZZ = settings(max_examples=1000, deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow])
+#: mutations per message type: 200 in ``make test`` (derandomised, so the same every run);
+#: ``MRSLAM_FUZZ_EXAMPLES=5000`` for a deeper search when the codec changes
+FUZZ = settings(max_examples=int(os.environ.get("MRSLAM_FUZZ_EXAMPLES", "200")),
+                deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 
 leaf = st.one_of(
     st.none(), st.booleans(), st.integers(min_value=-(2**63), max_value=2**64 - 1),

@@ -12,6 +12,9 @@ from schemas.se2 import between, wrap_angle
 from server.slam.heading import SquareWalls, wall_direction, wrap_quarter
 from tests.test_slam_narrow import run
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 
 def normals_at(angles_rad: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(angles_rad), np.sin(angles_rad)], axis=1)

@@ -26,6 +26,9 @@ from sim.process import params_from_config
 from sim.simulator import Simulator
 from tests.test_team_merge import WORLD
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-3.0, 9.0, 3 * math.pi / 2)}
 
 

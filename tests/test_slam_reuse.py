@@ -4,10 +4,14 @@ loop after the first add next to no keyframes, and the robot stays where the tru
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from schemas.se2 import between, pose_distance
 from server.slam import RobotSlam, SlamConfig
 from tests.test_slam_synthetic import align_error, drive, ring_world, waypoints_path
+
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
 
 LOOP = [(1.0, 1.0), (13.0, 1.0), (13.0, 9.0), (1.0, 9.0), (1.0, 1.0)]
 

@@ -18,6 +18,9 @@ from server.slam.sweep import Sweep
 from tests.test_slam_heading import keyframe_walls
 from tests.test_slam_narrow import run
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 FOV = math.radians(87.0)
 
 

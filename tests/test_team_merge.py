@@ -29,6 +29,9 @@ from sim.loader import load_world
 from sim.simulator import SimParams, Simulator
 from tests.conftest import DATA
 
+#: runs closed-loop missions or SLAM over whole recordings: `make test-fast` leaves it out
+pytestmark = pytest.mark.slow
+
 WORLD = DATA / "worlds" / "thesis" / "house_small.world"
 SPAWN = {"r1": (-8.0, 9.0, 0.0), "r2": (-6.0, 8.0, math.pi)}
 
