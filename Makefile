@@ -16,7 +16,8 @@ PYTEST_WORKERS ?= 3
 XDIST = $(if $(filter 0,$(PYTEST_WORKERS)),,-n $(PYTEST_WORKERS) --dist loadfile)
 
 test: venv lint
-	$(VENV)/python -m pytest -q $(XDIST)
+	$(VENV)/python -m pytest -q $(XDIST) -m "not realtime"
+	$(VENV)/python -m pytest -q -m realtime
 
 # the quick tier: no other processes (e2e), no closed-loop missions or whole recordings (slow)
 test-fast: venv lint

@@ -14,7 +14,8 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 #: starts the server and generator processes: the e2e tier
-pytestmark = pytest.mark.e2e
+#: real time against wall clocks: run alone, after the others (``make test``)
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]
 
 RUN_KEYS = {"robots", "scan_to_command_p50_ms", "scan_to_command_p99_ms",
             "dropped_scan_fraction", "server_cpu_cores", "server_rss_mb"}

@@ -24,7 +24,8 @@ from tests.support_firmware import FIRMWARE, Board, Report, build
 from tests.waiting import within
 
 #: starts the simulator process: the e2e tier
-pytestmark = pytest.mark.e2e
+#: real time against wall clocks: run alone, after the others (``make test``)
+pytestmark = [pytest.mark.e2e, pytest.mark.realtime]
 
 TRACK, RADIUS, TICKS = 0.3, 0.05, 1000.0
 M_PER_TICK = 2 * math.pi * RADIUS / TICKS

@@ -8,9 +8,12 @@ re-base it, nor refuse its scans, and must answer it again as soon as its scans 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -20,12 +23,29 @@ from bench.support.relay import Relay
 pytestmark = pytest.mark.e2e
 
 
-def test_delay_bursts_jitter_and_a_cut_link_neither_rebase_nor_refuse(tmp_path: Path) -> None:
-    srv = ServerProcess(tmp_path, {"explore": {"total_area_m2": 48.0}})
+@contextlib.contextmanager
+def behind_a_relay(folder: Path, seed: int) -> Iterator[tuple[ServerProcess, Relay]]:
+    """A server on this machine's clock, and a relay with 30 ms of jitter in front of it;
+    the server is stopped (exit code 0) and the summary written when the block ends."""
+    srv = ServerProcess(folder, {"explore": {"total_area_m2": 48.0}})
     relay = None
     try:
         srv.client().close()
-        relay = Relay(srv.endpoint, jitter_s=0.03, seed=1)
+        relay = Relay(srv.endpoint, jitter_s=0.03, seed=seed)
+        yield srv, relay
+    finally:
+        code = srv.stop()
+        if relay is not None:
+            relay.close()
+    assert code == 0
+
+
+def registry(folder: Path) -> dict[str, Any]:
+    return dict(json.loads((folder / "server" / "summary.json").read_text())["registry"])
+
+
+def test_delay_bursts_jitter_and_a_cut_link_neither_rebase_nor_refuse(tmp_path: Path) -> None:
+    with behind_a_relay(tmp_path, seed=1) as (srv, relay):
         r1 = RoomRobot(srv.endpoint, "r1").start()
         r2 = RoomRobot(relay.endpoint, "r2").start()
         try:
@@ -47,25 +67,16 @@ def test_delay_bursts_jitter_and_a_cut_link_neither_rebase_nor_refuse(tmp_path: 
         finally:
             r1.close()
             r2.close()
-    finally:
-        code = srv.stop()
-        if relay is not None:
-            relay.close()
-    assert code == 0
-    reg = json.loads((tmp_path / "server" / "summary.json").read_text())["registry"]
-    r2 = reg["r2"]
-    assert not [k for k in r2 if k.startswith("refused")], r2
-    assert "clock_steps" not in r2 and "clock_adjustments" not in r2, r2
-    assert abs(r2.get("clock_offset_s", 0.0)) <= 0.02
-    assert r2["accepted_scan"] >= reg["r1"]["accepted_scan"] - 15
+    reg = registry(tmp_path)
+    r2s = reg["r2"]
+    assert not [k for k in r2s if k.startswith("refused")], r2s
+    assert "clock_steps" not in r2s and "clock_adjustments" not in r2s, r2s
+    assert abs(r2s.get("clock_offset_s", 0.0)) <= 0.02
+    assert r2s["accepted_scan"] >= reg["r1"]["accepted_scan"] - 15
 
 
 def test_a_clock_step_behind_a_jittery_link_is_rebased_within_a_second(tmp_path: Path) -> None:
-    srv = ServerProcess(tmp_path, {"explore": {"total_area_m2": 48.0}})
-    relay = None
-    try:
-        srv.client().close()
-        relay = Relay(srv.endpoint, jitter_s=0.03, seed=2)
+    with behind_a_relay(tmp_path, seed=2) as (_srv, relay):
         r2 = RoomRobot(relay.endpoint, "r2").start()
         try:
             time.sleep(3.0)
@@ -77,15 +88,10 @@ def test_a_clock_step_behind_a_jittery_link_is_rebased_within_a_second(tmp_path:
                 assert r2.longest_silence_s(time.monotonic() - 2.0, time.monotonic()) < 0.5
         finally:
             r2.close()
-    finally:
-        code = srv.stop()
-        if relay is not None:
-            relay.close()
-    assert code == 0
-    r2 = json.loads((tmp_path / "server" / "summary.json").read_text())["registry"]["r2"]
-    assert r2["clock_steps"] == 2, r2
-    for (at_s, step_s), t_step, want in zip(r2["clock_rebased"], steps, (1.0, -1.0),
+    r2s = registry(tmp_path)["r2"]
+    assert r2s["clock_steps"] == 2, r2s
+    for (at_s, step_s), t_step, want in zip(r2s["clock_rebased"], steps, (1.0, -1.0),
                                             strict=True):
         assert step_s == pytest.approx(want, abs=0.05)
         assert 0.0 <= at_s - t_step <= 1.0
-    assert abs(r2.get("clock_offset_s", 0.0)) <= 0.02
+    assert abs(r2s.get("clock_offset_s", 0.0)) <= 0.02
