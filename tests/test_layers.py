@@ -113,9 +113,11 @@ RULES = [
     Rule("schemas imports nothing of the project outside schemas",
          lambda m: under(m, "schemas"),
          lambda n: under(n, *PROJECT) and not under(n, "schemas")),
-    Rule("robot_agent never imports server, sim, factors, gtsam, open3d, skimage or scipy",
+    Rule("robot_agent never imports server, sim, factors, gtsam, open3d, skimage, scipy or "
+         "numba",
          lambda m: under(m, "robot_agent"),
-         lambda n: under(n, "server", "sim", "factors", "gtsam", "open3d", "skimage", "scipy")),
+         lambda n: under(n, "server", "sim", "factors", "gtsam", "open3d", "skimage", "scipy",
+                         "numba")),
     Rule("schemas/se2.py imports only " + ", ".join(SE2_ALLOWED),
          lambda m: m == "schemas.se2", _se2_breaks),
     Rule("factors never imports server, sim or robot_agent",

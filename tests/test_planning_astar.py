@@ -186,3 +186,71 @@ def test_shortcutting_shortens_without_raising_cost() -> None:
     cells = layer.geometry.world_to_cell(raw.xy_m[1:-1])
     kept = shortcut_cells(layer, cells)
     assert tuple(kept[0]) == tuple(cells[0]) and tuple(kept[-1]) == tuple(cells[-1])
+
+
+def reference_astar(cost: np.ndarray, start: tuple[int, int], goal: tuple[int, int],
+                    min_cost: float) -> list[tuple[int, int]]:
+    """The search as a plain Python loop over heapq: what the compiled one must equal."""
+    import heapq
+    import math
+
+    H, W = cost.shape
+    W2 = W + 2
+    padded = np.full((H + 2, W2), np.inf)
+    padded[1:-1, 1:-1] = cost
+    c = padded.ravel().tolist()
+    s = (start[0] + 1) * W2 + start[1] + 1
+    gi = (goal[0] + 1) * W2 + goal[1] + 1
+    gr, gc = goal[0] + 1, goal[1] + 1
+    r2 = math.sqrt(2.0)
+    nbrs = [(1, 1.0), (-1, 1.0), (W2, 1.0), (-W2, 1.0), (W2 + 1, r2), (W2 - 1, r2),
+            (-W2 + 1, r2), (-W2 - 1, r2)]
+    g = [math.inf] * len(c)
+    parent = [-1] * len(c)
+    closed = bytearray(len(c))
+    g[s] = 0.0
+    heap = [(0.0, s)]
+    diag = r2 - 1.0
+    while heap:
+        _, u = heapq.heappop(heap)
+        if closed[u]:
+            continue
+        if u == gi:
+            break
+        closed[u] = 1
+        for off, step in nbrs:
+            v = u + off
+            if c[v] == math.inf or closed[v]:
+                continue
+            ng = g[u] + step * 0.5 * (c[u] + c[v])
+            if ng < g[v]:
+                g[v], parent[v] = ng, u
+                dr, dc = abs(v // W2 - gr), abs(v % W2 - gc)
+                h = (dr + dc + diag * min(dr, dc) - min(dr, dc)) * min_cost
+                heapq.heappush(heap, (ng + h, v))
+    else:
+        return []
+    out, u = [], gi
+    while u != -1:
+        out.append((u // W2 - 1, u % W2 - 1))
+        u = parent[u]
+    return out[::-1]
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_compiled_search_finds_the_very_path_of_the_reference_loop(seed: int) -> None:
+    """Equal costs everywhere make ties at every step: the compiled heap must break them as
+    heapq does, or the robots' paths (and a lockstep run) would change."""
+    rng = np.random.default_rng(seed)
+    H, W = rng.integers(5, 60, 2)
+    cost = rng.choice([1.0, 1.0, 1.0, 2.0, 3.5], (H, W))
+    cost[rng.random((H, W)) < 0.2] = np.inf
+    free = np.argwhere(np.isfinite(cost))
+    s, g = (tuple(int(v) for v in free[i]) for i in rng.choice(len(free), 2, replace=False))
+    want = reference_astar(cost, s, g, 1.0)
+    if not want:
+        with pytest.raises(NoPath):
+            astar_cells(cost, s, g, min_cost=1.0)
+        return
+    cells, _ = astar_cells(cost, s, g, min_cost=1.0)
+    assert [tuple(int(v) for v in c) for c in cells] == want

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import heapq
-import math
 import time
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from server.planning.astar_kernel import GOING, NO_PATH, Search
 from server.planning.costmap import CostLayer
 from server.planning.errors import (
     GoalOccupied,
@@ -20,7 +19,6 @@ from server.planning.errors import (
 )
 from server.planning.path import Path, shortcut_cells
 
-SQRT2 = math.sqrt(2.0)
 _TIME_CHECK_EVERY = 2048
 
 
@@ -31,62 +29,34 @@ def astar_cells(cost: NDArray[np.float64], start: tuple[int, int], goal: tuple[i
     Edge cost between neighbours a, b: step · (c_a + c_b)/2, step ∈ {1, √2} [cells]. Heuristic:
     octile distance × ``min_cost`` (a lower bound of every cell cost), which is consistent, so
     the first expansion of the goal is optimal. Returns the cells (N, 2) and the cost [cells].
-    Raises NoPath when the goal is not reachable, PlanningTimedOut past ``timeout_s``.
+    Raises NoPath when the goal is not reachable, PlanningTimedOut past ``timeout_s``. The
+    loop itself is compiled (``server.planning.astar_kernel``); the clock is read every
+    2048 expansions from the first.
     """
     H, W = cost.shape
     W2 = W + 2  # padded with a lethal border: neighbours never leave the array
     padded = np.full((H + 2, W2), np.inf)
     padded[1:-1, 1:-1] = cost
-    c = padded.ravel().tolist()
-    n = len(c)
     s = (start[0] + 1) * W2 + start[1] + 1
     g_idx = (goal[0] + 1) * W2 + goal[1] + 1
-    gr, gc = goal[0] + 1, goal[1] + 1
-    neighbours = [(1, 1.0), (-1, 1.0), (W2, 1.0), (-W2, 1.0),
-                  (W2 + 1, SQRT2), (W2 - 1, SQRT2), (-W2 + 1, SQRT2), (-W2 - 1, SQRT2)]
-    inf = math.inf
-    g = [inf] * n
-    parent = [-1] * n
-    closed = bytearray(n)
-    g[s] = 0.0
-    heap: list[tuple[float, int]] = [(0.0, s)]
-    pops = 0
+    search = Search(padded, s, g_idx, float(min_cost), _TIME_CHECK_EVERY)
     deadline = time.perf_counter() + timeout_s
-    diag = SQRT2 - 1.0
-    while heap:
-        _, u = heapq.heappop(heap)
-        if closed[u]:
-            continue
-        if u == g_idx:
-            break
-        closed[u] = 1
-        pops += 1
-        if pops % _TIME_CHECK_EVERY == 1 and time.perf_counter() > deadline:
-            raise PlanningTimedOut(f"A* passed {timeout_s:.3f} s after {pops} expansions")
-        gu, cu = g[u], c[u]
-        for off, step in neighbours:
-            v = u + off
-            cv = c[v]
-            if cv == inf or closed[v]:
-                continue
-            ng = gu + step * 0.5 * (cu + cv)
-            if ng < g[v]:
-                g[v] = ng
-                parent[v] = u
-                vr, vc = divmod(v, W2)
-                dr, dc = abs(vr - gr), abs(vc - gc)
-                h = (dr + dc + diag * min(dr, dc) - min(dr, dc)) * min_cost
-                heapq.heappush(heap, (ng + h, v))
-    else:
-        raise NoPath(f"goal cell {goal} not reachable from {start} ({pops} cells expanded)")
+    while (status := search.run()) == GOING:
+        if time.perf_counter() > deadline:
+            raise PlanningTimedOut(f"A* passed {timeout_s:.3f} s after {search.expanded} "
+                                   "expansions")
+    if status == NO_PATH:
+        raise NoPath(f"goal cell {goal} not reachable from {start} ({search.expanded} cells "
+                     "expanded)")
     cells = []
     u = g_idx
+    parent = search.parent
     while u != -1:
-        r, col = divmod(u, W2)
+        r, col = divmod(int(u), W2)
         cells.append((r - 1, col - 1))
         u = parent[u]
     cells.reverse()
-    return np.asarray(cells, dtype=np.int64), g[g_idx]
+    return np.asarray(cells, dtype=np.int64), float(search.g[g_idx])
 
 
 def resolve_endpoints(layer: CostLayer, start_xy: ArrayLike, goal_xy: ArrayLike,
