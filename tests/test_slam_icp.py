@@ -140,3 +140,32 @@ def test_correlative_search_reports_ambiguity() -> None:
                    min_score=0.4, ambiguity_ratio=0.9)
     assert found is not None and found.second_score == 0.0
     assert np.hypot(*(found.T_map_scan[:2] - [3.5, 2.8])) < 0.15  # within a cell or so
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_the_compiled_loop_agrees_with_the_numpy_one(seed: int) -> None:
+    """The compiled ICP (``server.slam.icp_kernel``) against the numpy loop it replaced
+    (``tests/reference_icp.py``): the same pose to rounding, the same iterations and
+    convergence, the same information, with and without a prior, in rooms and corridors."""
+    from tests.reference_icp import reference_icp
+
+    rng = np.random.default_rng(seed)
+    walls = room_world()
+    T_ref = np.array([2.0, 3.0, 0.3])
+    T_true = T_ref + np.array([rng.uniform(-0.6, 0.6), rng.uniform(-0.6, 0.6),
+                               rng.uniform(-0.3, 0.3)])
+    target = map_at(walls, T_ref, noise=0.01)
+    scan = scan_at(walls, T_true, noise=0.01, seed=seed)
+    guess = T_true + np.array([rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2),
+                               rng.uniform(-0.1, 0.1)])
+    prior = np.diag([rng.uniform(0, 400), rng.uniform(0, 400), rng.uniform(0, 4000)]) \
+        if seed % 2 else None
+    normals = scan.normals if seed % 3 else None
+    got = icp(scan.points, normals, target, guess, IcpParams(), prior)
+    want = reference_icp(scan.points, normals, target, guess, IcpParams(), prior)
+    assert got.iterations == want.iterations and got.converged == want.converged
+    assert np.allclose(got.T_map_scan, want.T_map_scan, rtol=0, atol=1e-9)
+    assert np.allclose(got.information, want.information, rtol=1e-7, atol=1e-6)
+    assert got.inlier_fraction == want.inlier_fraction
+    assert got.rms_m == pytest.approx(want.rms_m, rel=1e-9)
+    assert (got.degenerate_dir is None) == (want.degenerate_dir is None)

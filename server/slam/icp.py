@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from schemas.se2 import wrap_angle
+from server.slam.icp_kernel import CELL_M, build_grid, icp_loop
 
 F64 = NDArray[np.float64]
 
@@ -46,9 +46,22 @@ class PointMap:
     def __init__(self, points: F64, normals: F64) -> None:
         self.points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
         self.normals = np.ascontiguousarray(normals, dtype=np.float64).reshape(-1, 2)
-        self.tree = cKDTree(self.points, leafsize=16, balanced_tree=False, compact_nodes=False)
-        self.points_c = np.append(self.points[:, 0] + 1j * self.points[:, 1], 0.0)
-        self.normals_c = np.append(self.normals[:, 0] + 1j * self.normals[:, 1], 0.0)
+        # the columns the compiled loop reads, and its grid of the points by cell
+        self._xy = (np.ascontiguousarray(self.points[:, 0]),
+                    np.ascontiguousarray(self.points[:, 1]),
+                    np.ascontiguousarray(self.normals[:, 0]),
+                    np.ascontiguousarray(self.normals[:, 1]))
+        self.grid = build_grid(self._xy[0], self._xy[1], CELL_M)
+        self._tree: cKDTree | None = None
+
+    @property
+    def tree(self) -> cKDTree:
+        """A KD-tree of the points, for callers that query it themselves (built at first use:
+        matching does not need it)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.points, leafsize=16, balanced_tree=False,
+                                 compact_nodes=False)
+        return self._tree
 
     def __len__(self) -> int:
         return len(self.points)
@@ -124,90 +137,32 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     with x₀ = ``T_init`` and σ_p = ``point_sigma_m``: directions the scan does not constrain
     (a corridor's axis) stay with the prediction instead of drifting.
     """
-    prior_T = np.asarray(T_init, dtype=np.float64)
-    inv_var = 1.0 / p.point_sigma_m ** 2
-    tx, ty, th = (float(v) for v in T_init)
     n_pts = len(scan_points)
-    # complex arithmetic: R(θ)p = p·e^{iθ}; n·v = Re(v·conj(n)); n·(R(θ+π/2)p) = −Im(Rp·conj(n))
-    P_all = scan_points[:, 0] + 1j * scan_points[:, 1]
-    have_n = scan_normals is not None
-    Ns_all = np.zeros(n_pts, dtype=np.complex128)
-    free_all = np.ones(n_pts, dtype=bool)
+    pts = np.asarray(scan_points, dtype=np.float64)
     if scan_normals is not None:
-        Ns_all = np.nan_to_num(scan_normals[:, 0]) + 1j * np.nan_to_num(scan_normals[:, 1])
-        free_all = ~np.isfinite(scan_normals[:, 0])
+        nrm = np.asarray(scan_normals, dtype=np.float64)
+        snx, sny = np.ascontiguousarray(nrm[:, 0]), np.ascontiguousarray(nrm[:, 1])
+    else:
+        snx = sny = np.zeros(n_pts)
+    prior = np.zeros(12)
+    if prior_info is not None:
+        prior[:3] = np.asarray(T_init, dtype=np.float64)
+        prior[3:] = np.asarray(prior_info, dtype=np.float64).ravel()
+    params = np.array([p.max_iterations, p.max_correspondence_m, p.min_correspondence_m,
+                       p.kernel_m, p.min_normal_cos, p.inlier_m, p.converged_m,
+                       p.converged_rad, p.point_sigma_m], dtype=np.float64)
+    mx, my, mnx, mny = target._xy
+    x0, y0, gnx, gny, start, order = target.grid
     # while the search radius still shrinks, every other point is enough to steer the pose
-    coarse = (P_all[::2], Ns_all[::2], free_all[::2]) if n_pts >= 4 * p.min_points_coarse else \
-        (P_all, Ns_all, free_all)
-    M, MN = target.points_c, target.normals_c
-    H = np.zeros((3, 3))
-    converged = False
-    it = 0
-    r = np.zeros(0)
-    w = np.zeros(0)
-    d_max = p.max_correspondence_m
-    prev = (0.0, 0.0, 0.0)
-    inv_kernel = 1.0 / p.kernel_m
-    for step in range(1, p.max_iterations + 1):
-        it = step
-        P, Ns, no_normal = coarse if d_max > p.min_correspondence_m else (P_all, Ns_all, free_all)
-        rot = complex(math.cos(th), math.sin(th))
-        RP = P * rot
-        Q = RP + complex(tx, ty)
-        dist, idx = target.tree.query(Q.view(np.float64).reshape(-1, 2), k=1,
-                                      distance_upper_bound=d_max)
-        ok = dist < d_max
-        nc = MN[idx].conj()
-        if have_n:
-            ok &= ((Ns * rot * nc).real >= p.min_normal_cos) | no_normal
-        sel = np.flatnonzero(ok)
-        if len(sel) < 6:
-            break
-        nc = nc[sel]
-        r = ((Q[sel] - M[idx[sel]]) * nc).real
-        J = np.empty((3, len(sel)))
-        J[0] = nc.real
-        J[1] = -nc.imag
-        J[2] = -(RP[sel] * nc).imag
-        w = 1.0 / (1.0 + (r * inv_kernel) ** 2)
-        Jw = J * w
-        H = Jw @ J.T
-        g = Jw @ r
-        if prior_info is not None:
-            # MAP step: (H/σ² + Λ) δ = g/σ² + Λ (x − x_prior)
-            e = np.array([tx - prior_T[0], ty - prior_T[1],
-                          wrap_angle(th - prior_T[2])])
-            delta = _solve3(H * inv_var + prior_info, g * inv_var + prior_info @ e)
-        else:
-            delta = _solve3(H, g)
-        if delta is None:
-            break
-        tx -= delta[0]
-        ty -= delta[1]
-        th = wrap_angle(th - delta[2])
-        if d_max <= p.min_correspondence_m:
-            tol_m, tol_rad = p.converged_m, p.converged_rad
-            small = abs(delta[0]) + abs(delta[1]) < tol_m and abs(delta[2]) < tol_rad
-            # correspondences flipping between two sets make the steps alternate: stop midway
-            flip = (abs(delta[0] + prev[0]) + abs(delta[1] + prev[1]) < 0.2 * tol_m
-                    and abs(delta[2] + prev[2]) < 0.2 * tol_rad)
-            if flip:
-                tx += 0.5 * delta[0]
-                ty += 0.5 * delta[1]
-                th = wrap_angle(th + 0.5 * delta[2])
-            if small or flip:
-                converged = True
-                break
-        prev = delta
-        d_max = max(p.min_correspondence_m, 0.5 * d_max)
-    T = np.array([tx, ty, th])
-    if len(r) == 0:
+    T, H, wr2, sw, inliers, it, converged, used = icp_loop(
+        np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]), snx, sny,
+        scan_normals is not None, mx, my, mnx, mny, x0, y0, gnx, gny, start, order,
+        np.asarray(T_init, dtype=np.float64), prior, prior_info is not None, params,
+        n_pts >= 4 * p.min_points_coarse)
+    if used == 0:
         return MatchResult(T, np.zeros((3, 3)), float("inf"), 0.0, it, False, None)
-    wr2 = float(w @ (r * r))
-    sw = float(w.sum())
     sigma2 = max(wr2 / max(sw - 3.0, 1.0), 1e-6)
     info = H / sigma2
-    inliers = int(np.count_nonzero(np.abs(r) < p.inlier_m))
     rms = math.sqrt(wr2 / max(sw, 1e-9))
     degenerate = translation_degeneracy(H, p.degenerate_eigen_ratio)
-    return MatchResult(T, info, rms, inliers / max(n_pts, 1), it, converged, degenerate)
+    return MatchResult(T, info, rms, inliers / max(n_pts, 1), it, bool(converged), degenerate)
