@@ -147,7 +147,7 @@ def test_the_compiled_loop_agrees_with_the_numpy_one(seed: int) -> None:
     """The compiled ICP (``server.slam.icp_kernel``) against the numpy loop it replaced
     (``tests/reference_icp.py``): the same pose to rounding, the same iterations and
     convergence, the same information, with and without a prior, in rooms and corridors."""
-    from tests.reference_icp import reference_icp
+    from tests.reference_numpy import reference_icp
 
     rng = np.random.default_rng(seed)
     walls = room_world()
@@ -169,3 +169,24 @@ def test_the_compiled_loop_agrees_with_the_numpy_one(seed: int) -> None:
     assert got.inlier_fraction == want.inlier_fraction
     assert got.rms_m == pytest.approx(want.rms_m, rel=1e-9)
     assert (got.degenerate_dir is None) == (want.degenerate_dir is None)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_compiled_normals_are_the_numpy_ones_bit_for_bit(seed: int) -> None:
+    """A scan's normals (``server.slam.scan.line_normals``, compiled) against the vectorised
+    numpy fit it replaced: every normal equal to the last bit, NaN where it gave NaN."""
+    from server.slam.scan import line_normals
+    from tests.reference_numpy import reference_line_normals
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 400))
+    a = np.sort(rng.uniform(-math.pi, math.pi, n))
+    r = rng.uniform(0.2, 8.0, n) if seed % 2 else \
+        np.repeat(rng.uniform(1.0, 5.0, (n + 19) // 20), 20)[:n] + rng.normal(0, 0.01, n)
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    gap = np.maximum(0.3, 2.5 * 2 * 0.0175 * r)
+    centres = np.sort(rng.choice(n, max(1, n // 2), replace=False))
+    for window in (1, 2, 4):
+        got = line_normals(pts, window, gap, centres)
+        want = reference_line_normals(pts, window, gap, centres)
+        assert np.array_equal(got, want, equal_nan=True)

@@ -1,5 +1,6 @@
-"""The numpy ICP loop the compiled one replaced: the reference its results are checked
-against (``tests/test_slam_icp.py``)."""
+"""The numpy loops that compiled ones replaced, kept as the references their results are
+checked against: ICP (``tests/test_slam_icp.py``) and a scan's normals
+(``tests/test_slam_scan.py``)."""
 
 from __future__ import annotations
 
@@ -124,3 +125,62 @@ def _complex(target: PointMap) -> tuple[NDArray[np.complex128], NDArray[np.compl
     pts, nrm = target.points, target.normals
     return (np.append(pts[:, 0] + 1j * pts[:, 1], 0.0),
             np.append(nrm[:, 0] + 1j * nrm[:, 1], 0.0))
+
+
+def reference_line_normals(points: F64, window: int, max_gap_m: F64 | float,
+                 centers: NDArray[np.int64] | None = None) -> F64:
+    """Unit normals (M, 2) at ``centers`` (default: all N points) of ordered points, from a
+    line fit over up to ±``window`` neighbours.
+
+    Neighbours are taken outwards from the centre while each stays within ``max_gap_m``
+    (scalar or per point) of it, so a range jump ends the run. The normal is the eigenvector of
+    the smallest eigenvalue of C = Σ (q_j − q̄)(q_j − q̄)ᵀ, facing the sensor (n · p < 0). NaN
+    where fewer than 3 points are usable or the fit is not line-like (λ_min > 0.2 λ_max).
+    """
+    n = len(points)
+    idx = np.arange(n) if centers is None else np.asarray(centers, dtype=np.int64)
+    m = len(idx)
+    out = np.full((m, 2), np.nan)
+    if n < 3 or m == 0:
+        return out
+    gap = np.broadcast_to(np.asarray(max_gap_m, dtype=np.float64), (n,))[idx]
+    gap2 = gap * gap
+    px, py = points[:, 0], points[:, 1]
+    cx, cy = px[idx], py[idx]
+    cnt = np.ones(m)
+    sx, sy = cx.copy(), cy.copy()
+    sxx, syy, sxy = cx * cx, cy * cy, cx * cy
+    for sign in (1, -1):
+        alive = np.ones(m, dtype=bool)
+        for k in range(1, window + 1):
+            j = idx + sign * k
+            jc = np.clip(j, 0, n - 1)
+            qx, qy = px[jc], py[jc]
+            alive &= (j == jc) & ((qx - cx) ** 2 + (qy - cy) ** 2 <= gap2)
+            a = alive.astype(np.float64)
+            cnt += a
+            qx, qy = qx * a, qy * a
+            sx += qx
+            sy += qy
+            sxx += qx * qx
+            syy += qy * qy
+            sxy += qx * qy
+    mx, my = sx / cnt, sy / cnt
+    cxx, cyy, cxy = sxx / cnt - mx * mx, syy / cnt - my * my, sxy / cnt - mx * my
+    # eigen-decomposition of [[cxx, cxy], [cxy, cyy]] in closed form
+    tr, det = cxx + cyy, cxx * cyy - cxy * cxy
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+    lmin, lmax = tr / 2 - disc, tr / 2 + disc
+    # the line direction is the eigenvector of lmax; the normal is perpendicular to it
+    ux, uy = cxy, lmax - cxx
+    alt = np.abs(ux) + np.abs(uy) < 1e-12
+    ux = np.where(alt, lmax - cyy, ux)
+    uy = np.where(alt, cxy, uy)
+    norm = np.hypot(ux, uy)
+    good = (cnt >= 3) & (norm > 1e-12) & (lmin <= 0.2 * lmax)
+    safe = np.where(norm > 0, norm, 1.0)
+    nx, ny = -uy / safe, ux / safe
+    flip = nx * cx + ny * cy > 0
+    out[good, 0] = np.where(flip, -nx, nx)[good]
+    out[good, 1] = np.where(flip, -ny, ny)[good]
+    return out
