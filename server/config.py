@@ -8,6 +8,7 @@ from typing import Any, Literal
 from pydantic import Field, model_validator
 
 from schemas.config import DEFAULT_PORT, BusConfig, ConfigModel, Coordination, Finite
+from server.knownmap.config import KnownMapConfig
 from server.slam.config import GridConfig, SlamConfig
 
 
@@ -172,6 +173,44 @@ class TeamsConfig(ConfigModel):
         "long-range robots take open space and the short-range ones rooms (0: off)")
 
 
+class DetoursConfig(ConfigModel):
+    """Detours priced (server.fleet.detours): an action that takes a robot off its own
+    exploration (seeking another robot, answering a call, a planned meeting, holding still to
+    keep clear, a turning camera's stop) is taken only when the team's expected time saved is
+    larger than what the robot's time costs it (docs/detours.md)."""
+
+    enabled: bool = Field(True, description="price every detour and take only those worth "
+                          "it (false: take every detour, and still record its price)")
+    rate_window_s: float = Field(30.0, gt=0.0, description="a team's exploration rate is its "
+                                 "explored area's growth over this long (and at least half "
+                                 "its average since it last changed)")
+    min_rate_m2_s: float = Field(0.05, gt=0.0, description="no team or robot is taken to "
+                                 "explore slower than this [m²/s]")
+    seek_p: float = Field(0.3, ge=0.0, le=1.0, description="the chance that turning to or "
+                          "approaching something that moves merges two teams, until this "
+                          "run's own seeks say otherwise")
+    call_p: float = Field(0.5, ge=0.0, le=1.0, description="... answering a call")
+    meeting_p: float = Field(0.6, ge=0.0, le=1.0, description="... a planned meeting")
+    prior_weight: float = Field(3.0, gt=0.0, description="those chances count as this many "
+                                "detours already settled")
+    hold_s: float = Field(3.0, ge=0.0, description="a seek or a call ends with both robots "
+                          "facing each other this long")
+    outcome_window_s: float = Field(60.0, gt=0.0, description="a merge within this long after "
+                                    "a detour's own time is its outcome")
+    recheck_s: float = Field(15.0, gt=0.0, description="a detour declined is not priced again "
+                             "for this long (the same robot, kind and other robot)")
+    sweep_s: float = Field(4.0, gt=0.0, description="a turning camera's stop for a whole scan "
+                           "takes this long (one turn of its tower)")
+    drift_m_per_sqrt_m: float = Field(0.03, gt=0.0, description="how far a narrow sensor's "
+                                      "pose drifts between whole scans, per √m driven [m]")
+    tolerance_m: float = Field(0.15, gt=0.0, description="the drift a narrow sensor's map "
+                               "bears before it spoils: a stop's worth is the share of this "
+                               "its drift is expected to reach")
+    tangle_s: float = Field(10.0, ge=0.0, description="two robots that meet head-on in a "
+                            "narrow place lose about this long each (avoidance, then a stuck "
+                            "robot's recovery)")
+
+
 class ClockConfig(ConfigModel):
     """Time: the server's own clock, and how robots' stamps are held to it
     (server.runtime.clock)."""
@@ -253,6 +292,8 @@ class ServerConfig(ConfigModel):
     explore: ExploreConfig = ExploreConfig()
     control: ControlConfig = ControlConfig()
     teams: TeamsConfig = TeamsConfig()
+    detours: DetoursConfig = DetoursConfig()
+    known_map: KnownMapConfig = KnownMapConfig()
     map_period_s: float = Field(
         1.0, gt=0.0, description="map updates and coverage checks, every this much scan time")
     states_period_s: float = Field(

@@ -50,6 +50,9 @@ from server.fleet.events import EventLog
 from server.fleet.model import Fleet, MergeRecord, RobotContext, Team
 from server.fleet.progress import Progress
 from server.fleet.stages import Stages
+from server.knownmap.desk import KnownMapDesk
+from server.knownmap.ghosts import MAP_TEAM
+from server.knownmap.mapdata import KnownMap
 from server.planning import OccupancyGrid as PlanningGrid
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.desk import SightingDesk
@@ -63,7 +66,8 @@ F64 = NDArray[np.float64]
 class ServerCore:
     """Per-robot SLAM and navigation, teams and their merges; one thread calls it."""
 
-    def __init__(self, cfg: ServerConfig, navigate: bool = True) -> None:
+    def __init__(self, cfg: ServerConfig, navigate: bool = True,
+                 known: KnownMap | None = None) -> None:
         self.cfg = cfg
         #: False: scans only feed SLAM, rendezvous and coverage (offline merging); commands are 0
         self.navigate = navigate
@@ -86,6 +90,11 @@ class ServerCore:
         #: robots whose agent came back (after a reboot, say), until a scan match places them
         #: again in their map: their scans since
         self.returning: dict[str, int] = {}
+        #: a mission on a known map (``server.knownmap``): robots placed in it, kept there
+        self.known = None if known is None else KnownMapDesk(cfg, self.fleet, self.merger,
+                                                              self.events, known)
+        if self.known is not None:   # its map is there to see (and plan on) from the start
+            self.progress.update(0, MAP_TEAM)
 
     def use_pools(self, planner: Callable[[], Executor | None],
                   matcher: Callable[[int], Executor | None]) -> None:
@@ -98,6 +107,9 @@ class ServerCore:
     # -- the loop --------------------------------------------------------------------------
     def on_scan(self, scan: Scan, now_ns: int | None = None) -> VelocityCommand:
         r = self.fleet.robots.get(scan.robot_id) or self.fleet.add_robot(scan.robot_id)
+        if r.ghost:      # a robot named as the known map's parts: not one the server serves
+            return VelocityCommand(robot_id=scan.robot_id, seq=0, stamp_ns=scan.stamp_ns,
+                                   v_mps=0.0, omega_rps=0.0)
         ranges, angles = scan.ranges_m(), scan.angles_rad()
         # 1. SLAM on the scan without teammates' bodies; a new keyframe is matched against
         #    the teammates' maps
@@ -107,6 +119,11 @@ class ServerCore:
             self.merger.join_known_start(r, scan.stamp_ns)
         r.last_stamp_ns = scan.stamp_ns
         self._record_online_pose(r, scan.stamp_ns)
+        # 2b. on a known map: a robot not yet in it is matched against it, a robot in it is
+        #     watched for being lost (and, extending the map, keeps the map up to date)
+        if self.known is not None:
+            self.known.on_scan(r, ranges, angles, scan.stamp_ns,
+                               scan.stamp_ns if now_ns is None else now_ns)
         # 3. sightings waiting for this scan: placed, and perhaps merged
         if self.desk.pending:
             self.desk.process(scan.stamp_ns)
@@ -243,7 +260,7 @@ class ServerCore:
             out.append(MapUpdate.from_grid(g.data, team_id=team.team_id,
                                            seq=self.events.next_seq(),
                                            stamp_ns=self.map_stamp_ns,
-                                           robot_ids=team.robot_ids,
+                                           robot_ids=self._robots_of(team),
                                            resolution_m=g.resolution_m,
                                            origin=(g.origin_xy[0], g.origin_xy[1], 0.0)))
         return out
@@ -251,6 +268,8 @@ class ServerCore:
     def robot_states(self, stamp_ns: int) -> RobotStates:
         robots = []
         for r in self.fleet.robots.values():
+            if r.ghost:
+                continue
             t = r.nav.target_xy
             mode: str = r.nav.mode.value
             errand = self.orders.errands.get(r.robot_id)
@@ -266,11 +285,15 @@ class ServerCore:
                 target=(float(t[0]), float(t[1])) if t is not None else None,
                 distance_m=r.distance_m, keyframes=len(r.slam.keyframes),
                 last_scan_stamp_ns=r.last_stamp_ns))
-        teams = [TeamCoverage(team_id=t.team_id, robot_ids=t.robot_ids,
+        teams = [TeamCoverage(team_id=t.team_id, robot_ids=self._robots_of(t),
                               coverage=float(min(t.coverage, 1.0)), explored_m2=t.explored_m2)
                  for t in self.fleet.teams.values()]
         return RobotStates(seq=self.events.next_seq(), stamp_ns=stamp_ns, robots=robots,
                            teams=teams)
+
+    def _robots_of(self, team: Team) -> list[str]:
+        """A team's robots, without the ghosts that hold a known map's keyframes."""
+        return [rid for rid in team.robot_ids if not self.fleet.robots[rid].ghost]
 
     def _pose_sigma(self, r: RobotContext) -> tuple[float, float, float]:
         """σ of the robot's newest keyframe pose from its graph's marginals (x, y [m], θ

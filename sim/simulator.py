@@ -186,6 +186,7 @@ class RobotState:
     in_contact: bool = False
     distance_m: float = 0.0
     image_seq: int = 0
+    teleports: int = 0             # moved by hand (``Simulator.teleport``)
 
 
 @dataclass(frozen=True)
@@ -249,6 +250,29 @@ class Simulator:
             names = [rid for rid, b in zip(self.robots, bad, strict=True) if b]
             raise SimError(f"robots {', '.join(names)} spawn inside or touching an obstacle "
                            f"of {self.world.name} (or each other)")
+
+    def teleport(self, robot_id: str, pose: Pose) -> None:
+        """Move a robot by hand: from now on it is at ``pose``, standing, and its odometry
+        goes on as if nothing happened (a robot carried elsewhere, or knocked away). Raises
+        ``SimError`` for a pose inside or touching an obstacle or another robot."""
+        r = self.robots.get(robot_id)
+        if r is None:
+            raise KeyError(robot_id)
+        p = (float(pose[0]), float(pose[1]), wrap_angle(float(pose[2])))
+        if not all(math.isfinite(v) for v in p):
+            raise SimError(f"{robot_id}: cannot be moved to {pose}: not a finite pose")
+        others = np.array([o.pose[:2] for o in self.robots.values() if o is not r])
+        c = np.array([p[:2]])
+        bad = collisions(c, self.p.drive.radius_m, self.world.segments, self.world.circles)
+        bad |= point_in_polygons(c, self.world.polygons)
+        near = bool(len(others)) and bool(
+            (np.hypot(*(others - c).T) < 2 * self.p.drive.radius_m).any())
+        if bad.any() or near:
+            raise SimError(f"{robot_id}: cannot be moved to ({p[0]:.2f}, {p[1]:.2f}): inside "
+                           f"or touching an obstacle of {self.world.name} or another robot")
+        r.pose, r.v, r.w, r.in_contact = p, 0.0, 0.0, False
+        r.teleports += 1
+        log.info("%s moved by hand to (%.2f, %.2f, %.2f)", robot_id, *p)
 
     def set_command(self, robot_id: str, v_mps: float, omega_rps: float,
                     stamp_ns: int | None = None) -> None:

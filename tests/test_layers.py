@@ -22,7 +22,8 @@ LIBRARY = ("server", "sim", "robot_agent", "recording", "factors", "schemas")
 PROJECT = (*LIBRARY, "mrslam", "bench", "tests")
 #: the server's algorithm groups: no I/O, no processes (docs/development.md)
 SERVER_ALGORITHMS = ("server.slam", "server.planning", "server.control", "server.exploration",
-                     "server.lookout", "server.fleet", "server.rendezvous", "server.command")
+                     "server.lookout", "server.fleet", "server.rendezvous", "server.command",
+                     "server.knownmap")
 #: what ``schemas/se2.py`` may import: the bottom of the stack, numbers only
 SE2_ALLOWED = ("__future__", "math", "typing", "collections.abc", "numpy")
 
@@ -133,7 +134,8 @@ RULES = [
     Rule("slam, planning and control never import exploration, the fleet, teams, commands or "
          "the core", lambda m: under(m, "server.slam", "server.planning", "server.control"),
          lambda n: under(n, "server.exploration", "server.lookout", "server.fleet",
-                         "server.rendezvous", "server.command", "server.core")),
+                         "server.rendezvous", "server.command", "server.knownmap",
+                         "server.core")),
     Rule("the offline tools run without a bus: never the node, the daemon or the cluster",
          lambda m: under(m, "server.offline"),
          lambda n: under(n, "server.runtime.node", "server.runtime.daemon",

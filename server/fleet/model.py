@@ -22,6 +22,7 @@ from server.config import ServerConfig
 from server.exploration import VisitedTargets
 from server.exploration.navigator import Navigator
 from server.fleet.coordination import Member, TeamExplorer
+from server.fleet.detours import Detours
 from server.fleet.events import EventLog
 from server.fleet.stages import Stages
 from server.lookout import Lookout
@@ -29,6 +30,7 @@ from server.planning import OccupancyGrid as PlanningGrid
 from server.slam import RobotSlam
 from server.slam.backend import FactorRecord, robot_key_space
 from server.slam.grid import OccupancyGrid
+from server.slam.keyframes import Keyframe
 from server.slam.mapping import GridMapper
 from server.slam.stamped import StampedRows
 
@@ -88,6 +90,23 @@ class RobotContext:
     #: robots of other teams it saw or was seen by lately, and where their team frames lie
     #: in its own then (robot id -> ``Sighted``)
     sighted: dict[str, Sighted] | None = None
+    #: not a robot: keyframes its team's map is drawn from (a known map; a robot's graph
+    #: from before it was lost: ``server.knownmap``); never reported, never driven
+    ghost: bool = False
+    #: its keyframes are not drawn into its team's map (a robot localising on a known map)
+    unmapped: bool = False
+    #: keyframes left out of its team's map (out of date, or made while lost)
+    retired: set[int] = field(default_factory=set)
+
+    def mapped_keyframes(self) -> tuple[list[Keyframe], F64]:
+        """The keyframes its team's map is drawn from, and their poses."""
+        sl = self.slam
+        if self.unmapped:
+            return [], np.zeros((0, 3))
+        if not self.retired:
+            return sl.keyframes, sl.keyframe_poses()
+        keep = [k for k in range(len(sl.keyframes)) if k not in self.retired]
+        return [sl.keyframes[k] for k in keep], sl.keyframe_poses()[keep].reshape(-1, 3)
 
     def own_frame_in_team(self) -> F64:
         """The robot's own map frame (its first pose) in its team's frame, exactly: the first
@@ -123,7 +142,8 @@ class MergeRecord:
     agreement: dict[str, float]
     undone_stamp_ns: int | None = None
     #: tags | start (known start poses) | marker (given by hand) | map (the maps alone) |
-    #: meeting (tags, at a meeting planned on the maps)
+    #: meeting (tags, at a meeting planned on the maps) | placed (in a known map: by its
+    #: map, or by hand)
     kind: str = "tags"
 
 
@@ -141,6 +161,9 @@ class Team:
     mapper: GridMapper | None = None
     links: list[Link] = field(default_factory=list)
     merged_into: str | None = None
+    #: a known map's team (``server.knownmap``): robots join it by being placed in it, not
+    #: by the map matching between teams
+    known: bool = False
 
 
 def _pair(team_a: str, team_b: str) -> tuple[str, str]:
@@ -161,6 +184,8 @@ class Fleet:
         #: refused merges of two teams (ids in order): the current run of refusals, none
         #: more than ``teams.refusal_pause_s`` after the one before (latest, how many)
         self.refusals: dict[tuple[str, str], tuple[int, int]] = {}
+        #: every detour priced, taken or declined, and its outcome (``server.fleet.detours``)
+        self.detours = Detours(cfg, self, events)
         self._robots_added = 0   # robot numbers are never reused: each owns its graph keys
         #: a worker of a split server numbers its robots n·64 + its worker number, so that
         #: graphs moved between workers never share keys
@@ -208,8 +233,7 @@ class Fleet:
     def add_robot(self, robot_id: str) -> RobotContext:
         """A robot heard of for the first time: its own graph symbols, navigator, lookout and
         a team of its own."""
-        char, block = robot_key_space(self._robots_added * self._key_stride + self._key_offset)
-        self._robots_added += 1
+        char, block = self.key_space()
         nav = self.stages.navigator()
         team_id = f"team-{robot_id}"
         r = RobotContext(robot_id, self.stages.slam(char, block), nav, team_id,
@@ -221,6 +245,12 @@ class Fleet:
         log.debug("robot %s tracked as graph symbol %r (block %d) in %s", robot_id, char,
                   block, team_id)
         return r
+
+    def key_space(self) -> tuple[str, int]:
+        """The graph symbol and key block of the next graph (a robot's, or a known map's)."""
+        char, block = robot_key_space(self._robots_added * self._key_stride + self._key_offset)
+        self._robots_added += 1
+        return char, block
 
     def set_alive(self, robot_id: str, alive: bool) -> None:
         r = self.robots.get(robot_id)
@@ -236,7 +266,8 @@ class Fleet:
     def mates_xy(self, r: RobotContext, alive_only: bool = True) -> F64:
         """Where ``r``'s teammates are (N, 2), in the team frame."""
         xy = [self.robots[o].pose[:2] for o in self.teams[r.team_id].robot_ids
-              if o != r.robot_id and (self.robots[o].alive or not alive_only)]
+              if o != r.robot_id and not self.robots[o].ghost
+              and (self.robots[o].alive or not alive_only)]
         return np.array(xy, dtype=np.float64).reshape(-1, 2)
 
     def without_teammates(self, r: RobotContext, ranges: F64, angles: F64) -> F64:
@@ -297,9 +328,8 @@ class Fleet:
         """The team's log-odds grid from all its robots' keyframes, in the team frame."""
         team = self.teams[team_id]
         assert team.mapper is not None
-        return team.mapper.update_many({
-            rid: (self.robots[rid].slam.keyframes, self.robots[rid].slam.keyframe_poses())
-            for rid in team.robot_ids})
+        return team.mapper.update_many({rid: self.robots[rid].mapped_keyframes()
+                                        for rid in team.robot_ids})
 
     def planning_grid(self, team_id: str) -> PlanningGrid:
         """The team's occupancy grid in the nav2 convention (robots of one team share it)."""

@@ -194,7 +194,7 @@ class MapMatchDesk:
         absorbs the other, as its frame holds more robots)."""
         fleet = self.fleet
         live = [tm for tm in fleet.teams.values()
-                if any(fleet.robots[r].alive for r in tm.robot_ids)
+                if not tm.known and any(fleet.robots[r].alive for r in tm.robot_ids)
                 and sum(len(fleet.robots[r].slam.keyframes) for r in tm.robot_ids) >= 5]
         live.sort(key=lambda tm: (-len(tm.robot_ids), tm.team_id))
         pairs = [(x.team_id, y.team_id) for i, x in enumerate(live) for y in live[i + 1:]]

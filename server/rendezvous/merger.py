@@ -26,7 +26,7 @@ from server.fleet.stages import Stages
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal, MergeVerifier, SightingRecord
 from server.rendezvous.maps import cross_matches, map_agreement
-from server.rendezvous.surgery import GraphSurgery
+from server.rendezvous.surgery import KNOWN_MAP_RADIUS_M, GraphSurgery
 
 log = logging.getLogger(__name__)
 
@@ -95,15 +95,20 @@ class Merger:
         # a map-matched transform comes from places where the maps overlap, and it is at their
         # edge that the teams' keyframes are matched: a keyframe's scan also sees what the
         # other team has not mapped, so fewer of its points have a partner there
-        inliers = MAP_KIND_MIN_INLIERS if kind == "map" else 0.5
+        on_maps = kind in ("map", "placed")   # placed: a robot in a known map (server.knownmap)
+        inliers = MAP_KIND_MIN_INLIERS if on_maps else 0.5
         matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
                    for m in cross_matches(robots[ra].slam, robots[rb].slam, T_ab=p.T_ab,
-                                          tried=tried, min_inlier_fraction=inliers)]
+                                          tried=tried, min_inlier_fraction=inliers,
+                                          radius_m=KNOWN_MAP_RADIUS_M if kind == "placed"
+                                          else 5.0)]
         found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
             raise MergeRefused(f"no part of the maps matches within 0.5 m ({tried[0]} tried)")
-        if kind == "map" and found < 2:
+        if on_maps and found < 2:
+            if kind == "placed" and tried[0] < 2:
+                raise MergeDeferred()   # too few of the robot's keyframes yet to say
             # on the maps alone, the robots' own keyframes must confirm the fit too
             raise MergeRefused(f"{found} keyframe matches where the maps overlap "
                                f"({tried[0]} tried): too few for a merge on the maps alone")

@@ -33,6 +33,11 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
+#: how far from a robot's keyframe the keyframes of a known map (``server.knownmap``) are
+#: matched against it (5 m between teams): the map may have seen the robot's room only from
+#: its door
+KNOWN_MAP_RADIUS_M = 8.0
+
 
 def join_graph(members: Sequence[RobotSlam], anchor: RobotSlam,
                links: Iterable[FactorRecord], initial: dict[int, F64],
@@ -167,7 +172,7 @@ class GraphSurgery:
             for rb in side_b:
                 a, b = self.fleet.robots[ra].slam, self.fleet.robots[rb].slam
                 graph = a.graph
-                for m in cross_matches(a, b, only=only):
+                for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra)):
                     f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
                                             m.T_ka_kb, m.information, loop.sigma_scale ** 2,
                                             floor, "huber", loop.huber_k)
@@ -187,6 +192,11 @@ class GraphSurgery:
         self._rebind(graph, (self.fleet.robots[rid] for rid in side_a + side_b))
         self.counters.map_matches += len(kept)
         return len(kept)
+
+    def _radius_m(self, robot_id: str) -> float:
+        """How far from a keyframe the keyframes of ``robot_id`` are matched against it."""
+        team = self.fleet.teams.get(self.fleet.robots[robot_id].team_id)
+        return KNOWN_MAP_RADIUS_M if team is not None and team.known else 5.0
 
     def tied_by_maps(self, links: list[Link], a: str, b: str) -> bool:
         """Whether map matches join robots a and b's graphs often enough that the tag
