@@ -104,6 +104,11 @@ def run(robots: int, steps: int, warmup: int, profile: bool) -> dict[str, Any]:
     return out
 
 
+def _ours(file: str) -> bool:
+    """Whether a profiled function is this project's code (not a library's)."""
+    return file.startswith(str(ROOT)) and ".venv" not in file
+
+
 def _stages(stats: pstats.Stats, scans: int) -> dict[str, Any]:
     raw: dict[Any, Any] = stats.stats  # type: ignore[attr-defined]
     cumulative: dict[tuple[str, str], float] = {}
@@ -120,8 +125,7 @@ def _stages(stats: pstats.Stats, scans: int) -> dict[str, Any]:
     top = [{"function": name, "own_ms_per_scan": round(tt / scans * 1e3, 3), "calls": nc}
            for tt, name, nc in own[:25]]
     ours = sorted(((ct, f"{Path(f).parent.name}/{Path(f).name}:{n}")
-                   for (f, n), ct in cumulative.items() if "/work/" in f or "mrslam" in f
-                   and ".venv" not in f), reverse=True)
+                   for (f, n), ct in cumulative.items() if _ours(f)), reverse=True)
     cum = [{"function": name, "cumulative_ms_per_scan": round(ct / scans * 1e3, 3)}
            for ct, name in ours[:40]]
     return {"stages_ms_per_scan": stages, "top": top, "cumulative": cum}
