@@ -250,7 +250,7 @@ class RobotStates(Message, kw_only=True):
 
 EventKind = Literal[
     "robot_joined", "robot_lost", "merge", "merge_rejected", "merge_undone", "target_reached",
-    "stuck", "terminated", "error", "meeting", "operator",
+    "stuck", "terminated", "error", "meeting", "operator", "detour",
 ]
 
 
@@ -262,3 +262,6 @@ class Event(Message, kw_only=True):
     message: Annotated[str, msgspec.Meta(max_length=2048)] = ""
     transform: Pose2 | None = None
     covariance: Annotated[list[Finite], msgspec.Meta(min_length=9, max_length=9)] | None = None
+    #: an event's figures by name (a detour's estimates: ``server.fleet.detours``)
+    figures: Annotated[dict[Annotated[str, msgspec.Meta(max_length=64)], Finite],
+                       msgspec.Meta(max_length=32)] | None = None

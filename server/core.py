@@ -122,7 +122,7 @@ class ServerCore:
         # 2b. on a known map: a robot not yet in it is matched against it, a robot in it is
         #     watched for being lost (and, extending the map, keeps the map up to date)
         if self.known is not None:
-            self.known.on_scan(r, ranges, angles, scan.stamp_ns,
+            self.known.on_scan(r, scan, ranges, angles,
                                scan.stamp_ns if now_ns is None else now_ns)
         # 3. sightings waiting for this scan: placed, and perhaps merged
         if self.desk.pending:

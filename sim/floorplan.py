@@ -5,7 +5,9 @@ The dissertation's figures are kept as facts: a small house of 20 × 20 m and a 
 its four cases, which the house scenarios of ``sim/worlds/scenarios.yaml`` take. The rooms,
 doors and corridors are our own, so these are not the dissertation's worlds.
 A third world, ``ambiguous_wings`` (30 × 30 m), is ours alone: a self-similar building for
-testing that maps are not merged on a look-alike (see docs/ambiguous-world.md).
+testing that maps are not merged on a look-alike (see docs/ambiguous-world.md). A fourth,
+``office_floor`` (30 × 20 m), is a floor of offices on two corridors, where a team must
+share out many small rooms (see docs/detours.md).
 
 A plan is a list of straight walls along their centre lines, each with its door openings, and a
 few square pillars. ``python -m sim.floorplan`` rewrites ``sim/worlds/*.world`` from this
@@ -209,12 +211,52 @@ def ambiguous_wings() -> Plan:
     ), pillars=((0.7, 5.0, 0.5),))             # the spine, east of its centre line
 
 
+#: the office floor: its half sizes, the corridors' centre lines (y) and half width, the
+#: x of the partitions between offices in the outer rows and in the middle band
+OFFICE_HALF_X_M, OFFICE_HALF_Y_M = 15.0, 10.0
+OFFICE_CORRIDORS_Y = (-4.0, 4.0)
+OFFICE_CORRIDOR_HALF_M = 1.0
+OFFICE_LOBBY_X = -12.0
+OFFICE_LINK_X = 13.0
+OFFICE_OUTER_X = (-12.0, -7.5, -3.0, 1.5, 6.0, 10.5, 15.0)
+OFFICE_MIDDLE_X = (-12.0, -7.0, -2.0, 3.0, 8.0, 13.0)
+
+
+def office_floor() -> Plan:
+    """30 × 20 m: a floor of offices on two corridors. Two corridors 2 m wide run east from a
+    lobby 3 m wide along the west side; a short link joins their east ends. Offices line
+    both: six of 4.5 × 5 m along the outer side of each corridor, five of 5 × 3 m back to
+    back in the band between them, each with one door on its corridor."""
+    cx, cy = OFFICE_HALF_X_M - WALL_THICKNESS_M / 2, OFFICE_HALF_Y_M - WALL_THICKNESS_M / 2
+    (ys, yn), h = OFFICE_CORRIDORS_Y, OFFICE_CORRIDOR_HALF_M
+    lobby, link = OFFICE_LOBBY_X, OFFICE_LINK_X
+    outer = [(a + b) / 2 for a, b in itertools.pairwise(OFFICE_OUTER_X)]
+    middle = [(a + b) / 2 for a, b in itertools.pairwise(OFFICE_MIDDLE_X)]
+    walls = [
+        hwall(-cy, -cx, cx), vwall(cx, -cy, cy), hwall(cy, cx, -cx), vwall(-cx, cy, -cy),
+        # the lobby's east side, open onto both corridors
+        vwall(lobby, -cy, cy, doors=OFFICE_CORRIDORS_Y, width_m=2 * h),
+        # the corridors' outer sides, a door into each outer office
+        hwall(ys - h, lobby, cx, doors=tuple(outer)), hwall(yn + h, lobby, cx, doors=tuple(outer)),
+        # their inner sides, a door into each office of the middle band; the band's offices
+        # stand back to back, and the link runs past the band's east end
+        hwall(ys + h, lobby, link, doors=tuple(middle)),
+        hwall(yn - h, lobby, link, doors=tuple(middle)),
+        hwall((ys + yn) / 2, lobby, link), vwall(link, ys + h, yn - h),
+    ]
+    walls += [vwall(x, -cy, ys - h) for x in OFFICE_OUTER_X[1:-1]]
+    walls += [vwall(x, yn + h, cy) for x in OFFICE_OUTER_X[1:-1]]
+    walls += [vwall(x, y0, y1) for x in OFFICE_MIDDLE_X[1:-1]
+              for y0, y1 in ((ys + h, (ys + yn) / 2), ((ys + yn) / 2, yn - h))]
+    return Plan("office_floor", tuple(walls))
+
+
 #: the symmetry-breaking features of ``ambiguous_wings``: (what, x, y) of a point on each
 AMBIGUOUS_BREAKS = (("slanted partition", 12.25, 13.8), ("nook wall", -9.5, -7.0),
                     ("spine pillar", 0.7, 5.0))
 
 PLANS = {"small_house": small_house, "large_house": large_house,
-         "ambiguous_wings": ambiguous_wings}
+         "ambiguous_wings": ambiguous_wings, "office_floor": office_floor}
 
 
 def _box(name: str, x: float, y: float, yaw: float, length: float, width: float,

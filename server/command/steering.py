@@ -1,6 +1,8 @@
 """A robot's velocity command: the operator's first (a held robot stands, whatever else
 would move it; a robot on an errand follows it), then its lookout while it turns toward (or
-drives to) something that moves, its navigator otherwise."""
+drives to) something that moves, a planned meeting, a turning camera's stop, its navigator
+otherwise. Every detour from its own exploration (what the lookout starts, a camera's stop)
+is priced first and taken only when worth its time (``server.fleet.detours``)."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ from server.control import ObstacleMemory, Obstacles, Twist
 from server.exploration.navigator import NavMode
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext
+from server.lookout.offers import Offer
 from server.planning import OccupancyGrid as PlanningGrid
 
 F64 = NDArray[np.float64]
@@ -49,6 +52,8 @@ class Steering:
         #: where navigators replan while their robots drive on (``ServerCore.use_pools``;
         #: None: on the scan's path)
         self.planner: Callable[[], Executor | None] | None = None
+        #: robots standing still for a stop of their turning camera that was priced
+        self.sweeping: set[str] = set()
 
     def __getstate__(self) -> dict[str, object]:
         return {**self.__dict__, "planner": None}   # processes are not state
@@ -57,6 +62,7 @@ class Steering:
                 navigate: bool = True) -> VelocityCommand:
         """The command for ``r``'s scan at ``stamp_ns`` (zero when not ``navigate``)."""
         twist = Twist(0.0, 0.0)
+        self.fleet.detours.tick(stamp_ns)
         if navigate:
             ok = np.isfinite(ranges)
             pts = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])],
@@ -80,7 +86,7 @@ class Steering:
                 twist = look
             elif r.meeting is not None:
                 twist = self.meet(r, obstacles)
-            elif r.slam.sweep_due(stamp_ns) and r.nav.mode != NavMode.RECOVERING:
+            elif self.sweep_stop(r, stamp_ns):
                 twist = Twist(0.0, 0.0)   # still, while its turning camera looks round once
             else:
                 team = self.fleet.team_of(r)
@@ -104,6 +110,20 @@ class Steering:
             m.path_xy = None
         return drive.twist
 
+    def sweep_stop(self, r: RobotContext, stamp_ns: int) -> bool:
+        """Whether the robot stands still for its turning camera now: when its sensor asks for
+        a stop, the stop is priced once; not worth it, the robot drives on."""
+        if r.nav.mode == NavMode.RECOVERING or not r.slam.sweep_due(stamp_ns):
+            self.sweeping.discard(r.robot_id)
+            return False
+        if r.robot_id in self.sweeping:
+            return True
+        if self.fleet.detours.sweep(r, stamp_ns):
+            self.sweeping.add(r.robot_id)
+            return True
+        r.slam.skip_sweep()
+        return False
+
     def look(self, r: RobotContext, now_s: float, obstacles: Obstacles) -> Twist | None:
         """Turn toward something that moves while robots outside the team remain. A robot
         whose team is done keeps doing so: a robot still alone must be able to join it."""
@@ -121,9 +141,28 @@ class Steering:
         twist = r.look.step(now_s, r.pose, obstacles.points_xy,
                             self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))
+        offer = r.look.offers.pending
+        if offer is not None and not self.worth(r, offer, now_s):
+            r.look.decline(now_s, now_s + self.cfg.detours.recheck_s)
+            return None
         if twist is None:
             if r.look.moved:  # the approach took the robot off its path: decide afresh
                 r.look.moved = False
                 r.nav.drop_target()
             return None
         return r.nav.driver.avoid(twist, r.look.heading_error, obstacles)
+
+    def worth(self, r: RobotContext, offer: Offer, now_s: float) -> bool:
+        """Price what the lookout just started (``server.lookout.offers``); taken, the lookout
+        goes on with the same robot without a new price for as long as it was priced for."""
+        distance = float(np.hypot(*(offer.xy - r.pose[:2])))
+        stamp_ns = int(now_s * 1e9)
+        if offer.kind == "call":
+            taken = self.fleet.detours.call(r, offer.caller, distance, stamp_ns)
+        else:
+            taken = self.fleet.detours.seek(r, distance, stamp_ns)
+        if taken:
+            d = self.cfg.detours
+            r.look.offers.grant(offer, now_s + distance / self.cfg.control.v_mps + d.hold_s
+                                + self.cfg.teams.max_pending_s)
+        return taken

@@ -55,6 +55,7 @@ class Progress:
             team.explored_m2 = explored_area_m2(grid)
             team.coverage = team.explored_m2 / total if total else 0.0
             team.history.append((stamp_ns, team.coverage))
+            fleet.detours.observe(team.team_id, team.robot_ids, stamp_ns, team.explored_m2)
             if total and not team.finished and team.coverage >= self.cfg.explore.coverage_threshold:
                 self.finish_team(team, stamp_ns, f"coverage {team.coverage:.3f} reached")
             elif not team.finished and (alive := [

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas import Scan
 from schemas.se2 import compose, inverse
 from server.config import ServerConfig
 from server.fleet.events import EventLog
@@ -114,10 +115,11 @@ class KnownMapDesk:
         team.mapper = self.fleet.stages.mapper()
 
     # -- per scan ----------------------------------------------------------------------------
-    def on_scan(self, r: RobotContext, ranges: F64, angles: F64, stamp_ns: int,
+    def on_scan(self, r: RobotContext, scan: Scan, ranges: F64, angles: F64,
                 now_ns: int) -> None:
+        """A scan SLAM has just placed in ``r``'s map (``ranges`` without teammates)."""
         if r.team_id == MAP_TEAM:
-            self._watch(r, ranges, angles, stamp_ns)
+            self._watch(r, scan, ranges, angles)
             return
         team = self.fleet.team_of(r)
         s = self.searches.get(team.team_id)
@@ -185,7 +187,8 @@ class KnownMapDesk:
         return True
 
     # -- placed robots -----------------------------------------------------------------------
-    def _watch(self, r: RobotContext, ranges: F64, angles: F64, stamp_ns: int) -> None:
+    def _watch(self, r: RobotContext, scan: Scan, ranges: F64, angles: F64) -> None:
+        stamp_ns = scan.stamp_ns
         w = self.watches.get(r.robot_id)
         if w is None:       # placed another way (tags with a placed robot): watched from now
             w = self.watches[r.robot_id] = LossWatch(self.k.lost_conflict_ratio,
@@ -196,6 +199,10 @@ class KnownMapDesk:
         a = scan_agreement(lay, r.pose, scan_points(ranges, angles, r.sensor_range_m))
         if w.update(a, stamp_ns, len(r.slam.keyframes)):
             self._lose(r, w, stamp_ns)
+            # it starts afresh from this scan, its first keyframe
+            r.slam.add_scan(stamp_ns, scan.odom_pose, ranges, angles, r.sensor_range_m)
+            r.pose = r.slam.pose
+            r.start_pose = r.pose.copy()
 
     def _lose(self, r: RobotContext, w: LossWatch, stamp_ns: int) -> None:
         why = (f"{w.last.conflict} of {w.last.known} returns on mapped ground in open space "

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from schemas.se2 import transform_points, wrap_angle
 from server.control import Twist
 from server.lookout.movers import LookParams, bearing_to, moving_objects, objects_at_range
+from server.lookout.offers import Offers
 from server.planning import OccupancyGrid
 
 F64 = NDArray[np.float64]
@@ -44,26 +45,33 @@ class Lookout:
         self.call_range: tuple[float, float] | None = None
         self.spin_until_s: float | None = None   # turning on the spot to find a reader
         self.calls = 0
+        self.caller = ""                     # the robot of the latest call
+        #: the detours it starts, to be priced before they go on (``server.lookout.offers``)
+        self.offers = Offers()
 
     @property
     def active(self) -> bool:
         return self.heading is not None or self.approaching or self.spin_until_s is not None
 
     def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool,
-             range_m: float | None = None, range_tolerance_m: float = 0.3) -> None:
+             range_m: float | None = None, range_tolerance_m: float = 0.3,
+             caller: str = "") -> None:
         """A tag sighting places another team's robot at ``xy`` (map frame) within
         ``tolerance_m``; ``sure``: the place is good enough to drive to without the LIDAR's
         confirmation. ``range_m``: how far away it is, known better than where (a robot seen
         by another learns the distance between them from the reader, the direction only
-        through the tag's heading). Taken up at the next scan (see the module docstring)."""
+        through the tag's heading). Taken up at the next scan (see the module docstring).
+        ``caller``: that robot; its calls are not heard while a detour about it is declined."""
         xy = np.asarray(xy, dtype=np.float64)
+        if self.offers.refused(caller, now_s):
+            return
         if self.approaching and self.track is not None and \
                 math.hypot(*(xy - self.track)) <= max(tolerance_m, self.p.track_m):
             self.track_seen_s = now_s    # the followed thing is the robot that was seen
             if sure:
                 self.track = xy
             return
-        self.call = (xy, tolerance_m, sure, now_s)
+        self.call, self.caller = (xy, tolerance_m, sure, now_s), caller
         self.call_range = None if range_m is None else (float(range_m), float(range_tolerance_m))
 
     def _near_call(self, pose: F64) -> bool:
@@ -107,6 +115,7 @@ class Lookout:
                 self.calls += 1
                 log.info("%s: answering a call from %.1f m away (rough): facing what stands "
                          "at that distance", self.name, ranged[0])
+                self.offers.make("call", self.caller, reader, now_s)
                 self._look_toward(now_s, pose, reader, meet=True)
                 return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
@@ -116,6 +125,7 @@ class Lookout:
         log.info("%s: answering a call from %.1f m away (%s): %s", self.name,
                  math.hypot(*(xy - pose[:2])), "sure" if sure else "rough",
                  "look" if target is None else "go and look")
+        self.offers.make("call", self.caller, xy if target is None else target, now_s)
         if target is None:
             self.spin_until_s = now_s + 2 * math.pi / self.p.omega_rps
             return Twist(0.0, self.p.omega_rps)
@@ -124,6 +134,18 @@ class Lookout:
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
         self.track, self.track_seen_s = target, now_s
         return self._start_approach(now_s, pose, groups)
+
+    def decline(self, now_s: float, until_s: float) -> None:
+        """The detour just offered is not worth its time: drop it, and hear no calls about
+        its robot (or seek nothing, for a seek) until ``until_s``."""
+        offer = self.offers.pending
+        self.reset()
+        self.call, self.call_range = None, None
+        if offer is None:
+            return
+        self.offers.decline(offer, until_s)
+        if offer.kind == "seek":
+            self.next_s = max(self.next_s, until_s)
 
     def forget(self) -> None:
         """Drop what the robot was looking at and any call: the map frame changed under them
@@ -167,15 +189,18 @@ class Lookout:
                 self._follow(now_s, pose, groups)
                 if self.track_count < p.approach_confirm:
                     return None
+                self.offers.make("seek", "", np.asarray(self.track), now_s)
                 return self._start_approach(now_s, pose, groups)
             if p.approach_range_m > p.max_range_m and \
                     math.hypot(*(near - pose[:2])) > p.approach_stop_m + p.track_m:
                 # in reading range, but only close up does a tag give the other's heading
                 self.track, self.track_seen_s = near, now_s
+                self.offers.make("seek", "", near, now_s)
                 return self._start_approach(now_s, pose, groups)
             bearing = bearing_to(pose, near)
             if abs(bearing) <= p.half_fov_rad:
                 return None
+            self.offers.make("seek", "", near, now_s)
             self._look_toward(now_s, pose, near)
         if self.meeting and self.call is not None and self.call[2] and \
                 p.approach_range_m > 0 and not self._close(self.call[0], pose):
@@ -274,7 +299,8 @@ class NullLookout(Lookout):
     turns or drives."""
 
     def hear(self, now_s: float, xy: F64, tolerance_m: float, sure: bool,
-             range_m: float | None = None, range_tolerance_m: float = 0.3) -> None:
+             range_m: float | None = None, range_tolerance_m: float = 0.3,
+             caller: str = "") -> None:
         return None
 
     def step(self, now_s: float, pose: F64, points_robot: F64, grid: OccupancyGrid | None,

@@ -96,13 +96,13 @@ class SightingDesk:
                         det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
         now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
         a.look.hear(now_a, transform_points(a.pose, rel[None, :2])[0],
-                    max(0.5, 0.1 * det.range_m), sure=True)
+                    max(0.5, 0.1 * det.range_m), sure=True, caller=b.robot_id)
         # the reader as the seen robot would place it: through the tag's heading, which is
         # poor at range, hence the wide tolerance
         back = inverse(rel)
         b.look.hear(now_b, transform_points(b.pose, back[None, :2])[0],
                     max(1.0, 0.35 * det.range_m), sure=False, range_m=det.range_m,
-                    range_tolerance_m=3.0 * det.sigma_range_m + 0.2)
+                    range_tolerance_m=3.0 * det.sigma_range_m + 0.2, caller=a.robot_id)
 
     # -- 2. waiting for the scans around a sighting's time ---------------------------------
     def process(self, now_ns: int) -> None:

@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 
 def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
     """One robot of each team to one place of the overlap, if some pair of them can get
-    there within ``teams.meet_max_detour_m`` (the farther of the two paths)."""
+    there within ``teams.meet_max_detour_m`` (the farther of the two paths) and the meeting
+    is worth their time (``server.fleet.detours``)."""
     fleet, t = desk.fleet, desk.cfg.teams
     if e.status != "pending":
         return      # refuted, refused, merged, or already being met
@@ -63,6 +64,10 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) 
     if best is None:
         return
     _, ra, rb, p, p_b, path_a, path_b = best
+    # worth the two robots' time? (server.fleet.detours; not asked again soon if not)
+    if fleet.detours.recently_declined(ra, "meeting", rb.robot_id, now_ns) or \
+            not fleet.detours.meeting(ra, rb, _length(path_a), _length(path_b), now_ns):
+        return
     cost, v = best[0], ra.nav.pursuit.params.v_mps
     until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
     idx = desk.log.index(e)

@@ -159,7 +159,9 @@ def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Ou
         "map_hypotheses": core.matcher.hypotheses(),
         "map_query_ms": [round(v, 2) for v in core.matcher.query_ms],
         "events": [{"kind": e.kind, "stamp_ns": e.stamp_ns, "robot_ids": list(e.robot_ids),
-                    "team_id": e.team_id, "message": e.message} for e in core.event_log],
+                    "team_id": e.team_id, "message": e.message,
+                    **({"figures": dict(e.figures)} if e.figures else {})}
+                   for e in core.event_log],
         **(extra or {}),
     }
     return Outputs(grids, clouds, trajectories, summary)

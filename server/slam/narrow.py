@@ -53,8 +53,10 @@ from server.slam.view import Placement, SlamView
 
 F64 = NDArray[np.float64]
 IDENTITY = np.zeros(3)
-#: a point of the robot's own map this close to a teammate's is left to the teammate's
-GUIDE_OVERLAP_M = 0.15
+#: a point of the robot's own map this close to a teammate's is left to the teammate's: where
+#: a wide sensor mapped the place, its map is the reference, and the narrow robot's own walls
+#: there, drawn from drifting poses, would only pull it off (a drift under this much)
+GUIDE_OVERLAP_M = 0.5
 #: whole scans before the new one that it is matched against
 WHOLES_MATCHED = 3
 MATCHED = (MatchKind.ICP, MatchKind.DEGENERATE)
@@ -124,11 +126,17 @@ class NarrowSensor:
                                self.icp_wide, self._prior(from_prev))
                 d, a = pose_distance(between(T_guess, m.T_map_robot))
                 near = d <= sw.max_shift_m and a <= math.radians(sw.max_turn_deg)
-                return (m, prev) if m.kind in MATCHED and near else None
+                if m.kind in MATCHED and near:
+                    slam.stats.sweep_shift_m = d
+                    return m, prev
+                return None
         assert slam.local_map is not None
         m = match_scan(whole, slam.local_map, T_pred, T_last, slam.velocity, False, mc,
                        self.icp_wide, self._prior(T_step_odom))
-        return (m, None) if m.kind in MATCHED else None
+        if m.kind not in MATCHED:
+            return None
+        slam.stats.sweep_shift_m = pose_distance(between(T_pred, m.T_map_robot))[0]
+        return m, None
 
     def _prior(self, T_step_odom: F64) -> F64 | None:
         mc = self.cfg.matcher
@@ -172,8 +180,9 @@ class NarrowSensor:
     def local_map(self, slam: SlamView, keyframes: Sequence[Keyframe], T_map_kf: F64
                   ) -> PointMap:
         """The keyframes' points; with teammates in the graph (``slam.guides``), their walls
-        around the robot where they have them, in place of its own: a narrow sensor matches
-        against the map its team's wide sensors drew where they drew it."""
+        around the robot where they have them, in place of its own within
+        ``GUIDE_OVERLAP_M``: a narrow sensor matches against the map its team's wide sensors
+        drew where they drew it, its own drifting keyframes only elsewhere."""
         lm = self.cfg.local_map
         guide = (_guide_points(slam, T_map_kf[-1], lm.guide_radius_m)
                  if slam.guides and lm.guide_radius_m > 0 else None)
@@ -191,14 +200,18 @@ class NarrowSensor:
     def stand_still(self, stamp_ns: int) -> bool:
         return self.sweep.due(stamp_ns)
 
+    def skip_stop(self) -> None:
+        self.sweep.skip()
+
 
 def _guide_points(slam: SlamView, T_map_robot: F64, radius_m: float) -> tuple[F64, F64] | None:
     """Points and normals (map frame) of the teammates' keyframes within ``radius_m`` of the
-    robot, the teammates being those that share ``slam``'s graph; None if there are none."""
+    robot, the teammates being those with a wide sensor that share ``slam``'s graph (another
+    narrow sensor's map drifts as this one's does); None if there are none."""
     kfs: list[Keyframe] = []
     at: list[F64] = []
     for mate in slam.guides:
-        if mate is slam or mate.graph is not slam.graph or not mate.keyframes:
+        if mate is slam or mate.graph is not slam.graph or not mate.keyframes or mate.narrow:
             continue
         poses = mate.keyframe_poses()
         near = np.flatnonzero(np.hypot(*(poses[:, :2] - T_map_robot[:2]).T) <= radius_m)

@@ -250,6 +250,11 @@ class RobotSlam:
         camera makes a whole scan (``server.slam.sweep``); never for a 360° sensor."""
         return self.sensor.stand_still(stamp_ns)
 
+    def skip_sweep(self) -> None:
+        """Drive on instead of standing still for the sensor now (``sweep_due`` asks again
+        later): the stop was not worth the robot's time."""
+        self.sensor.skip_stop()
+
     def pose_sigma(self) -> tuple[float, float, float]:
         """σ of the newest keyframe's pose (x, y [m] and θ [rad], in its own frame), from
         the graph's marginal covariance."""

@@ -80,6 +80,11 @@ class SensorModel(Protocol):
         """Whether the robot should stand still now for the sensor's sake."""
         ...
 
+    def skip_stop(self) -> None:
+        """The robot drives on instead of standing still now (the stop was not worth its
+        time); the model asks again later."""
+        ...
+
 
 def scan_points(ranges_m: F64, angles_rad: F64, cfg: ScanConfig, normal_window: int,
                 free_m: float) -> ScanPoints:
@@ -129,6 +134,9 @@ class LidarSensor:
 
     def stand_still(self, stamp_ns: int) -> bool:
         return False
+
+    def skip_stop(self) -> None:
+        return None
 
 
 @dataclass

@@ -47,6 +47,7 @@ class Sweep:
     """the latest views' headings"""
     wholes: int = 0                 # whole scans given
     given_up: int = 0               # holds that ended without one
+    skipped: int = 0                # stops the robot drove on through (not worth their time)
 
     @property
     def turning(self) -> bool:
@@ -87,7 +88,7 @@ class Sweep:
         and at its start, before it first moves (whether the camera turns is not known yet
         then)."""
         c = self.cfg
-        first = self.wholes == 0 and self.given_up == 0
+        first = self.wholes == 0 and self.given_up == 0 and self.skipped == 0
         if not c.enabled or not (self.turning or first) or \
                 (self.travelled_m < c.every_m and not first):
             self.hold_since_ns = None
@@ -99,6 +100,11 @@ class Sweep:
             self.given_up += 1
             return False
         return True
+
+    def skip(self) -> None:
+        """The robot drives on instead of stopping now: asked again after ``every_m``."""
+        self.travelled_m, self.hold_since_ns = 0.0, None
+        self.skipped += 1
 
     def reset(self) -> None:
         self.views, self.start_odom = [], None

@@ -41,6 +41,7 @@ class SlamStats:
     reused: int = 0   # scans re-anchored on a keyframe instead of adding one (``reuse``)
     heading_ties: int = 0   # keyframes whose heading square walls tied (``square_walls``)
     sweeps: int = 0   # whole scans of a turning camera matched (``sweep``)
+    sweep_shift_m: float = 0.0   # how far the latest one's match moved the pose from the guess
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,11 @@ class SlamView(Protocol):
     @property
     def guides(self) -> Sequence[SlamView]:
         """Teammates sharing this graph (set by the server before each scan)."""
+        ...
+
+    @property
+    def narrow(self) -> bool:
+        """Whether its latest scan was a narrow sensor's."""
         ...
 
     @property
