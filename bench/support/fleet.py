@@ -37,9 +37,11 @@ class ServerProcess:
     """``mrslam server`` on a free loopback port; ``config`` is merged into the defaults."""
 
     def __init__(self, folder: Path, config: dict[str, Any] | None = None,
-                 args: tuple[str, ...] = (), env: dict[str, str] | None = None) -> None:
+                 args: tuple[str, ...] = (), env: dict[str, str] | None = None,
+                 prefix: tuple[str, ...] = ()) -> None:
         """``args``: more command-line options (``--console PORT``); ``env``: more
-        environment variables."""
+        environment variables; ``prefix``: what the command runs under (``ip netns exec
+        NAME`` for a server on a host of its own)."""
         self.endpoint = free_local_endpoint()
         self.folder = folder
         config = dict(config or {})
@@ -50,7 +52,7 @@ class ServerProcess:
         self.log_path = folder / "server.log"
         self._log = open(self.log_path, "wb")  # noqa: SIM115 (closed in stop)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mrslam", "server", "-c", str(folder / "server.yaml"),
+            [*prefix, sys.executable, "-m", "mrslam", "server", "-c", str(folder / "server.yaml"),
              *args], cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT,
             env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
 
