@@ -7,6 +7,10 @@ made (marked read-only: keyframe scans, submaps) are not in the snapshot but in 
 append-only ``blobs.bin``, each written once and referred to by its digest, so a snapshot holds
 only what changes and costs little however long the run.
 
+Taken by a forked copy of the server (``server.runtime.snapfork``: ``begin`` forks, the child
+pickles and writes, ``finish`` puts it in place), or pickled in process (``prepare`` and
+``commit``) where there is no ``fork``; both give the same bytes.
+
 A server that resumes loads the newest snapshot that reads back and replays only the journal
 after it; a snapshot that is missing, cut short or from another version of mrslam is
 passed over for the one before (the last ``keep`` are kept), and without any the journal is
