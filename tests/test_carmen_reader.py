@@ -84,6 +84,8 @@ def test_every_line_type_and_bad_lines(tmp_path: Path, name: str) -> None:
     np.testing.assert_array_equal(with_remissions.ranges_m, [1, 2, 3, 4, 5])
     raw = next(r for r in log.lasers if r.kind == "RAWLASER1")
     assert raw.laser_pose is None and raw.stamp_text == "10.500000"
+    # the scans of one stream share one read-only array of beam angles (a long log's memory)
+    assert with_remissions.angles_rad is rl.angles_rad and not rl.angles_rad.flags.writeable
 
 
 def test_old_format_beam_geometry() -> None:

@@ -285,3 +285,67 @@ def test_a_snapshot_is_tied_to_a_digest_of_the_servers_code() -> None:
     from server.runtime import snapshot
 
     assert snapshot.VERSION.split("+")[1] != hashlib.blake2b(digest_size=8).hexdigest()
+
+
+def _body(path: Path) -> bytes:
+    import zlib
+
+    from server.runtime.snapshot import MAGIC
+
+    return zlib.decompress(path.read_bytes()[len(MAGIC) + 80:])
+
+
+def test_a_snapshot_taken_by_a_forked_copy_is_the_one_taken_in_process(tmp_path: Path) -> None:
+    """A snapshot begun by forking (a copy of the server pickles it while the core goes on) is
+    the state at the fork, byte for byte what pickling it in process gives, and resumes the
+    same core (real graphs, replayed from the journal after it)."""
+    from server.runtime.snapfork import Forked
+
+    msgs = messages(120)
+    live = ServerCore(config(), navigate=False)
+    j = JournalWriter(tmp_path / "journal")
+    (tmp_path / "in-process").mkdir()
+    forked, inproc = Snapshots(tmp_path / "journal"), Snapshots(tmp_path / "in-process")
+    inproc.use_fork = False
+    for i, m in enumerate(msgs):
+        if i == 200:
+            job = forked.begin(live, j.sequence)
+            assert isinstance(job, Forked)
+            inproc.write(live, j.sequence)       # the same state, pickled here
+        if isinstance(m, Scan):
+            j.scan(m, m.stamp_ns)
+            live.on_scan(m, m.stamp_ns)          # goes on while the child pickles
+        else:
+            j.tags(m)
+            live.on_tags(m)
+        if i == 230:
+            assert forked.finish(job).name == "snapshot-000000000200.pkl"
+    j.close()
+    assert _body(forked.paths()[0]) == _body(inproc.paths()[0])
+    assert forked.last_bytes > 0 and forked.last_cpu_s > 0
+    loaded = Snapshots(tmp_path / "journal").load()       # a new server: the store's index
+    assert loaded is not None and loaded[1] == 200
+    core, since = loaded
+    replay(core, tmp_path / "journal", from_sequence=since)
+    a, b = state(core), state(live)
+    assert a["merges"] == b["merges"] and a["events"] == b["events"]
+    for rid in live.robots:
+        assert np.allclose(a["keyframes"][rid], b["keyframes"][rid], atol=1e-4)
+    # the parent learns the child's new blobs: another snapshot of the same state adds none
+    forked.finish(forked.begin(live, len(msgs)))
+    size = (tmp_path / "journal" / "blobs.bin").stat().st_size
+    forked.finish(forked.begin(live, len(msgs) + 1))
+    assert (tmp_path / "journal" / "blobs.bin").stat().st_size == size
+    assert Snapshots(tmp_path / "journal").load() is not None
+
+
+def test_a_forked_snapshot_that_fails_is_a_typed_error(tmp_path: Path) -> None:
+    from server.runtime.snapfork import SnapshotProcessError
+
+    live = ServerCore(config(), navigate=False)
+    feed(live, messages(10), None)
+    live.not_picklable = lambda: None  # type: ignore[attr-defined]
+    snaps = Snapshots(tmp_path)
+    with pytest.raises(SnapshotProcessError, match=r"snapshot 7: .*pickle"):
+        snaps.finish(snaps.begin(live, 7))
+    assert snaps.paths() == []

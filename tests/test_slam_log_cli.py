@@ -126,3 +126,20 @@ def test_match_stamps_nearest_within_tolerance() -> None:
     stamps = np.array([1.0, 2.0, 3.0])
     idx = match_stamps(stamps, np.array([0.9999, 2.0004, 2.5, 3.01, 5.0]), 0.001)
     np.testing.assert_array_equal(idx, [0, 1, -1, -1, -1])
+
+
+def test_scans_released_as_they_are_fed_give_the_same_poses(fr079_slice: Path) -> None:
+    """``process(release=True)`` frees each scan once fed (a long log's scans do not stay
+    for the whole run) and changes nothing of the result."""
+    from server.offline.slam_log import SlamLogConfig, _read, process
+
+    cfg = SlamLogConfig()
+    _, kept, _, _ = _read(fr079_slice, cfg, None, None)
+    clog, freed, _, _ = _read(fr079_slice, cfg, None, None)
+    clog.lasers.clear()
+    kept, freed = kept[:120], freed[:120]
+    a, stamps_a, _, _ = process(kept, cfg.slam)
+    b, stamps_b, _, _ = process(freed, cfg.slam, release=True)
+    assert stamps_a == stamps_b and len(stamps_a) == 120
+    np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
+    assert all(s is None for s in freed) and all(s is not None for s in kept)

@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
@@ -71,13 +71,17 @@ def laser_offset(clog: CarmenLog, laser: str) -> float:
 
 def process(scans: Sequence[LogScan], cfg: SlamConfig,
             progress: Callable[[int], None] | None = None, *, jitter_fraction: float = 0.5,
-            front: ScanOdometry | None = None
+            front: ScanOdometry | None = None, release: bool = False
             ) -> tuple[RobotSlam, list[str], int, StampPlan]:
     """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
     it (``plan_stamps``); a scan a little early is fed just after the one before it. Scans
     without odometry get it from ``front`` (made here if not given). Returns the SLAM, the
     stamps (text) of the scans it accepted, how many it rejected as bad input, and the stamp
-    plan (what it kept early, dropped or re-based)."""
+    plan (what it kept early, dropped or re-based).
+
+    ``release``: ``scans`` is a list that is the scans' only holder, and each scan is dropped
+    from it (set to None) once fed, so a long log's scans are freed while its map grows: the
+    peak is the larger of the two, not their sum."""
     slam = RobotSlam("a", cfg)
     accepted: list[str] = []
     rejected = 0
@@ -88,6 +92,8 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     heap = HeapTrimmer(every_s=5.0)
     for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
         s = scans[i]
+        if release:
+            cast("list[LogScan | None]", scans)[i] = None
         rec = s.record
         ranges = rec.ranges_m
         if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
@@ -194,6 +200,10 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
         cfg = validate(SlamLogConfig, {**cfg.model_dump(), **given})
     rec = read_recording(Path(log_file), cfg, scan_topic, odom_topic)
     scans = rec.scans
+    n_scans = len(scans)
+    duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
+    rec.clog.lasers.clear()     # ``scans`` holds the records, freed once fed to the SLAM
+    rec.clog.odometry.clear()   # (attached to them already)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)
@@ -202,11 +212,11 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
         if any(s.T_odom_laser is None for s in scans) else None
     with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
                   "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
-        task = bar.add_task("scans", total=len(scans))
+        task = bar.add_task("scans", total=n_scans)
         slam, stamps, rejected, plan = process(
             scans, cfg.slam, lambda i: bar.update(task, completed=i),
-            jitter_fraction=cfg.stamp_jitter_fraction, front=front)
-        bar.update(task, completed=len(scans))
+            jitter_fraction=cfg.stamp_jitter_fraction, front=front, release=True)
+        bar.update(task, completed=n_scans)
     t_slam = time.perf_counter()
     _, poses = slam.scan_poses()
     with open(out / "poses.txt", "w") as f:
@@ -215,15 +225,14 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     if cfg.write_maps:
         write_nav2(slam.occupancy_grid(), out, "map")
         write_ply(out / "cloud.ply", slam.point_cloud())
-    duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
     stats = rec.clog.stats
     summary: dict[str, object] = {
         "log": str(log_file),
         "laser": rec.laser,
         "odometry_source": rec.source,
-        "scans_in_log": len(scans),
+        "scans_in_log": n_scans,
         "scans": len(stamps),
-        "scans_posed_percent": round(100.0 * len(stamps) / max(len(scans), 1), 3),
+        "scans_posed_percent": round(100.0 * len(stamps) / max(n_scans, 1), 3),
         "scans_rejected": rejected,
         "stamps_early_kept": len(plan.early),
         "stamps_dropped_ahead": len(plan.dropped_ahead),
@@ -247,7 +256,7 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
         "wall_time_s": time.perf_counter() - t0,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    print(f"{Path(log_file).name}: {len(stamps)} of {len(scans)} scans posed, "
+    print(f"{Path(log_file).name}: {len(stamps)} of {n_scans} scans posed, "
           f"{slam.stats.keyframes} keyframes, {slam.stats.loop_closures} loop closures, "
           f"{summary['wall_time_s']:.1f} s → {out}")
     return summary

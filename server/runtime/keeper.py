@@ -55,7 +55,8 @@ class StateKeeper:
         self.not_journaled = 0
         self.resumed = 0
         self.last_error = ""
-        self.snapshot_s: list[float] = []     # how long each took (it holds the worker up)
+        self.snapshot_s: list[float] = []     # how long each took to pickle and write
+        self.snapshot_hold_s: list[float] = []   # how long each held the worker (a fork)
         self.snapshot_bytes = 0               # written in all: snapshots and new blobs
         self._lock = threading.Lock()         # failures come from the writer thread too
         self._broken: str | None = None       # a failure the worker has not acted on yet
@@ -118,9 +119,10 @@ class StateKeeper:
         writer.submit("journal", j.sync)
 
     def snapshot(self, core: ServerCore, writer: BackgroundWriter, wait: bool = True) -> bool:
-        """Snapshot ``core`` as of the journal's next entry: pickled here, compressed and
-        written here (``wait``) or by the writer thread. False: it could not be written
-        (``wait``), or an earlier one is still being written."""
+        """Snapshot ``core`` as of the journal's next entry: a forked copy of the server
+        pickles and writes it (``Snapshots.begin``), and it is put in place here (``wait``)
+        or by the writer thread. False: it could not be written (``wait``), or an earlier one
+        is still being written."""
         if not wait and writer.busy("snapshot"):
             return False       # the last one is still being written: the next round takes it
         if self.journal is not None:
@@ -132,16 +134,20 @@ class StateKeeper:
         if self.journal is None and not wait:
             return False       # suspended: only a snapshot that resumes journaling is taken
         journal, snapshots = self.journal, self.snapshots
+        if wait:
+            writer.drain()       # one snapshot at a time (a child appends to the blob store)
+        t0 = time.perf_counter()
         try:
-            pending = snapshots.prepare(core, self.sequence)
+            job = snapshots.begin(core, self.sequence)
         except OSError as e:
             self._snapshot_failure(e)
             return False
+        self.snapshot_hold_s.append(time.perf_counter() - t0)
 
         def commit() -> None:
             if journal is not None:
                 journal.sync()           # ... on the disk before the snapshot is
-            snapshots.commit(pending)
+            snapshots.finish(job)
             if self.journal is not None:
                 with self._lock:
                     self._outage = False     # everything is written again
@@ -151,7 +157,6 @@ class StateKeeper:
         if not wait:
             writer.submit("snapshot", commit)
             return True
-        writer.drain()
         try:
             commit()
         except OSError as e:
@@ -257,6 +262,7 @@ class StateKeeper:
             "snapshots": len(self.snapshot_s),
             "snapshot_s_max": round(max(self.snapshot_s, default=0.0), 3),
             "snapshot_s_total": round(sum(self.snapshot_s), 3),
+            "snapshot_hold_ms_max": round(1e3 * max(self.snapshot_hold_s, default=0.0), 2),
             "snapshot_bytes": self.snapshots.last_bytes,
             "snapshot_bytes_total": self.snapshot_bytes,
             "writing": j is not None}

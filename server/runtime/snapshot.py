@@ -7,6 +7,10 @@ made (marked read-only: keyframe scans, submaps) are not in the snapshot but in 
 append-only ``blobs.bin``, each written once and referred to by its digest, so a snapshot holds
 only what changes and costs little however long the run.
 
+Taken by a forked copy of the server (``server.runtime.snapfork``: ``begin`` forks, the child
+pickles and writes, ``finish`` puts it in place), or pickled in process (``prepare`` and
+``commit``) where there is no ``fork``; both give the same bytes.
+
 A server that resumes loads the newest snapshot that reads back and replays only the journal
 after it; a snapshot that is missing, cut short or from another version of mrslam is
 passed over for the one before (the last ``keep`` are kept), and without any the journal is
@@ -35,6 +39,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from server.runtime.snapfork import Forked, fork
 
 if TYPE_CHECKING:
     from server.core import ServerCore
@@ -187,8 +193,10 @@ class Snapshots:
         self.dir = Path(state_dir)
         self.keep = keep
         self.last_seconds = 0.0
+        self.last_cpu_s = 0.0     # the last forked snapshot's process's CPU
         self.last_bytes = 0
         self._blobs: BlobStore | None = None
+        self.use_fork = True      # ``begin`` forks (copy-on-write) where it can
 
     @property
     def blobs(self) -> BlobStore:
@@ -215,6 +223,14 @@ class Snapshots:
         """Compress and write a prepared snapshot atomically; drop the oldest."""
         t0 = time.monotonic()
         self.blobs.sync()        # every array the snapshot refers to is on disk before it is
+        tmp, path, size = self.write_beside(pending)
+        self._install(tmp, path)
+        self.last_seconds = pending.seconds + time.monotonic() - t0
+        self.last_bytes = size + pending.blob_bytes
+        return path
+
+    def write_beside(self, pending: Pending) -> tuple[Path, Path, int]:
+        """The snapshot compressed into a file beside its place, synced; its size."""
         body = zlib.compress(pending.pickled, 1)
         head = (MAGIC + struct.pack("<Q", pending.sequence)
                 + VERSION.encode()[:64].ljust(64, b" "))
@@ -227,14 +243,48 @@ class Snapshots:
                 f.write(body)
                 f.flush()
                 os.fsync(f.fileno())
-            os.replace(tmp, path)
         except OSError:
             tmp.unlink(missing_ok=True)    # a full disk: leave no half snapshot behind
             raise
+        return tmp, path, len(body)
+
+    def _install(self, tmp: Path, path: Path) -> None:
+        try:
+            os.replace(tmp, path)
+        except OSError:
+            tmp.unlink(missing_ok=True)
+            raise
         for old in self.paths()[self.keep:]:
             old.unlink(missing_ok=True)
-        self.last_seconds = pending.seconds + time.monotonic() - t0
-        self.last_bytes = len(body) + pending.blob_bytes
+
+    # -- copy-on-write: a child process pickles and writes, the worker only forks --------------
+    def begin(self, core: ServerCore, sequence: int) -> Pending | Forked:
+        """Start a snapshot of ``core`` as of ``sequence``: a forked child process (a frozen
+        copy of the server, memory shared until written) pickles and writes it, and the
+        caller goes on at once; ``finish`` collects it. Where there is no ``fork`` (or it
+        fails), pickled here (``prepare``) instead."""
+        if self.use_fork and hasattr(os, "fork"):
+            try:
+                return fork(self, core, sequence)
+            except OSError as e:
+                log.warning("snapshot: fork failed (%s): pickled in the server's thread", e)
+        return self.prepare(core, sequence)
+
+    def finish(self, job: Pending | Forked) -> Path:
+        """Write what ``begin`` started (the writer thread): a forked child's snapshot is
+        waited for and put in its place; its new arrays join the blob store's index."""
+        if isinstance(job, Pending):
+            return self.commit(job)
+        report = job.collect()
+        blobs = self.blobs
+        for digest, start, n in report["blobs"]:
+            blobs.index[digest] = (start, n)
+        blobs.appended_bytes += report["blob_bytes"]
+        tmp, path = Path(report["tmp"]), Path(report["path"])
+        self._install(tmp, path)
+        self.last_seconds = report["seconds"]
+        self.last_cpu_s = report["cpu_s"]
+        self.last_bytes = report["size"] + report["blob_bytes"]
         return path
 
     def reset(self) -> None:

@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from server.slam.icp_kernel import CELL_M, build_grid, icp_loop
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 F64 = NDArray[np.float64]
 
@@ -59,6 +62,8 @@ class PointMap:
         """A KD-tree of the points, for callers that query it themselves (built at first use:
         matching does not need it)."""
         if self._tree is None:
+            from scipy.spatial import cKDTree  # not loaded where nothing asks (slam-log)
+
             self._tree = cKDTree(self.points, leafsize=16, balanced_tree=False,
                                  compact_nodes=False)
         return self._tree

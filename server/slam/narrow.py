@@ -27,7 +27,6 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from schemas.se2 import between, compose, pose_distance, transform_points
 from server.slam.backend import add_constraint
@@ -190,6 +189,8 @@ class NarrowSensor:
             return local_point_map(keyframes, T_map_kf, lm.voxel_m)
         pts, nrm = gather(keyframes, T_map_kf)
         if len(guide[0]) and len(pts):
+            from scipy.spatial import cKDTree  # teammates' guides only (not in slam-log)
+
             d, _ = cKDTree(guide[0]).query(pts, distance_upper_bound=GUIDE_OVERLAP_M)
             pts, nrm = pts[~np.isfinite(d)], nrm[~np.isfinite(d)]
         pts, nrm = np.concatenate([guide[0], pts]), np.concatenate([guide[1], nrm])

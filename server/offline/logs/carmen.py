@@ -63,6 +63,15 @@ def guess_beam_angles(n_beams: int) -> F64:
     return angles
 
 
+@functools.lru_cache(maxsize=64)
+def beam_angles(start: float, resolution: float, n_beams: int) -> F64:
+    """Beam angles [rad] of a scan that states its geometry (ROBOTLASER, RAWLASER): one
+    read-only array shared by the scans of a stream (a long log holds tens of thousands)."""
+    angles = start + resolution * np.arange(n_beams, dtype=np.float64)
+    angles.flags.writeable = False
+    return angles
+
+
 def open_text(path: Path) -> IO[str]:
     """Open a possibly compressed log as text; undecodable bytes become U+FFFD (then fail)."""
     suffix = path.suffix.lower()
@@ -159,7 +168,7 @@ def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | 
         start, resolution, max_range = float(head[1]), float(head[3]), float(head[4])
         if not (math.isfinite(start) and math.isfinite(resolution) and resolution != 0.0):
             raise LineError("bad beam geometry")
-        angles = start + resolution * np.arange(n, dtype=np.float64)
+        angles = beam_angles(start, resolution, n)
         max_r = max_range if math.isfinite(max_range) and max_range > 0 else None
         if kind.startswith("ROBOTLASER"):
             poses = _floats(words, i, i + 6)
