@@ -86,6 +86,7 @@ def demo_config(scenario: str = "small-house-3", **known: Any) -> ServerConfig:
 class Placed:
     robot_id: str
     after_s: float          # since it started searching
+    at_s: float             # simulated time when it was placed
     error_m: float          # its pose in the map's frame against the truth, when placed
     error_deg: float
 
@@ -114,7 +115,7 @@ class KnownMission:
             if not before and self._placed(rid):
                 err = self.error(rid)
                 self.placed.append(Placed(rid, self.sim_time_s - self.searching_since[rid],
-                                          *err))
+                                          self.sim_time_s, *err))
             elif before and not self._placed(rid):       # lost: it searches again
                 self.searching_since[rid] = self.sim_time_s
         self.sim.advance()

@@ -71,6 +71,7 @@ class KnownMapDesk:
         self.k = cfg.known_map
         self.extend = self.k.mode == "extend"
         self.known_anchor, self.missions = known.anchor, known.missions
+        self.notes = dict(known.notes)
         ghosts.add_map(fleet, known)
         #: each keyframe's source, for the graphs that hold a known map's
         self.sources: dict[str, list[str]] = {MAP_ID: list(known.sources)}
@@ -194,6 +195,7 @@ class KnownMapDesk:
             w = self.watches[r.robot_id] = LossWatch(self.k.lost_conflict_ratio,
                                                      self.k.lost_after_s)
             self.placed_at.setdefault(r.robot_id, stamp_ns)
+            r.unmapped = not self.extend      # localize: what it sees is not added either
         lay = self.view().layers
         assert lay is not None
         a = scan_agreement(lay, r.pose, scan_points(ranges, angles, r.sensor_range_m))
@@ -239,7 +241,8 @@ class KnownMapDesk:
     def mission_map(self) -> KnownMap | None:
         """The map this mission leaves: the known map with what it added (extend) and without
         what it retired, for the next mission."""
-        known = ghosts.team_map(self.fleet, MAP_TEAM, self.missions + 1, self.sources)
+        known = ghosts.team_map(self.fleet, MAP_TEAM, self.missions + 1, self.sources,
+                                self.notes)
         if known is not None:
             known.anchor = self.known_anchor
         return known
