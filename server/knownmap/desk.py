@@ -142,7 +142,7 @@ class KnownMapDesk:
         self.counts["queries"] += 1
         anchor = fleet.robots[team.anchor]
         guess = s.take(ranked, clear_winner(ranked, self.k.clear_ratio), anchor.pose, now_ns)
-        if guess is not None and guess.status == "pending" and \
+        if guess is not None and guess.may_retry(len(xy)) and \
                 guess.wins >= self.k.confirmations:
             self.place(team, guess, now_ns)
 
@@ -163,7 +163,8 @@ class KnownMapDesk:
         except MergeDeferred:
             return False                # too little of the robot's map yet: ask again
         except MergeRefused as e:
-            guess.status, guess.reason = "refused", str(e)
+            guess.refused(str(e), sum(len(fleet.robots[rid].slam.keyframes)
+                                      for rid in team.robot_ids))
             self.counts["refused"] += 1
             self.events.emit("merge_rejected", list(team.robot_ids), MAP_TEAM,
                              f"{team.team_id} not placed in the known map: {e}", now_ns)
