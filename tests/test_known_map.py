@@ -24,9 +24,11 @@ from bench.support.known_mission import (
 )
 from bench.support.survey import survey_map
 from server.command.operator import OperatorCommand
+from server.config import ServerConfig
+from server.core import ServerCore
 from server.knownmap.ghosts import MAP_ID
 from server.knownmap.mapdata import KnownMap
-from server.runtime.mapfind import find_map
+from server.runtime.mapfind import find_map, leave_map, start_map
 from server.runtime.mapstore import FORMAT_VERSION, MapError, read_map, write_map
 
 HOUSE = WORLDS / "small_house.world"
@@ -116,6 +118,48 @@ def test_a_path_without_a_map_is_refused_in_one_line(tmp_path: Path) -> None:
     with pytest.raises(MapError) as e:
         find_map(tmp_path)
     assert "holds no map" in _one_line(e)
+
+
+def test_a_run_keeps_the_map_it_started_on_and_leaves_its_own(house: KnownMap,
+                                                              tmp_path: Path) -> None:
+    part = _part(house, list(range(0, len(house), 5)))
+    write_map(part, tmp_path / "old" / "known_map", site="small_house")
+    cfg = ServerConfig.model_validate({"known_map": {"path": str(tmp_path / "old"),
+                                                     "site": "small_house"}})
+    state = tmp_path / "state"
+    state.mkdir()
+    known = start_map(cfg, state)
+    assert known is not None and len(known) == len(part)
+    assert len(read_map(state / "known_map")) == len(part)      # the run's own copy
+    # resumed: the copy, whatever the path says now
+    gone = cfg.model_copy(update={"known_map": cfg.known_map.model_copy(
+        update={"path": str(tmp_path / "nowhere")})})
+    again = start_map(gone, state)
+    assert again is not None and len(again) == len(part)
+    # a run that started without a map stays without one
+    (tmp_path / "plain").mkdir()
+    (tmp_path / "plain" / "journal-000001.mcap").write_bytes(b"")
+    assert start_map(cfg, tmp_path / "plain") is None
+    # the map a mission leaves: the same keyframes, one mission more
+    leave_map(ServerCore(cfg, known=known), tmp_path / "out", cfg)
+    left = read_map(tmp_path / "out" / "known_map", site="small_house")
+    assert len(left) == len(part) and left.missions == 2
+    np.testing.assert_allclose(left.poses, part.poses, atol=1e-6)
+
+
+def test_a_placement_won_again_confirms_its_guess() -> None:
+    """Queries a second apart, the robot moved and turned: the same place wins twice."""
+    from server.knownmap.placing import Placement
+    from server.knownmap.search import Search
+
+    s = Search(("r1",))
+    rng = np.random.default_rng(0)
+    for k in range(200):
+        T = np.array([1.35, -2.0, -1.457]) + rng.normal(0, [0.03, 0.03, 0.005])
+        pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-3, 3)])
+        g = s.take([Placement(T, (), 140.0, 0.99)], Placement(T, (), 140.0, 0.99), pose, k)
+        assert g is not None and g.wins == k + 1
+    assert len(s.guesses) == 1
 
 
 # -- missions --------------------------------------------------------------------------------
