@@ -206,23 +206,47 @@ ConsoleOpt = Annotated[int | None, typer.Option(
     "one); its address with the token is printed at start (docs/console.md)")]
 
 
+MapOpt = Annotated[Path | None, typer.Option(
+    "--map", help="start on a previous mission's map: its run folder, its server's folder, "
+    "its state folder or a known_map folder (known_map.path; docs/known-map.md)")]
+MapModeOpt = Annotated[str | None, typer.Option(
+    "--map-mode", help="with --map: localize (the map stays as it is; the default) or "
+    "extend (what the robots see is mapped into it) (known_map.mode)")]
+
+
+def _map_check(command: str, path: Path | None) -> None:
+    """Refuse a ``--map`` that is no folder at once, in one line (what is in the folder is
+    checked when the map is read)."""
+    if path is not None and not path.is_dir():
+        _fail(f"{command}: --map {path}: {'not a folder' if path.exists() else 'no such folder'}"
+              " (a run folder, a state folder or a known_map folder is)")
+
+
 @app.command()
 def server(
     config: ConfigOpt = None,
     insecure: Annotated[bool, typer.Option(
         "--insecure", help="allow listening beyond this machine without TLS and access rules "
         "(bus.insecure_listen; warned at every start)")] = False,
+    map_path: MapOpt = None,
+    map_mode: MapModeOpt = None,
     foxglove: FoxgloveOpt = None,
     console: ConsoleOpt = None,
     verbose: VerboseOpt = 0,
 ) -> None:
     """Run the central server daemon (Zenoh router, SLAM, merging, exploration)."""
     setup_logging(verbose, "server")
+    _map_check("server", map_path)
 
     def body() -> Any:
         from server.runtime.daemon import run
 
-        return run(config, {"bus": {"insecure_listen": True}} if insecure else None,
+        overrides: dict[str, Any] = {"bus": {"insecure_listen": True}} if insecure else {}
+        known = {k: v for k, v in (("path", str(map_path) if map_path else None),
+                                   ("mode", map_mode)) if v is not None}
+        if known:
+            overrides["known_map"] = known
+        return run(config, overrides or None,
                    foxglove_port=foxglove, console_port=console,
                    on_console=lambda c: typer.echo(f"console: {c.url}", err=True))
 
@@ -358,6 +382,8 @@ def demo(
     server_restarts: Annotated[int | None, typer.Option(
         help="restart a server that dies at most this many times (0: never; default 5)")
     ] = None,
+    map_path: MapOpt = None,
+    map_mode: MapModeOpt = None,
     out: Annotated[Path | None, typer.Option(help="run folder")] = None,
     verbose: VerboseOpt = 0,
 ) -> None:
@@ -366,6 +392,7 @@ def demo(
     setup_logging(verbose, "demo")
     if out is not None:
         check_out("demo", out)
+    _map_check("demo", map_path)
 
     def body() -> Any:
         from mrslam.demo import run
@@ -376,7 +403,8 @@ def demo(
                  "rtf": rtf, "explorer": explorer, "max_sim_time_s": max_sim_time,
                  "spurious_detections": spurious_detections, "coordination": coordination,
                  "merge": merge, "known_starts": known_starts, "record": record,
-                 "server_restarts": server_restarts, "out": str(out) if out else None}
+                 "server_restarts": server_restarts, "out": str(out) if out else None,
+                 "map": str(map_path) if map_path else None, "map_mode": map_mode}
         opts: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
         if robot:
             opts["robots"], opts["sensors"] = parse_robot_args(robot)

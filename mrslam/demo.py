@@ -25,6 +25,7 @@ from mrslam.supervise import Exit, RestartPolicy, Supervisor
 from schemas.config import ConfigModel, Coordination, Finite
 from schemas.config_loading import ConfigError, load_config, write_resolved
 from schemas.stopping import SignalStop
+from server.knownmap.config import MapMode
 from sim.config import SensorKind
 
 if TYPE_CHECKING:
@@ -110,6 +111,12 @@ class DemoConfig(ConfigModel):
     restart_back_off_s: float = Field(
         1.0, gt=0, description="the wait before the first restart; each next one waits twice "
         "as long (at most 30 s)")
+    map: str | None = Field(
+        None, description="start on a previous mission's map: its run folder, state folder or "
+        "known_map folder (docs/known-map.md); the robots are not told where they are")
+    map_mode: MapMode = Field(
+        "localize", description="with map: localize (the map stays as it is) or extend (what "
+        "the robots see is mapped into it)")
     out: str = Field("", description="the run folder; empty: runs/<scenario>-<date>-<time>")
     endpoint: str | None = Field(
         None, description="where the server listens (tcp/127.0.0.1:PORT); default: a free "
@@ -155,6 +162,8 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
             if unknown := sorted(set(ids) - set(plan["robots"])):
                 raise ConfigError(f"{name}: no robot {', '.join(unknown)} in this run")
         write_resolved(cfg, out, "demo_config.yaml")
+        if cfg.map:
+            plan["map"], plan["map_frame"] = _start_map(cfg.map, plan, out)
         console.print(f"[bold]mrslam demo[/]: {plan['title']} — {len(plan['robots'])} "
                       f"robot(s), threshold {plan['threshold']:.0%} of "
                       f"{plan['area_m2']:.1f} m², "
@@ -211,6 +220,47 @@ def plan_run(cfg: DemoConfig) -> dict[str, Any]:
     }
 
 
+def _start_map(path: str, plan: dict[str, Any], out: Path
+               ) -> tuple[str, list[float] | None]:
+    """The map named by ``--map`` found once (``MapError`` in one line when there is none),
+    and written where the server reads it: ``<out>/start_map``. With it, where the map's
+    frame lies in the world, for scoring (the map's note, written by the demo that started
+    on it, else where its anchor robot started in the run that made it; None: unknown)."""
+    from server.runtime.mapfind import find_map
+    from server.runtime.mapstore import write_map
+
+    site = Path(plan["world"]).stem
+    known, where = find_map(path, site)
+    log.warning("known map: %d keyframes from %s", len(known), where)
+    frame = _map_frame(known.notes.get(WORLD_FRAME), known.anchor, Path(path))
+    if frame is not None:
+        known.notes[WORLD_FRAME] = " ".join(f"{v:.6f}" for v in frame)
+    folder = write_map(known, out / "start_map", site, written_by=str(path))
+    return str(folder.resolve()), frame
+
+
+#: a known map's note: where its frame lies in the simulated world (x y θ)
+WORLD_FRAME = "world_frame"
+
+
+def _map_frame(note: str | None, anchor: str, path: Path) -> list[float] | None:
+    if note:
+        try:
+            frame = [float(v) for v in note.split()]
+        except ValueError:
+            frame = []
+        if len(frame) == 3:
+            return frame
+    for folder in (path, *path.parents[:3]):
+        try:
+            spawn = json.loads((folder / "report.json").read_text()).get("robots_spawn", {})
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(spawn, dict) and anchor in spawn:
+            return [float(v) for v in spawn[anchor]][:3]
+    return None
+
+
 def robot_args(plan: dict[str, Any]) -> list[str]:
     """The simulator's ``--robot ID:X,Y,YAW[:SENSOR]`` options for the plan's robots."""
     out: list[str] = []
@@ -239,6 +289,9 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
         "out": str(out / "server"),
         "exit_when_done": True,
     }
+    if plan.get("map"):
+        server["known_map"] = {"path": plan["map"], "site": Path(plan["world"]).stem,
+                               "mode": cfg.map_mode}
     (out / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
     for rid in plan["robots"]:
         agent = {"robot_id": rid, "bus": {"connect": [cfg.agent_connect.get(rid, endpoint)],

@@ -11,6 +11,7 @@ import numpy as np
 
 from mrslam.run_files import Gaps, read_json, read_trajectory, read_truth
 from schemas.se2 import compose, inverse, pose_distance
+from server.knownmap.ghosts import MAP_ID
 from server.offline.scoring import anchor_transform, ate_rmse, map_quality, match_truth, pose_errors
 
 log = logging.getLogger(__name__)
@@ -186,6 +187,8 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                                       truth[anchor]["poses"])
             if len(idx):
                 T_world_map = anchor_transform(a_true[0], a_online[0])
+        elif robot_ids and robot_ids[0] == MAP_ID and plan.get("map_frame") is not None:
+            T_world_map = np.asarray(plan["map_frame"], dtype=np.float64)   # a known map's
         history = team.get("coverage_history", [])
         t_reach = next((s * 1e-9 for s, c in history if c >= threshold), None)
         quality = None
@@ -207,7 +210,7 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
             gaps.note(map_yaml, "missing")
         teams[team_id] = {"robot_ids": robot_ids, "coverage": _finite(team.get("coverage")),
                           "reached": t_reach is not None,
-                          "sim_time_to_threshold_s": _finite(t_reach) if t_reach else None,
+                          "sim_time_to_threshold_s": None if t_reach is None else _finite(t_reach),
                           "coverage_history": [[s * 1e-9, c] for s, c in history],
                           **(quality or {})}
         for rid in robot_ids:
@@ -257,7 +260,7 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
                                "merged_into": old.get("merged_into"),
                                "coverage": _finite(hist[-1][1]) if hist else None,
                                "reached": t_old is not None,
-                               "sim_time_to_threshold_s": _finite(t_old) if t_old else None,
+                               "sim_time_to_threshold_s": None if t_old is None else _finite(t_old),
                                "coverage_history": [[s * 1e-9, c] for s, c in hist]})
     reached, best, first = threshold_times(teams)
     hypotheses = hypothesis_errors(summary.get("map_hypotheses", []), own_frames)

@@ -50,6 +50,14 @@ def write_files(folder: Path) -> None:
     (folder / "deep.yaml").write_text("[" * 100_000)
     _bad_maps(folder)
     _mistyped_certificates(folder)
+    _known_maps(folder)
+
+
+def _known_maps(folder: Path) -> None:
+    """A known_map folder of a format version this release does not read (``--map``)."""
+    newer = folder / "newer-map"
+    newer.mkdir(exist_ok=True)
+    (newer / "map.json").write_text(json.dumps({"format": "mrslam-known-map", "version": 99}))
 
 
 def _mistyped_certificates(folder: Path) -> None:
@@ -208,6 +216,13 @@ def cases(folder: Path) -> list[BadInput]:
                                                OPEN_LISTEN), "without TLS"),
         BadInput("eval-relations", "binary-files", ("eval-relations", f"{f}/binary.yaml",
                                                     f"{f}/image.png"), "binary.yaml"),
+        BadInput("server", "map-missing", ("server", "--map", f"{f}/no-map"), "no such folder"),
+        BadInput("server", "map-newer", ("server", "--map", f"{f}/newer-map"),
+                 "a map of format version 99; this release reads version 1"),
+        BadInput("demo", "map-not-a-folder", ("demo", "--map", f"{f}/binary.yaml", "--out",
+                                              f"{f}/demo"), "not a folder"),
+        BadInput("demo", "map-newer", ("demo", "--map", f"{f}/newer-map", "--out",
+                                       f"{f}/demo"), "format version 99"),
         BadInput("lidar-dump", "missing-port", ("lidar-dump", "--port", f"{f}/no-tty",
                                                 "--timeout", "1"), "no-tty"),
     ]

@@ -44,14 +44,28 @@ def free_poses(world: Path, n: int, rng: np.random.Generator, clearance_m: float
     rows, cols = np.nonzero(clear)
     out: list[F64] = []
     taken = list(exclude)
-    while len(out) < n:
+    for _ in range(1000 * n):
+        if len(out) == n:
+            break
         k = int(rng.integers(len(rows)))
         x = grid.origin[0] + (cols[k] + 0.5) * grid.resolution_m
         y = grid.origin[1] + (rows[k] + 0.5) * grid.resolution_m
         if all(math.hypot(x - a, y - b) >= apart_m for a, b in taken):
             out.append(np.array([x, y, rng.uniform(-math.pi, math.pi)]))
             taken.append((x, y))
+    if len(out) < n:
+        raise ValueError(f"{world.name}: no room for {n} places {apart_m} m apart")
     return out
+
+
+def pose_away(world: Path, at: F64, distance_m: float, rng: np.random.Generator,
+              tolerance_m: float = 0.5) -> F64:
+    """A random free pose (any heading) ``distance_m`` ± ``tolerance_m`` from ``at``."""
+    for _ in range(100):
+        q = free_poses(world, 1, rng)[0]
+        if abs(math.hypot(*(q[:2] - at[:2])) - distance_m) <= tolerance_m:
+            return q
+    raise ValueError(f"{world.name}: no free place {distance_m} m from {at[:2]}")
 
 
 def demo_config(scenario: str = "small-house-3", **known: Any) -> ServerConfig:
@@ -72,6 +86,7 @@ def demo_config(scenario: str = "small-house-3", **known: Any) -> ServerConfig:
 class Placed:
     robot_id: str
     after_s: float          # since it started searching
+    at_s: float             # simulated time when it was placed
     error_m: float          # its pose in the map's frame against the truth, when placed
     error_deg: float
 
@@ -100,7 +115,7 @@ class KnownMission:
             if not before and self._placed(rid):
                 err = self.error(rid)
                 self.placed.append(Placed(rid, self.sim_time_s - self.searching_since[rid],
-                                          *err))
+                                          self.sim_time_s, *err))
             elif before and not self._placed(rid):       # lost: it searches again
                 self.searching_since[rid] = self.sim_time_s
         self.sim.advance()

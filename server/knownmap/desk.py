@@ -71,6 +71,7 @@ class KnownMapDesk:
         self.k = cfg.known_map
         self.extend = self.k.mode == "extend"
         self.known_anchor, self.missions = known.anchor, known.missions
+        self.notes = dict(known.notes)
         ghosts.add_map(fleet, known)
         #: each keyframe's source, for the graphs that hold a known map's
         self.sources: dict[str, list[str]] = {MAP_ID: list(known.sources)}
@@ -141,7 +142,7 @@ class KnownMapDesk:
         self.counts["queries"] += 1
         anchor = fleet.robots[team.anchor]
         guess = s.take(ranked, clear_winner(ranked, self.k.clear_ratio), anchor.pose, now_ns)
-        if guess is not None and guess.status == "pending" and \
+        if guess is not None and guess.may_retry(len(xy)) and \
                 guess.wins >= self.k.confirmations:
             self.place(team, guess, now_ns)
 
@@ -162,7 +163,8 @@ class KnownMapDesk:
         except MergeDeferred:
             return False                # too little of the robot's map yet: ask again
         except MergeRefused as e:
-            guess.status, guess.reason = "refused", str(e)
+            guess.refused(str(e), sum(len(fleet.robots[rid].slam.keyframes)
+                                      for rid in team.robot_ids))
             self.counts["refused"] += 1
             self.events.emit("merge_rejected", list(team.robot_ids), MAP_TEAM,
                              f"{team.team_id} not placed in the known map: {e}", now_ns)
@@ -194,6 +196,7 @@ class KnownMapDesk:
             w = self.watches[r.robot_id] = LossWatch(self.k.lost_conflict_ratio,
                                                      self.k.lost_after_s)
             self.placed_at.setdefault(r.robot_id, stamp_ns)
+            r.unmapped = not self.extend      # localize: what it sees is not added either
         lay = self.view().layers
         assert lay is not None
         a = scan_agreement(lay, r.pose, scan_points(ranges, angles, r.sensor_range_m))
@@ -239,7 +242,8 @@ class KnownMapDesk:
     def mission_map(self) -> KnownMap | None:
         """The map this mission leaves: the known map with what it added (extend) and without
         what it retired, for the next mission."""
-        known = ghosts.team_map(self.fleet, MAP_TEAM, self.missions + 1, self.sources)
+        known = ghosts.team_map(self.fleet, MAP_TEAM, self.missions + 1, self.sources,
+                                self.notes)
         if known is not None:
             known.anchor = self.known_anchor
         return known

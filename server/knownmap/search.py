@@ -6,7 +6,9 @@ before either was placed) has its map matched against the known map every
 is a guess; a guess that wins ``confirmations`` queries in a row — the team's map growing in
 between — is put to the merger's checks. Any query without a clear winner, or won by another
 transform, sets every guess back to no wins: evidence that tells places apart must keep
-telling them apart. A guess the merger's checks refuse is never put forward again. No I/O.
+telling them apart. A guess the merger's checks refuse is put forward again only once the
+team's map has twice the keyframes it had then (more evidence: a wrong place is refused
+again), and never after ``MAX_REFUSALS``. No I/O.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ F64 = NDArray[np.float64]
 
 #: placements a search keeps to show (the console's hypotheses)
 SHOWN = 3
+#: refusals after which a guess is never put forward again
+MAX_REFUSALS = 3
 
 
 @dataclass
@@ -39,12 +43,26 @@ class Guess:
     wins: int = 1                 # queries in a row it won
     status: str = "pending"       # pending, refused, placed
     reason: str = ""
+    refusals: int = 0
+    retry_keyframes: int = 0      # refused: put forward again once the team has this many
+
+    def refused(self, reason: str, keyframes: int) -> None:
+        self.status, self.reason = "refused", reason
+        self.refusals += 1
+        self.retry_keyframes = 2 * max(keyframes, 1)
+
+    def may_retry(self, keyframes: int) -> bool:
+        """A refused guess, its team's map grown enough since, is pending again."""
+        if self.status == "refused" and self.refusals < MAX_REFUSALS and \
+                keyframes >= self.retry_keyframes:
+            self.status = "pending"
+        return self.status == "pending"
 
     def as_dict(self) -> dict[str, Any]:
         return {"T_map_own": [float(v) for v in self.T_map_own], "first_ns": self.first_ns,
                 "last_ns": self.last_ns, "strength": round(self.strength, 2),
                 "acceptance": self.acceptance, "wins": self.wins, "status": self.status,
-                "reason": self.reason}
+                "reason": self.reason, "refusals": self.refusals}
 
 
 @dataclass
@@ -66,9 +84,10 @@ class Search:
         self.queries += 1
         self.shown = [(pl.T_map_own, pl.strength, pl.acceptance) for pl in ranked[:SHOWN]]
         found = None
-        if winner is not None:
-            found = next((g for g in self.guesses
-                          if same_transform(g.T_map_own, winner.T_map_own, at_own)), None)
+        if winner is not None:     # the guess it confirms: a pending one before others
+            same = [g for g in self.guesses
+                    if same_transform(g.T_map_own, winner.T_map_own, at_own)]
+            found = min(same, key=lambda g: g.status != "pending", default=None)
         for g in self.guesses:
             if g is not found:
                 g.wins = 0

@@ -182,12 +182,13 @@ SAME_M, SAME_DEG = 1.0, 3.0
 
 
 def same_transform(T1: F64, T2: F64, at_b: F64) -> bool:
-    """Two transforms (b -> a) place the point ``at_b`` (b's frame) within SAME_M and turn
-    within SAME_DEG of each other."""
+    """Two transforms (b -> a) place the point ``at_b`` (b's frame; a pose's heading is left
+    aside) within SAME_M and turn within SAME_DEG of each other."""
     if abs(wrap_angle(T1[2] - T2[2])) > math.radians(SAME_DEG):
         return False
-    p1 = transform_points(T1, at_b[None, :])[0]
-    p2 = transform_points(T2, at_b[None, :])[0]
+    at = np.asarray(at_b, dtype=np.float64)[None, :2]    # a pose's position, or a point
+    p1 = transform_points(T1, at)[0]
+    p2 = transform_points(T2, at)[0]
     return math.hypot(*(p1 - p2)) <= SAME_M
 
 

@@ -107,8 +107,10 @@ class Merger:
         if tried[0] >= t.min_map_match_tries and found == 0:
             raise MergeRefused(f"no part of the maps matches within 0.5 m ({tried[0]} tried)")
         if on_maps and found < 2:
-            if kind == "placed" and tried[0] < 2:
-                raise MergeDeferred()   # too few of the robot's keyframes yet to say
+            if kind == "placed" and tried[0] - found < 2:
+                # too few of the robot's keyframes yet to say (one that does not match is
+                # not yet a contradiction: it may see past the map's edge)
+                raise MergeDeferred()
             # on the maps alone, the robots' own keyframes must confirm the fit too
             raise MergeRefused(f"{found} keyframe matches where the maps overlap "
                                f"({tried[0]} tried): too few for a merge on the maps alone")

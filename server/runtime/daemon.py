@@ -16,7 +16,9 @@ from schemas.config_loading import changed_keys, describe_changes
 from schemas.stopping import SignalStop
 from server.config import ServerConfig
 from server.core import ServerCore
+from server.knownmap.mapdata import KnownMap
 from server.runtime.journal import JournalWriter, replay
+from server.runtime.mapfind import leave_map, start_map
 from server.runtime.node import ServerNode
 from server.runtime.snapshot import Snapshots
 from server.slam import render_store
@@ -75,9 +77,14 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         log.info("worker %d: waiting for the router at %s", cfg.cluster.worker,
                  ", ".join(b.connect))
         b = b.model_copy(update={"connect_timeout_ms": -1})
+    state = cfg.resolved_state_dir()
+    if state is not None:
+        render_store.use_folder(state)      # keyframes' map points beside the journal
+    # a map that cannot be used is refused before anything starts (MapError: one line)
+    known = start_map(cfg, None if state is None else Path(state))
     # open first: robots reconnect while the state loads
     with signals, Bus.from_config(b) as bus:
-        core, journal, resumed = _resume(cfg)
+        core, journal, resumed = _resume(cfg, known)
         if resumed and core.teams and all(t.finished for t in core.teams.values()):
             log.warning("%s", _finished_line(core, cfg))
         node = ServerNode(bus, cfg, core, journal, outputs)
@@ -109,6 +116,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
             summary["console"] = {**console.counters, "cpu_s": round(console.cpu_s, 3)}
         if out is not None:
             write_outputs(node.core, out, summary)
+            node.guarded("writing the mission's map", leave_map, node.core, out, cfg)
     return summary
 
 
@@ -164,16 +172,17 @@ def _when(stamp_ns: int) -> str:
     return time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(s)) if s > 1e9 else f"{s:.1f} s"
 
 
-def _resume(cfg: ServerConfig) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
+def _resume(cfg: ServerConfig, known: KnownMap | None = None
+            ) -> tuple[ServerCore, JournalWriter | None, dict[str, Any]]:
     """The core as the state folder left it — the newest snapshot that reads back, with the
-    journal after it replayed — and the journal to go on with (a new segment)."""
+    journal after it replayed — and the journal to go on with (a new segment). A run
+    without a snapshot starts on ``known`` (the map it started on: ``start_map``)."""
     state = cfg.resolved_state_dir()
     if state is None:
-        return ServerCore(cfg), None, {}
-    render_store.use_folder(state)          # keyframes' map points beside the journal
+        return ServerCore(cfg, known=known), None, {}
     t0 = time.monotonic()
     loaded = Snapshots(state).load()
-    core, since = loaded if loaded is not None else (ServerCore(cfg), 0)
+    core, since = loaded if loaded is not None else (ServerCore(cfg, known=known), 0)
     if loaded is not None and (changes := changed_keys(core.cfg, cfg, RUN_KEYS)):
         log.warning("the configuration differs from the resumed run's in %d setting(s) its "
                     "state was made with, which keep the run's values: %s (an empty state_dir "

@@ -10,6 +10,11 @@
    as it crosses versions) — and its map taken from it: the known map's team if it had one,
    else its largest team;
 3. else ``MapError`` says in one line what is there and why it is no map.
+
+A server started on a map (``start_map``) keeps a copy of it in its state folder
+(``state/known_map``): a resumed run, or a later ``find_map`` replaying the journal, starts
+from the very map the run started on. A server with an ``out`` folder leaves the map its
+mission made in ``out/known_map`` when it stops (``leave_map``), for the next mission.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ from server.knownmap import ghosts
 from server.knownmap.mapdata import KnownMap
 from server.runtime import snapshot
 from server.runtime.journal import SEGMENT_GLOB, replay
-from server.runtime.mapstore import FOLDER, MapError, read_map
+from server.runtime.mapstore import FOLDER, MapError, read_map, write_map
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +57,46 @@ def find_map(path: str | Path, site: str | None = None) -> tuple[KnownMap, str]:
                    "journal)")
 
 
+def start_map(cfg: ServerConfig, state: Path | None) -> KnownMap | None:
+    """The map a run starts on: the state folder's copy when there is one (a resumed run
+    keeps the map it started on), none for a resumed run that started without one, else
+    ``known_map.path``'s (then copied into the state folder); None without either."""
+    if state is not None and (state / FOLDER / "map.json").exists():
+        return read_map(state / FOLDER)
+    path = cfg.known_map.path
+    if state is not None and any(state.glob(SEGMENT_GLOB)):
+        if path is not None:
+            log.warning("known_map.path %s left aside: the run resumed from %s started "
+                        "without a map (an empty state_dir starts a run on it)", path, state)
+        return None
+    if path is None:
+        return None
+    known, where = find_map(path, cfg.known_map.site)
+    log.warning("known map: %d keyframes made by %d mission(s), from %s; %s mode", len(known),
+                known.missions, where, cfg.known_map.mode)
+    if state is not None:
+        write_map(known, state / FOLDER, cfg.known_map.site, written_by=str(path))
+    return known
+
+
+def mission_map(core: ServerCore) -> KnownMap | None:
+    """The map a mission leaves: the known map as the mission kept it (``localize``) or
+    extended it (``extend``); on no known map, its largest team's map. None: no keyframes."""
+    if core.known is not None:
+        return core.known.mission_map()
+    team = ghosts.largest_team(core.fleet)
+    return None if team is None else ghosts.team_map(core.fleet, team, 1, {})
+
+
+def leave_map(core: ServerCore, out: Path, cfg: ServerConfig) -> None:
+    """Write the mission's map to ``out/known_map`` (for ``--map``), if it has one."""
+    known = mission_map(core)
+    if known is not None:
+        folder = write_map(known, Path(out) / FOLDER, cfg.known_map.site,
+                           written_by="mrslam server")
+        log.info("the mission's map (%d keyframes) written to %s", len(known), folder)
+
+
 def map_from_state(state: Path, site: str | None = None) -> KnownMap:
     """The map of a state folder: its server brought back and its map harvested."""
     run_site = _site_of(state)
@@ -71,11 +116,7 @@ def map_from_state(state: Path, site: str | None = None) -> KnownMap:
     if report.entries and report.unreadable == report.entries and since == 0:
         raise MapError(f"{state}: none of its journal's {report.entries} records reads in "
                        "this release (written by an incompatible one)")
-    if core.known is not None:
-        known = core.known.mission_map()
-    else:
-        team = ghosts.largest_team(core.fleet)
-        known = None if team is None else ghosts.team_map(core.fleet, team, 1, {})
+    known = mission_map(core)
     if known is None:
         raise MapError(f"{state}: its journal holds no keyframes to make a map of")
     log.warning("map of %d keyframes from %s: snapshot %s, %d journal record(s) replayed in "

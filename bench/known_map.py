@@ -1,0 +1,235 @@
+"""Missions on a known map (docs/known-map.md): robots placed, wrong placements, lost robots
+found again; prints JSON.
+
+1. **The map**: the small house's, from a finished default demo (``mrslam demo``), made once
+   and kept under ``--out`` (``demo/`` the run, ``map/`` its known_map folder); the map's
+   frame lies in the world where the demo's anchor robot started.
+2. **Placed**: per seed, ``--robots`` robots at random free poses (any heading), the server
+   told nothing of where they are (``localize`` mode, the simulator and the server's core in
+   lockstep, ``bench/support/known_mission.py``); each robot's time to be placed [s sim], and
+   its error then against the truth. A placement farther than 0.5 m from the truth is wrong.
+3. **Ambiguous wings**: the same in the self-similar world, on a map surveyed from the truth
+   (exploring its 36 rooms would take too long here); wrong placements must be 0, a robot
+   not placed within ``--wings-time`` waited for evidence.
+4. **Lost**: a placed robot on its way to a random place is carried 5 m away (the simulator's
+   teleport): when the server noticed (its ``robot_lost`` event), when it was placed again,
+   its error then, and how far the map's keyframes moved meanwhile (the most the map's error
+   against the truth can have changed).
+
+    PYTHONPATH=. python bench/known_map.py [--seeds 10] [--first-seed 0] [--robots 3]
+        [--wings-seeds 3] [--lost-seeds 5] [--out out/known_map]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.insert(0, str(_HERE.parent))
+
+from bench.support.known_mission import (  # noqa: E402
+    WORLDS,
+    demo_config,
+    free_poses,
+    mission,
+    pose_away,
+)
+from bench.support.survey import survey_map  # noqa: E402
+from server.command.operator import OperatorCommand  # noqa: E402
+from server.knownmap.ghosts import MAP_ID  # noqa: E402
+from server.knownmap.mapdata import KnownMap  # noqa: E402
+from server.runtime.mapfind import find_map  # noqa: E402
+from server.runtime.mapstore import read_map, write_map  # noqa: E402
+
+HOUSE, WINGS = WORLDS / "small_house.world", WORLDS / "ambiguous_wings.world"
+GOALS = {"placed_within_s": 15.0, "placed_share": 0.9, "error_m": 0.10, "error_deg": 1.0,
+         "wrong": 0, "noticed_s": 5.0, "placed_again_s": 20.0, "map_moved_m": 0.05}
+
+
+def house_map(out: Path) -> tuple[KnownMap, np.ndarray, dict[str, Any]]:
+    """The default demo's map (made once, then read from ``out/map``) and its world frame."""
+    folder, run = out / "map", out / "demo"
+    made: dict[str, Any] = {"cached": True}
+    if not (folder / "map.json").exists():
+        if not (run / "report.json").exists():
+            t0 = time.monotonic()
+            subprocess.run([sys.executable, "-m", "mrslam", "demo", "--out", str(run)],
+                           cwd=_HERE.parent, check=True, stdout=subprocess.DEVNULL)
+            made["demo_wall_s"] = round(time.monotonic() - t0, 1)
+        known, _ = find_map(run, "small_house")
+        spawn = json.loads((run / "report.json").read_text())["robots_spawn"][known.anchor]
+        known.notes["world_frame"] = " ".join(f"{float(v):.6f}" for v in spawn)
+        write_map(known, folder, "small_house", written_by="bench/known_map.py")
+        made["cached"] = False
+    known = read_map(folder, "small_house")
+    frame = np.array([float(v) for v in known.notes["world_frame"].split()])
+    return known, frame, {**made, "keyframes": len(known), "folder": str(folder)}
+
+
+def placed_runs(known: KnownMap, frame: np.ndarray, world: Path, scenario: str,
+                seeds: list[int], robots: int, limit_s: float) -> list[dict[str, Any]]:
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        spawn = {f"r{k + 1}": p for k, p in enumerate(free_poses(world, robots, rng))}
+        m = mission(world, known, spawn, demo_config(scenario), frame, seed=seed)
+        t0 = time.monotonic()
+        want = set(spawn)
+        m.run_until(limit_s, lambda m, want=want: {p.robot_id for p in m.placed} >= want)
+        placed = {p.robot_id: p for p in m.placed}
+        rows.append({
+            "seed": seed, "wall_s": round(time.monotonic() - t0, 1),
+            "robots": {rid: None if rid not in placed else {
+                "placed_after_s": round(placed[rid].after_s, 1),
+                "placed_at_s": round(placed[rid].at_s, 1),
+                "error_m": round(placed[rid].error_m, 4),
+                "error_deg": round(placed[rid].error_deg, 3)} for rid in spawn},
+            "not_placed": sorted(set(spawn) - set(placed)),
+            "lost": [[e.robot_ids[0], round(e.stamp_ns * 1e-9, 1)] for e in m.core.events.all
+                     if e.kind == "robot_lost"],
+            "refused": [e.message for e in m.core.events.all if e.kind == "merge_rejected"],
+            "wrong": len(m.wrong()), "queries": m.core.known.counts["queries"]
+            if m.core.known else 0})
+        print(json.dumps(rows[-1]), file=sys.stderr)
+    return rows
+
+
+def lost_runs(known: KnownMap, frame: np.ndarray, seeds: list[int]) -> list[dict[str, Any]]:
+    rows = []
+    for seed in seeds:
+        rng = np.random.default_rng(1000 + seed)
+        m = mission(HOUSE, known, {"r1": free_poses(HOUSE, 1, rng)[0]},
+                    demo_config("small-house-3"), frame, seed=seed)
+        m.run_until(30.0, lambda m: bool(m.placed))
+        row: dict[str, Any] = {"seed": seed, "placed": bool(m.placed)}
+        if m.placed:
+            # on its way somewhere (an operator's goto in the map), then carried away
+            goal = free_poses(HOUSE, 1, rng)[0]
+            goal_map = _to_map(frame, goal)
+            m.core.operate(OperatorCommand("goto", "r1", (float(goal_map[0]),
+                                                          float(goal_map[1]))),
+                           int(m.sim_time_s * 1e9))
+            m.run_until(m.sim_time_s + 3.0)
+            before = m.core.fleet.robots[MAP_ID].slam.keyframe_poses().copy()
+            at = np.array(m.sim.robots["r1"].pose)
+            m.sim.teleport("r1", tuple(pose_away(HOUSE, at, 5.0, rng)))
+            t = m.sim_time_s
+            m.run_until(t + 40.0, lambda m: len(m.placed) >= 2)
+            lost = [e for e in m.core.events.all if e.kind == "robot_lost"]
+            again = m.placed[1] if len(m.placed) > 1 else None
+            moved = m.core.fleet.robots[MAP_ID].slam.keyframe_poses() - before
+            row.update({
+                "noticed_s": round(lost[0].stamp_ns * 1e-9 - t, 1) if lost else None,
+                "placed_again_s": None if again is None else round(again.at_s - t, 1),
+                "error_m": None if again is None else round(again.error_m, 4),
+                "error_deg": None if again is None else round(again.error_deg, 3),
+                "map_moved_m": round(float(np.hypot(moved[:, 0], moved[:, 1]).max()), 5),
+                "wrong": len(m.wrong())})
+        print(json.dumps(row), file=sys.stderr)
+        rows.append(row)
+    return rows
+
+
+def _to_map(frame: np.ndarray, p: np.ndarray) -> np.ndarray:
+    from schemas.se2 import compose, inverse
+    return compose(inverse(frame), p)
+
+
+def _share(values: list[bool]) -> float | None:
+    return round(sum(values) / len(values), 3) if values else None
+
+
+def summarise(house: list[dict[str, Any]], wings: list[dict[str, Any]],
+              lost: list[dict[str, Any]]) -> dict[str, Any]:
+    placed = [r for row in house for r in row["robots"].values() if r is not None]
+    all_robots = [r for row in house for r in row["robots"].values()]
+    in_time = [r is not None and r["placed_after_s"] <= GOALS["placed_within_s"]
+               for r in all_robots]
+    runs_in_time = [all(r is not None and r["placed_after_s"] <= GOALS["placed_within_s"]
+                        for r in row["robots"].values()) for row in house]
+    found = [r for r in lost if r.get("placed_again_s") is not None]
+    out = {
+        "house": {
+            "runs": len(house), "robots": len(all_robots), "placed": len(placed),
+            "runs_all_placed_within_15s": sum(runs_in_time),
+            "share_of_runs_all_placed_within_15s": _share(runs_in_time),
+            "share_of_robots_placed_within_15s": _share(in_time),
+            "placed_after_s_median": _q(placed, "placed_after_s", 50),
+            "placed_after_s_max": _q(placed, "placed_after_s", 100),
+            "error_m_max": _q(placed, "error_m", 100),
+            "error_deg_max": _q(placed, "error_deg", 100),
+            "wrong": sum(row["wrong"] for row in house)},
+        "wings": {
+            "runs": len(wings), "placed": sum(r is not None for row in wings
+                                              for r in row["robots"].values()),
+            "wrong": sum(row["wrong"] for row in wings),
+            "error_m_max": _q([r for row in wings for r in row["robots"].values()
+                               if r is not None], "error_m", 100)},
+        "lost": {
+            "runs": len(lost), "noticed": sum(r.get("noticed_s") is not None for r in lost),
+            "placed_again": len(found),
+            "noticed_s_max": _q([r for r in lost if r.get("noticed_s") is not None],
+                                "noticed_s", 100),
+            "placed_again_s_median": _q(found, "placed_again_s", 50),
+            "placed_again_s_max": _q(found, "placed_again_s", 100),
+            "error_m_max": _q(found, "error_m", 100),
+            "map_moved_m_max": _q([r for r in lost if "map_moved_m" in r], "map_moved_m",
+                                  100),
+            "wrong": sum(r.get("wrong", 0) for r in lost)},
+    }
+    h, w, lo = out["house"], out["wings"], out["lost"]
+    out["goals_met"] = {
+        "placed_within_15s_in_9_of_10_runs": (h["share_of_runs_all_placed_within_15s"] or 0)
+        >= GOALS["placed_share"],
+        "placement_error": h["error_m_max"] is not None and h["error_m_max"] <= 0.10
+        and h["error_deg_max"] <= 1.0,
+        "no_wrong_placement": h["wrong"] == 0 and w["wrong"] == 0 and lo["wrong"] == 0,
+        "lost_noticed_within_5s": lo["noticed"] == lo["runs"] and lo["runs"] > 0
+        and (lo["noticed_s_max"] or 0) <= GOALS["noticed_s"],
+        "placed_again_within_20s": lo["placed_again"] == lo["runs"] and lo["runs"] > 0
+        and (lo["placed_again_s_max"] or 0) <= GOALS["placed_again_s"],
+        "map_unchanged": (lo["map_moved_m_max"] or 0) <= GOALS["map_moved_m"]}
+    return out
+
+
+def _q(rows: list[dict[str, Any]], key: str, pct: float) -> float | None:
+    vals = [r[key] for r in rows if r.get(key) is not None]
+    return round(float(np.percentile(vals, pct)), 4) if vals else None
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--seeds", type=int, default=10, help="small-house runs")
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--robots", type=int, default=3, help="robots per small-house run")
+    ap.add_argument("--limit", type=float, default=40.0, help="sim seconds per run at most")
+    ap.add_argument("--wings-seeds", type=int, default=3)
+    ap.add_argument("--wings-time", type=float, default=60.0)
+    ap.add_argument("--lost-seeds", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=_HERE.parent / "out" / "known_map")
+    a = ap.parse_args()
+    t0 = time.monotonic()
+    known, frame, made = house_map(a.out)
+    seeds = list(range(a.first_seed, a.first_seed + a.seeds))
+    house = placed_runs(known, frame, HOUSE, "small-house-3", seeds, a.robots, a.limit)
+    wings_map = survey_map(WINGS)
+    wings = placed_runs(wings_map, np.zeros(3), WINGS, "ambiguous-2",
+                        list(range(a.first_seed, a.first_seed + a.wings_seeds)), 1,
+                        a.wings_time)
+    lost = lost_runs(known, frame, list(range(a.first_seed, a.first_seed + a.lost_seeds)))
+    print(json.dumps({"map": made, "goals": GOALS, **summarise(house, wings, lost),
+                      "runs": {"house": house, "wings": wings, "lost": lost},
+                      "wall_s": round(time.monotonic() - t0, 1)}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
