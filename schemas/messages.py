@@ -219,6 +219,16 @@ class MapUpdate(Message, kw_only=True):
 
 
 RobotMode = Literal["waiting", "exploring", "returning", "stuck", "done", "lost", "idle"]
+#: where a robot stands on a known map: "" without one (``server.knownmap``)
+Localisation = Literal["", "searching", "placed", "lost"]
+
+
+class Hypothesis(msgspec.Struct, kw_only=True):
+    """One place a searching robot may be on the known map: its pose in the map's frame,
+    and how strongly its own map fits there (summed match scores: larger fits better)."""
+
+    pose: Pose2
+    strength: Finite
 
 
 class RobotEstimate(msgspec.Struct, kw_only=True):
@@ -231,6 +241,11 @@ class RobotEstimate(msgspec.Struct, kw_only=True):
     distance_m: PositiveMetres = 0.0
     keyframes: Seq = 0
     last_scan_stamp_ns: StampNs = 0
+    #: on a known map: searching, placed or lost (searching again); "" without a known map
+    localisation: Localisation = ""
+    #: while it searches: its strongest placements on the known map, strongest first
+    hypotheses: Annotated[list[Hypothesis], msgspec.Meta(max_length=3)] = (
+        msgspec.field(default_factory=list))
 
 
 class TeamCoverage(msgspec.Struct, kw_only=True):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import Executor
+from functools import partial
 
 import msgspec
 import numpy as np
@@ -50,6 +51,7 @@ from server.fleet.events import EventLog
 from server.fleet.model import Fleet, MergeRecord, RobotContext, Team
 from server.fleet.progress import Progress
 from server.fleet.stages import Stages
+from server.knownmap.byhand import localisation, place_by_hand
 from server.knownmap.desk import KnownMapDesk
 from server.knownmap.ghosts import MAP_TEAM
 from server.knownmap.mapdata import KnownMap
@@ -193,7 +195,9 @@ class ServerCore:
         or why not. Returns (200, that line), or the refusal's status (``OperatorError``)
         and its line."""
         try:
-            status, line = 200, self.orders.apply(cmd, self.fleet)
+            place = None if self.known is None else partial(place_by_hand, self.known,
+                                                            now_ns=stamp_ns)
+            status, line = 200, self.orders.apply(cmd, self.fleet, place)
         except OperatorError as e:
             status, line = e.status, f"{cmd.describe()} refused: {e}"
         self.events.emit("operator", [cmd.robot_id] if cmd.robot_id else [],
@@ -267,6 +271,7 @@ class ServerCore:
 
     def robot_states(self, stamp_ns: int) -> RobotStates:
         robots = []
+        where = {} if self.known is None else localisation(self.known)
         for r in self.fleet.robots.values():
             if r.ghost:
                 continue
@@ -284,7 +289,7 @@ class ServerCore:
                 mode=mode if r.alive else "lost",  # type: ignore[arg-type]
                 target=(float(t[0]), float(t[1])) if t is not None else None,
                 distance_m=r.distance_m, keyframes=len(r.slam.keyframes),
-                last_scan_stamp_ns=r.last_stamp_ns))
+                last_scan_stamp_ns=r.last_stamp_ns, **where.get(r.robot_id, {})))
         teams = [TeamCoverage(team_id=t.team_id, robot_ids=self._robots_of(t),
                               coverage=float(min(t.coverage, 1.0)), explored_m2=t.explored_m2)
                  for t in self.fleet.teams.values()]

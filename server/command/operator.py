@@ -1,4 +1,5 @@
-"""The operator's orders: stop and resume robots, send one to a point, bring robots home.
+"""The operator's orders: stop and resume robots, send one to a point, bring robots home,
+place a robot on a known map by hand.
 
 Orders come from the console (``server.console``), go through the node's worker like
 everything else the server accepts (journaled first, so a restarted server holds them again),
@@ -18,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,7 +37,7 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 
-ACTIONS = ("stop", "resume", "goto", "home")
+ACTIONS = ("stop", "resume", "goto", "home", "place")
 _ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 #: a point farther than this from the origin of a map is no point on it
 MAX_COORD_M = 10_000.0
@@ -60,16 +62,21 @@ class Refused(OperatorError):
 class OperatorCommand:
     """One order. ``robot_id`` None: every robot (stop, resume, home). ``point_xy``: goto's
     goal in the robot's team frame (the frame its team's map is drawn in). ``on``: home's
-    switch (return home once the team is done, or not)."""
+    switch (return home once the team is done, or not). ``pose``: place's pose of the robot
+    in the known map's frame (x, y [m], θ [rad])."""
 
     action: str
     robot_id: str | None = None
     point_xy: tuple[float, float] | None = None
     on: bool = True
+    pose: tuple[float, float, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        return {"action": self.action, "robot_id": self.robot_id,
-                "point": None if self.point_xy is None else list(self.point_xy), "on": self.on}
+        out = {"action": self.action, "robot_id": self.robot_id,
+               "point": None if self.point_xy is None else list(self.point_xy), "on": self.on}
+        if self.pose is not None:
+            out["pose"] = list(self.pose)
+        return out
 
     def describe(self) -> str:
         who = self.robot_id or "every robot"
@@ -77,6 +84,9 @@ class OperatorCommand:
             return f"send {who} to ({self.point_xy[0]:.2f}, {self.point_xy[1]:.2f})"
         if self.action == "home":
             return f"{who}: return home when done {'on' if self.on else 'off'}"
+        if self.action == "place" and self.pose is not None:
+            x, y, th = self.pose
+            return f"place {who} by hand at ({x:.2f}, {y:.2f}, {math.degrees(th):.0f}°)"
         return f"{self.action} {who}"
 
 
@@ -84,7 +94,7 @@ def parse(data: Any) -> OperatorCommand:
     """An ``OperatorCommand`` from a decoded JSON request (or a journal record)."""
     if not isinstance(data, dict):
         raise OperatorError(f"a command is a JSON object, not {type(data).__name__}")
-    unknown = set(data) - {"action", "robot_id", "point", "on"}
+    unknown = set(data) - {"action", "robot_id", "point", "on", "pose"}
     if unknown:
         raise OperatorError(f"unknown field(s) {', '.join(sorted(map(str, unknown)))}")
     action = data.get("action")
@@ -110,7 +120,27 @@ def parse(data: Any) -> OperatorCommand:
                                 f"{MAX_COORD_M:.0f} m")
     elif point is not None:
         raise OperatorError(f"point: only goto takes a point, not {action}")
-    return OperatorCommand(action, rid, xy, on)
+    pose = _pose(action, rid, data.get("pose"))
+    return OperatorCommand(action, rid, xy, on, pose)
+
+
+def _pose(action: str, rid: str | None, pose: Any) -> tuple[float, float, float] | None:
+    """place's pose: [x, y, θ], finite, the point within ``MAX_COORD_M``, θ within ±2π."""
+    if action != "place":
+        if pose is not None:
+            raise OperatorError(f"pose: only place takes a pose, not {action}")
+        return None
+    if rid is None:
+        raise OperatorError("robot_id: place places one robot")
+    if not (isinstance(pose, list | tuple) and len(pose) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in pose)):
+        raise OperatorError(f"pose: {pose!r} is not [x, y, θ] in metres and radians")
+    x, y, th = (float(v) for v in pose)
+    if not (all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in (x, y))
+            and math.isfinite(th) and abs(th) <= 2 * math.pi):
+        raise OperatorError(f"pose: {pose!r} is not a finite pose within {MAX_COORD_M:.0f} m "
+                            "and ±2π")
+    return x, y, th
 
 
 @dataclass
@@ -153,18 +183,22 @@ class OperatorOrders:
                 "applied": self.applied, "refused": self.refused}
 
     # -- orders ----------------------------------------------------------------------------
-    def apply(self, cmd: OperatorCommand, fleet: Fleet) -> str:
+    def apply(self, cmd: OperatorCommand, fleet: Fleet,
+              place: Callable[[RobotContext, tuple[float, float, float]], str] | None = None
+              ) -> str:
         """Carry out ``cmd``; returns what was done. Raises ``OperatorError`` (an unknown
-        robot, a point with no path to it, a resume that a stop-all overrides)."""
+        robot, a point with no path to it, a resume that a stop-all overrides). ``place``:
+        how a robot is placed by hand on the known map (None: there is none)."""
         try:
-            done = self._apply(cmd, fleet)
+            done = self._apply(cmd, fleet, place)
         except OperatorError:
             self.refused += 1
             raise
         self.applied += 1
         return done
 
-    def _apply(self, cmd: OperatorCommand, fleet: Fleet) -> str:
+    def _apply(self, cmd: OperatorCommand, fleet: Fleet,
+               place: Callable[[RobotContext, tuple[float, float, float]], str] | None) -> str:
         rid = cmd.robot_id
         r = None
         if rid is not None:
@@ -204,6 +238,12 @@ class OperatorOrders:
             else:
                 self.home.discard(r.robot_id)
             return cmd.describe()
+        if cmd.action == "place":
+            assert r is not None and cmd.pose is not None
+            if place is None:
+                raise Refused(f"robot_id: no known map to place {r.robot_id} on (the server "
+                              "started without --map)")
+            return f"{cmd.describe()}: {place(r, cmd.pose)}"
         assert cmd.action == "goto" and r is not None and cmd.point_xy is not None
         self.errands[r.robot_id] = self._errand(r, fleet, "goto", cmd.point_xy)
         return (f"{cmd.describe()}: path of "

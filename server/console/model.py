@@ -104,7 +104,10 @@ class ConsoleModel:
                 "sigma": list(r.pose_sigma), "mode": r.mode,
                 "target": None if r.target is None else list(r.target),
                 "distance_m": r.distance_m, "keyframes": r.keyframes,
-                "last_scan_s": r.last_scan_stamp_ns * 1e-9}
+                "last_scan_s": r.last_scan_stamp_ns * 1e-9,
+                "localisation": r.localisation,
+                "hypotheses": [{"pose": list(h.pose), "strength": h.strength}
+                               for h in r.hypotheses]}
             trail = self.trails.setdefault(r.robot_id, [])
             if self._trail_team.get(r.robot_id) != r.team_id:
                 trail.clear()      # a merge moved the robot into another frame

@@ -1,0 +1,105 @@
+"""What the operator sees of a mission on a known map, and placing a robot in it by hand.
+
+1. **Seen.** Each robot's localisation state (``searching``, ``placed``, ``lost``: searching
+   again after it was lost) and, while it searches, the strongest placements of its team's
+   latest query, as poses in the map's frame (``localisation``, read into the robot states the
+   server publishes).
+2. **Placed by hand.** When what a robot has seen does not tell places apart (rooms alike) or
+   is too little, the operator says where it stands: a pose in the map's frame
+   (``place_by_hand``, the order ``place``). That pose is a guess, never taken as it is:
+   - the team's map is matched against the known map as a query would, and the strongest
+     placement that puts the robot within ``NEAR_M`` and ``NEAR_DEG`` of the operator's pose
+     refines it (a press and a drag on a screen say roughly where, not to the centimetre);
+   - without one, the operator's pose goes on as it is;
+   - either way it then passes the merger's checks as any placement does
+     (``KnownMapDesk.place``): the maps must not contradict each other and the robot's own
+     keyframes must match the map where they overlap. A guess that fails them is refused,
+     with the reason, and the robot goes on searching.
+
+No I/O here.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.messages import Hypothesis
+from schemas.se2 import compose, inverse, wrap_angle
+from server.command.operator import Refused
+from server.fleet.model import RobotContext
+from server.knownmap.desk import KnownMapDesk
+from server.knownmap.ghosts import MAP_TEAM
+from server.knownmap.placing import candidates, placements
+from server.knownmap.search import Guess
+
+F64 = NDArray[np.float64]
+
+#: a placement refines the operator's pose when it puts the robot this close to it
+NEAR_M, NEAR_DEG = 1.5, 30.0
+
+
+def localisation(desk: KnownMapDesk) -> dict[str, dict[str, Any]]:
+    """Per robot (not the map's ghosts): ``localisation`` and ``hypotheses`` as the robot
+    states carry them."""
+    return {d["robot_id"]: {"localisation": d["state"],
+                            "hypotheses": [Hypothesis(pose=tuple(h["pose"]),
+                                                      strength=float(h["strength"]))
+                                           for h in d["hypotheses"]]}
+            for d in desk.states()}
+
+
+def place_by_hand(desk: KnownMapDesk, r: RobotContext, pose: tuple[float, float, float],
+                  now_ns: int) -> str:
+    """Place ``r`` (its team) with it at ``pose`` in the map's frame, refined and checked
+    (the module docstring). Returns what was done; raises ``Refused`` with the reason."""
+    if r.team_id == MAP_TEAM:
+        raise Refused(f"robot_id: {r.robot_id} is already placed in the known map")
+    fleet = desk.fleet
+    team = fleet.team_of(r)
+    if not any(fleet.robots[rid].slam.keyframes for rid in team.robot_ids):
+        raise Refused(f"robot_id: {r.robot_id} has no map of its own yet to place")
+    want = np.asarray(pose, float)
+    T_hand = compose(want, inverse(r.pose))          # the team's frame -> the map's
+    T, strength, how = T_hand, 0.0, "as given (its map fits the known map nowhere near)"
+    near = nearby(desk, team.team_id, r.pose, want)
+    if near is not None:
+        T, strength = near
+        at = compose(T, r.pose)
+        how = (f"refined by the maps to ({at[0]:.2f}, {at[1]:.2f}, "
+               f"{math.degrees(at[2]):.0f}°), {_off(at, want)}")
+    guess = Guess(T, now_ns, now_ns, strength, 0.0, wins=0)
+    if not desk.place(team, guess, now_ns, kind="by_hand"):
+        if guess.status == "refused":
+            raise Refused(f"pose: {how}, then refused: {guess.reason}")
+        raise Refused(f"pose: {how}, but too little of {r.robot_id}'s map overlaps the known "
+                      "map to check it yet: let it see more, then place it again")
+    desk.counts["by_hand"] += 1
+    x, y, th = (float(v) for v in r.pose)
+    return f"{how}; placed at ({x:.2f}, {y:.2f}, {math.degrees(th):.0f}°)"
+
+
+def nearby(desk: KnownMapDesk, team_id: str, pose_own: F64, want: F64
+           ) -> tuple[F64, float] | None:
+    """The strongest placement of the team's map on the known map that puts the robot (at
+    ``pose_own`` in its team's frame) near ``want``: its transform and strength."""
+    fleet, p = desk.fleet, desk.params
+    team = fleet.teams[team_id]
+    xy = np.concatenate([fleet.robots[rid].slam.keyframe_poses()[:, :2]
+                         for rid in team.robot_ids if fleet.robots[rid].slam.keyframes])
+    target = desk.view().target
+    assert target is not None
+    for pl in placements(candidates(target, fleet.team_grid(team_id), xy, p), p):
+        at = compose(pl.T_map_own, pose_own)
+        if math.hypot(*(at[:2] - want[:2])) <= NEAR_M and \
+                abs(math.degrees(wrap_angle(at[2] - want[2]))) <= NEAR_DEG:
+            return pl.T_map_own, pl.strength
+    return None
+
+
+def _off(at: F64, want: F64) -> str:
+    return (f"{math.hypot(*(at[:2] - want[:2])):.2f} m and "
+            f"{abs(math.degrees(wrap_angle(at[2] - want[2]))):.0f}° from the operator's pose")
