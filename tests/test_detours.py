@@ -164,3 +164,25 @@ def test_which_merge_settles_a_pending_detour() -> None:
     assert not p.merged_by(frozenset({"r1"}), frozenset({"r3"}))
     seek = Pending(2, "seek", "r1", "", 0, S, 5.0, 10.0)
     assert seek.merged_by(frozenset({"r3"}), frozenset({"r1"}))
+
+
+def test_a_turning_cameras_stop_is_priced_by_the_drift_since_its_last_whole_scan() -> None:
+    import math
+
+    f, events = fleet()
+    d = f.detours
+    grow(d, {"r1": 1.0, "r2": 2.0})
+    r2 = f.robots["r2"]
+    assert d.sweep(r2, 20 * S)                       # the first: the map's heading reference
+    assert detour_events(events)[-1]["p"] == 1.0
+    r2.slam.stats.sweeps += 1                        # its whole scan came
+    assert not d.sweep(r2, 21 * S)                   # not driven since: nothing to correct
+    assert detour_events(events)[-1]["p"] == 0.0
+    r2.distance_m = 4.0
+    d.sweep(r2, 30 * S)
+    cfg = f.cfg.detours
+    share = cfg.drift_m_per_sqrt_m * 2.0 * math.sqrt(2.0 / math.pi) / cfg.tolerance_m
+    ev = detour_events(events)[-1]
+    assert ev["p"] == pytest.approx(share)
+    # its rate against the fleet's: r1's and r2's teams, and r3's at the least rate
+    assert ev["cost_s"] == pytest.approx(cfg.sweep_s * 2.0 / (3.0 + cfg.min_rate_m2_s))
