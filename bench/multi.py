@@ -11,6 +11,7 @@ sightings, and — with ``--spurious`` — the team cases again with that share 
     python bench/multi.py [--cases 1 2 3 4] [--spurious 0.2] [--known-starts] [--thesis-rule]
                           [--seeds 0 1 2 ...] [--single-seed] [--jobs N] [--resume]
                           [--scenarios ambiguous-2 ambiguous-3] [--runs N] [--out DIR]
+                          [--detours default|on|off]
 
 Runs with several robots are not exactly repeatable (the server's timing feeds back into the
 simulation), so ``--seeds`` runs every requested case once per seed, the single-robot cases
@@ -31,6 +32,14 @@ robots first shared a team and when each pair of teams merged, and the time to o
 merge after which one team holds all the run's robots; null if never), each as the median and
 the worst over the seeds; merges counted by kind; false merges per variant and in all; the
 server's map-matching hypotheses when its report has them; and ``goals_met`` against GOALS.
+
+``teamwork`` judges whether a team pays its way (``bench/support/teamwork.py``): per team case
+and seed, its time against its members' alone (the case's single robot: case 1 for 2 and
+2-mixed, 3 for 4, ``name-1`` for a packaged ``name-N``), and its longest stretch of flat
+coverage while its robots drove (goal: none over 20 s); and, over every run, how the saving
+each detour was expected to bring (``detour`` events) agrees with the one measured, for runs
+that priced their detours and runs that took them all (``--detours on|off``). The ``mixed``
+section adds the depth robot's largest error over the seeds.
 """
 
 from __future__ import annotations
@@ -58,6 +67,8 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.insert(0, str(_HERE.parent))
 #: the dissertation's worlds and cases (the package ships its own worlds; these benchmarks
 #: measure the dissertation's)
+from bench.support import teamwork  # noqa: E402
+
 THESIS_SCENARIOS = _HERE.parent.parent / "shared" / "data" / "worlds" / "thesis" / "scenarios.yaml"
 
 GOALS: dict[str, Any] = {
@@ -195,7 +206,40 @@ def figures(r: dict[str, Any]) -> dict[str, Any]:
     if "hypotheses" in r:
         row["hypotheses"] = r["hypotheses"]
         row["map_query_ms_median"] = r.get("map_query_ms_median")
+    row["detours"] = teamwork.detour_pairs(r.get("events") or [])
     return row
+
+
+def run_figures(report: dict[str, Any], out: Path) -> dict[str, Any]:
+    """``figures`` of a run's report, and what its folder adds: the team's flat stretches
+    (the simulator's truth tells who drove) and whether the server priced its detours."""
+    row = figures(report)
+    row["flat_coverage"] = teamwork.flat_stretches(
+        report, teamwork.distances(out / "sim" / "truth.jsonl"))
+    row["detours_enabled"] = _detours_enabled(out)
+    return row
+
+
+def _detours_enabled(out: Path) -> bool | None:
+    """``detours.enabled`` as the run's server had it (its config as written), None unknown."""
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((out / "server" / "server_config.yaml").read_text())
+        return bool(cfg["detours"]["enabled"])
+    except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError):
+        return None
+
+
+def refresh(done: dict[str, Any]) -> dict[str, Any]:
+    """A finished run's figures computed afresh from its folder's report (figures added to
+    the bench since it ran); as it was when the report is gone."""
+    out = Path(str(done.get("run", "")))
+    try:
+        report = json.loads((out / "report.json").read_text())
+        return {**done, **run_figures(report, out)}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return done
 
 
 def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
@@ -218,7 +262,7 @@ def _demo(spec: RunSpec, out: Path, max_sim_time_s: float) -> dict[str, Any]:
         except ValueError as e:
             raise RuntimeError(f"{path}: not valid JSON ({e})") from None
     try:
-        return {**figures(report), "run": str(out)}
+        return {**run_figures(report, out), "run": str(out)}
     except (KeyError, TypeError, AttributeError) as e:
         raise RuntimeError(f"{path}: the report lacks or mangles {e}") from None
 
@@ -274,7 +318,7 @@ def run_all(specs: list[RunSpec], base: Path, max_sim_time_s: float, jobs: int =
         done = load_done(base / "runs" / f"{spec.key}.json") if resume else None
         if done is not None:
             log(f"{spec.key}: done before, kept")
-            results[spec.key] = done
+            results[spec.key] = refresh(done)
         else:
             todo.append(spec)
 
@@ -631,6 +675,7 @@ def summarise(runs: dict[str, dict[str, Any]], seeds: list[int],
                  "merge_kinds": merge_timeline(r)["kinds"],
                  "one_team_s": merge_timeline(r)["one_team_s"]})
     res["mixed"] = mixed_report(runs)
+    res["teamwork"] = teamwork_report(runs)
     res["hypotheses"] = hypotheses_summary(ok)
     res["failed_runs"] = {k: r.get("error") for k, r in runs.items()
                           if r.get("status", "ok") != "ok"}
@@ -640,6 +685,63 @@ def summarise(runs: dict[str, dict[str, Any]], seeds: list[int],
                    for k, r in runs.items()}
     res["goals_met"] = goals_met({**res, "runs": runs})
     return res
+
+
+#: a team case's single-robot case: its first robot alone, at the same spawn
+TEAM_ALONE = {"2": "1", "4": "3", "2-mixed": "1"}
+#: the issue's goals for any team: no slower than its fastest member alone, and no stretch
+#: longer than this of flat coverage while its robots drive [s]
+FLAT_GOAL_S = 20.0
+
+
+def alone_case(case: str, cases: Iterable[str]) -> str | None:
+    """The single-robot case a team case is measured against: the dissertation's, or a
+    packaged scenario ``name-N``'s ``name-1``."""
+    if case in TEAM_ALONE:
+        return TEAM_ALONE[case]
+    head, _, n = case.rpartition("-")
+    if n.isdigit() and int(n) > 1 and f"{head}-1" in cases:
+        return f"{head}-1"
+    return None
+
+
+def teamwork_report(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per team group and seed: the team's time against its members' alone (those run: the
+    case's single robot), its longest flat coverage while its robots drove; over every run,
+    how the detours' estimated savings agree with the measured ones (separately for runs
+    that priced their detours and runs that took them all)."""
+    ok = [r for r in runs.values() if r.get("status", "ok") == "ok"]
+    cases = {str(r.get("case")) for r in ok}
+    groups: dict[str, Any] = {}
+    for r in sorted(ok, key=lambda r: (str(r["group"]), r["seed"], r.get("repeat", 1))):
+        single = alone_case(str(r["case"]), cases)
+        if single is None or len(r.get("robot_ids") or ()) < 2:
+            continue
+        alone = {x["robot_ids"][0]: _t(x) for x in ok if x.get("case") == single
+                 and x.get("seed") == r["seed"] and x.get("variant") == "plain"
+                 and x.get("robot_ids")}
+        flat = r.get("flat_coverage") or {}
+        g = groups.setdefault(str(r["group"]), {"alone_case": single, "seeds": {}})
+        g["seeds"][_seed_label(r)] = {
+            **teamwork.team_vs_alone(_t(r), alone),
+            "flat_longest_s": flat.get("longest_s"), "flat": {
+                k: flat.get(k) for k in ("team", "from_s", "to_s", "driven_m")},
+            "collisions": r.get("collisions"), "detours_enabled": r.get("detours_enabled")}
+    for g in groups.values():
+        rows = g["seeds"].values()
+        sp = [v["speedup"] for v in rows if v["speedup"] is not None]
+        flats = [v["flat_longest_s"] for v in rows if v["flat_longest_s"] is not None]
+        g["speedup_median"] = round(float(np.median(sp)), 3) if sp else None
+        g["never_slower"] = all(v["no_slower"] for v in rows) if sp else None
+        g["flat_longest_s"] = max(flats) if flats else None
+        g["flat_goal_met"] = all(f <= FLAT_GOAL_S for f in flats) if flats else None
+    corr: dict[str, Any] = {}
+    for label, want in (("priced", True), ("all_taken", False)):
+        pairs = [p for r in ok if r.get("detours_enabled") is want
+                 for p in r.get("detours") or []]
+        if pairs:
+            corr[label] = teamwork.correlation(pairs)
+    return {"groups": groups, "flat_goal_s": FLAT_GOAL_S, "detour_estimates": corr}
 
 
 def mixed_report(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -675,7 +777,10 @@ def mixed_report(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
                 and ("faster_than" not in mixed or (row.get("speedup_over_lidar_alone") or 0) > 1))
             rows[str(r["seed"])] = row
         if rows:
+            errs = [v.get(f"max_position_error_{mixed['judged']}_m") for v in rows.values()]
+            got = [e for e in errs if e is not None]
             out[name] = {"goal_max_error_m": mixed["max_error_m"],
+                         "max_error_over_seeds_m": max(got) if got else None,
                          "goal_coverage": mixed["coverage"], "seeds": rows,
                          "all_goals_met": all(v.get("goals_met") for v in rows.values())}
     return out
@@ -711,6 +816,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--jobs", type=int, default=1, help="demo runs at once (processes)")
     ap.add_argument("--resume", action="store_true",
                     help="skip the runs whose JSON is already in <out>/runs")
+    ap.add_argument("--detours", choices=["default", "on", "off"], default="default",
+                    help="the server's detours.enabled for every run (on: each detour priced "
+                    "and taken only when worth it; off: every detour taken, still priced); "
+                    "default: the server's default")
     ap.add_argument("--max-sim-time", type=float, default=7200.0)
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args(argv)
@@ -729,12 +838,15 @@ def main(argv: list[str] | None = None) -> None:
             except SimError as e:
                 ap.error(str(e))
     base = a.out or Path(tempfile.mkdtemp(prefix="mrslam-multi-"))
+    if a.detours != "default":   # the servers the demos start read it from their environment
+        os.environ["MRSLAM_DETOURS__ENABLED"] = "true" if a.detours == "on" else "false"
     specs = plan_runs(a.cases, seeds, a.spurious, a.known_starts, a.thesis_rule, a.runs,
                       a.single_seed, a.scenarios)
     print(f"{len(specs)} run(s) into {base}", file=sys.stderr)
     runs = run_all(specs, base, a.max_sim_time, a.jobs, a.resume)
     res = summarise(runs, seeds, a.scenarios)
     res["out"] = str(base)
+    res["detours"] = a.detours
     _write_json(base / "summary.json", res)
     print(json.dumps(res, indent=2))
 

@@ -265,3 +265,84 @@ def test_mixed_cases_put_the_depth_camera_on_the_named_robot_and_judge_it() -> N
     assert s1["lidar_alone_s"] == 200.0 and s1["speedup_over_lidar_alone"] == 0.8
     assert not s1["goals_met"] and not rep["2-mixed"]["all_goals_met"]
     assert rep["1-depth"]["seeds"]["0"]["goals_met"] and rep["1-depth"]["all_goals_met"]
+
+
+# -- teamwork: flat coverage, detours' estimates, the team against its members alone ---------
+
+def _team(history: list[tuple[float, float]], robots: list[str], end: float | None = None
+          ) -> dict[str, Any]:
+    return {"robot_ids": robots, "coverage_history": [list(h) for h in history],
+            "sim_time_to_threshold_s": end}
+
+
+def test_flat_coverage_counts_only_while_the_teams_robots_drive() -> None:
+    import numpy as np
+
+    from bench.support import teamwork
+
+    # team-r1: grows to 10 s, flat 10–40 s (r1 drives), grows again; team-r2: flat 0–30 s
+    # but r2 stands still all along
+    h1 = [(t, min(t, 10) * 0.05 + max(0, t - 40) * 0.05) for t in range(0, 51)]
+    h2 = [(t, 0.5) for t in range(0, 31)]
+    report = {"area_m2": 100.0, "merges": [],
+              "teams": {"team-r1": _team(h1, ["r1"], end=50.0), "team-r2": _team(h2, ["r2"])}}
+    t = np.arange(0.0, 51.0)
+    truth = {"r1": (t, 0.3 * t), "r2": (t, np.zeros_like(t))}
+    flat = teamwork.flat_stretches(report, truth)
+    assert flat["team"] == "team-r1"
+    assert flat["longest_s"] == 30.0 and (flat["from_s"], flat["to_s"]) == (10.0, 40.0)
+    assert flat["driven_m"] == 9.0
+    assert flat["teams"]["team-r2"]["longest_s"] == 0.0
+    # r2, merged into team-r1 at 5 s, drives for the team too: both robots' distances count
+    report["merges"] = [merge(5.0, "team-r1", "team-r2", ["r1", "r2"])]
+    truth["r2"] = (t, 0.3 * t)
+    assert teamwork.flat_stretches(report, truth)["driven_m"] == 18.0
+
+
+def test_detour_estimates_paired_with_their_outcomes_and_correlated() -> None:
+    from bench.support import teamwork
+
+    events: list[dict[str, Any]] = []
+    for i, (est, got) in enumerate([(10.0, 12.0), (20.0, 18.0), (30.0, 33.0), (5.0, 0.0)]):
+        events.append({"kind": "detour", "stamp_ns": i * 10**9, "robot_ids": ["r1"],
+                       "message": "call (r2): ...: taken",
+                       "figures": {"id": i + 1, "robot_s": 10.0, "cost_s": 4.0,
+                                   "saving_s": est, "gain_s": 2 * est, "p": 0.5,
+                                   "taken": 1.0}})
+        events.append({"kind": "detour", "stamp_ns": (i + 5) * 10**9, "robot_ids": ["r1"],
+                       "message": "call 1 by r1: ...",
+                       "figures": {"id": i + 1, "measured_s": got, "saving_s": est,
+                                   "after_s": 5.0}})
+    events.append({"kind": "detour", "stamp_ns": 0, "robot_ids": ["r2"],
+                   "message": "seek: ...: declined",
+                   "figures": {"id": 9, "robot_s": 5.0, "cost_s": 9.0, "saving_s": 1.0,
+                               "gain_s": 2.0, "p": 0.5, "taken": 0.0}})
+    events.append({"kind": "merge", "stamp_ns": 0, "robot_ids": ["r1", "r2"], "message": "m"})
+    pairs = teamwork.detour_pairs(events)
+    assert [p["kind"] for p in pairs] == ["call"] * 4 + ["seek"]
+    assert pairs[0]["measured_s"] == 12.0 and pairs[-1]["measured_s"] is None
+    c = teamwork.correlation(pairs)
+    assert c["decided"] == 5 and c["declined"] == 1
+    assert c["call"]["n"] == 4 and c["call"]["pearson_r"] > 0.9
+    assert c["call"]["spearman_r"] == 1.0
+    assert c["call"]["paid"] == 3 and c["call"]["worth_and_paid"] == 3
+    assert c["merge_kinds"]["n"] == 4
+
+
+def test_a_team_is_judged_against_its_members_alone_on_the_same_seed() -> None:
+    runs = keyed(run("1", 1, 200.0, robots=1), run("1", 2, 300.0, robots=1),
+                 run("2-mixed", 1, 210.0, robots=2,
+                     flat_coverage={"longest_s": 25.0, "team": "team-r1"}),
+                 run("2-mixed", 2, 250.0, robots=2,
+                     flat_coverage={"longest_s": 12.0, "team": "team-r1"}),
+                 run("office-1", 1, 400.0, robots=1), run("office-3", 1, 150.0))
+    tw = multi.teamwork_report(runs)
+    mixed = tw["groups"]["2-mixed"]
+    assert mixed["seeds"]["1"]["speedup"] == pytest.approx(200 / 210, abs=1e-3)
+    assert mixed["seeds"]["1"]["no_slower"] is False
+    assert mixed["seeds"]["2"]["no_slower"] is True
+    assert mixed["never_slower"] is False
+    assert mixed["flat_longest_s"] == 25.0 and mixed["flat_goal_met"] is False
+    assert tw["groups"]["office-3"]["alone_case"] == "office-1"
+    assert tw["groups"]["office-3"]["speedup_median"] == pytest.approx(400 / 150, abs=1e-3)
+    assert "1" not in tw["groups"] and "office-1" not in tw["groups"]

@@ -58,6 +58,13 @@ IDENTITY = np.zeros(3)
 GUIDE_OVERLAP_M = 0.5
 #: whole scans before the new one that it is matched against
 WHOLES_MATCHED = 3
+#: a whole scan matched against a wide teammate's map may move the pose this far from the
+#: prediction (the drift it corrects) [m], and turn it this much [deg]; a match further off
+#: is a wall taken for another
+GUIDED_MAX_SHIFT_M = 0.25
+GUIDED_MAX_TURN_DEG = 3.0
+#: ... and must pair this share of its points with the map's
+GUIDED_MIN_INLIERS = 0.7
 MATCHED = (MatchKind.ICP, MatchKind.DEGENERATE)
 
 
@@ -113,6 +120,9 @@ class NarrowSensor:
         by more than ``sweep.max_shift_m`` or ``max_turn_deg`` is a wall taken for another,
         and the local map, drawn by the narrow views, would not say better."""
         mc, sw = self.cfg.matcher, self.sweep.cfg
+        guided = self._match_guided(slam, whole, T_pred, T_last)
+        if guided is not None:
+            return guided, None
         if self.wholes:
             prev = self.wholes[-1]
             kfs = [slam.keyframes[i] for i in self.wholes[-WHOLES_MATCHED:]]
@@ -136,6 +146,31 @@ class NarrowSensor:
             return None
         slam.stats.sweep_shift_m = pose_distance(between(T_pred, m.T_map_robot))[0]
         return m, None
+
+    def _match_guided(self, slam: SlamView, whole: ScanPoints, T_pred: F64, T_last: F64
+                      ) -> FrontendMatch | None:
+        """The whole scan matched against the local map where a wide teammate drew the place
+        around the robot (its keyframes within ``local_map.guide_radius_m``: the local map
+        holds the teammate's walls there, the robot's own only elsewhere), the team's
+        reference: the robot's own whole scans before it carry its drift, the teammate's do not.
+        None without such a map, or when the match is not a full one (a corridor's walls
+        leave the pose free along it) or moves the pose further than ``GUIDED_MAX_*``."""
+        lm, mc = self.cfg.local_map, self.cfg.matcher
+        if not slam.guides or lm.guide_radius_m <= 0:
+            return None
+        guide = _guide_points(slam, T_pred, lm.guide_radius_m)
+        if guide is None or len(guide[0]) < mc.min_points:
+            return None
+        assert slam.local_map is not None   # the teammate's walls, its own elsewhere
+        m = match_scan(whole, slam.local_map, T_pred, T_last, IDENTITY, False, mc,
+                       self.icp_wide, None)
+        d, a = pose_distance(between(T_pred, m.T_map_robot))
+        if m.kind != MatchKind.ICP or m.inlier_fraction < GUIDED_MIN_INLIERS or \
+                d > GUIDED_MAX_SHIFT_M or a > math.radians(GUIDED_MAX_TURN_DEG):
+            return None
+        slam.stats.sweep_shift_m = d
+        slam.stats.guided_sweeps += 1
+        return m
 
     def _prior(self, T_step_odom: F64) -> F64 | None:
         mc = self.cfg.matcher

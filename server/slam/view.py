@@ -42,6 +42,7 @@ class SlamStats:
     heading_ties: int = 0   # keyframes whose heading square walls tied (``square_walls``)
     sweeps: int = 0   # whole scans of a turning camera matched (``sweep``)
     sweep_shift_m: float = 0.0   # how far the latest one's match moved the pose from the guess
+    guided_sweeps: int = 0   # of those, matched against a wide teammate's map (``narrow``)
 
 
 @dataclass(frozen=True)
