@@ -180,6 +180,7 @@ def _resume(cfg: ServerConfig, known: KnownMap | None = None
     state = cfg.resolved_state_dir()
     if state is None:
         return ServerCore(cfg, known=known), None, {}
+    render_store.use_folder(state)          # (as ``run`` did already, for the known map's)
     t0 = time.monotonic()
     loaded = Snapshots(state).load()
     core, since = loaded if loaded is not None else (ServerCore(cfg, known=known), 0)
