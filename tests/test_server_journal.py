@@ -4,6 +4,7 @@ also from a journal cut at any byte (up to its last intact chunk)."""
 from __future__ import annotations
 
 import math
+import os
 import random
 import shutil
 from pathlib import Path
@@ -349,3 +350,30 @@ def test_a_forked_snapshot_that_fails_is_a_typed_error(tmp_path: Path) -> None:
     with pytest.raises(SnapshotProcessError, match=r"snapshot 7: .*pickle"):
         snaps.finish(snaps.begin(live, 7))
     assert snaps.paths() == []
+
+
+class _Hangs:
+    """Pickling it never ends (as a child stuck on a lock another thread held at the fork)."""
+
+    def __reduce__(self) -> tuple[object, ...]:
+        import time
+        time.sleep(3600)
+        return (_Hangs, ())
+
+
+def test_a_snapshot_process_that_hangs_is_ended_and_counted_failed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from server.runtime import snapfork
+
+    monkeypatch.setattr(snapfork, "CHILD_TIMEOUT_S", 2.0)
+    live = ServerCore(config(), navigate=False)
+    live.hang = _Hangs()   # type: ignore[attr-defined]
+    (tmp_path / "state").mkdir()
+    snaps = Snapshots(tmp_path / "state")
+    job = snaps.begin(live, 1)
+    assert isinstance(job, snapfork.Forked)
+    with pytest.raises(snapfork.SnapshotProcessError, match="did not finish within 2 s"):
+        snaps.finish(job)
+    with pytest.raises(ProcessLookupError):
+        os.kill(job.pid, 0)                   # ended and reaped: no process left behind
+    assert snaps.paths() == []                # and nothing put in place

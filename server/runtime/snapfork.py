@@ -22,6 +22,7 @@ from __future__ import annotations
 import gc
 import os
 import pickle
+import select
 import signal
 import time
 from dataclasses import dataclass
@@ -30,6 +31,10 @@ from typing import TYPE_CHECKING, Any, NoReturn
 if TYPE_CHECKING:
     from server.core import ServerCore
     from server.runtime.snapshot import Snapshots
+
+
+#: a child that has not reported by then is ended, and the snapshot counted as failed
+CHILD_TIMEOUT_S = 300.0
 
 
 class SnapshotProcessError(OSError):
@@ -50,13 +55,26 @@ class Forked:
         """Wait for the child's report (the writer thread). Raises ``SnapshotProcessError``
         when it failed or died."""
         chunks = []
+        late = False
+        deadline = time.monotonic() + CHILD_TIMEOUT_S
         try:
-            while chunk := os.read(self.fd, 1 << 16):
+            while True:
+                ready, _, _ = select.select([self.fd], [], [],
+                                            max(0.0, deadline - time.monotonic()))
+                if not ready:        # hung (a lock another thread held at the fork?): ended
+                    late = True
+                    os.kill(self.pid, signal.SIGKILL)
+                    break
+                if not (chunk := os.read(self.fd, 1 << 16)):
+                    break
                 chunks.append(chunk)
         finally:
             os.close(self.fd)
             _, status = os.waitpid(self.pid, 0)
             gc.unfreeze()        # the parent's collector sees every object again
+        if late:
+            raise SnapshotProcessError(0, f"snapshot {self.sequence}: its process did not "
+                                          f"finish within {CHILD_TIMEOUT_S:.0f} s and was ended")
         code = os.waitstatus_to_exitcode(status)
         try:
             report: dict[str, Any] = pickle.loads(b"".join(chunks))
@@ -90,6 +108,7 @@ def _child(snaps: Snapshots, core: ServerCore, sequence: int, r: int, w: int) ->
     code = 1
     try:
         gc.disable()
+        _die_with_parent()
         os.close(r)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(sig, signal.SIG_DFL)
@@ -113,3 +132,14 @@ def _child(snaps: Snapshots, core: ServerCore, sequence: int, r: int, w: int) ->
             view = view[os.write(w, view):]
     finally:
         os._exit(code)
+
+
+def _die_with_parent() -> None:
+    """(Linux) The child is killed when the server dies, SIGKILL included, so no snapshot
+    process outlives it."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)        # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
