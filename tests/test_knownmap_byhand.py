@@ -6,6 +6,7 @@ on its shape, refused where the maps contradict it, and joining the map where th
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -14,11 +15,12 @@ import pytest
 
 from bench.support.known_mission import WORLDS, KnownMission, demo_config, free_poses, mission
 from bench.support.survey import survey_map
-from schemas import RobotStates
+from schemas import RobotStates, Scan
 from schemas.codec import decode, encode
 from server.command.operator import OperatorCommand, OperatorError, parse
 from server.core import ServerCore
 from server.knownmap.ghosts import MAP_TEAM
+from server.runtime.journal import JournalWriter, replay
 from tests.test_server_journal import config
 
 WORLD = WORLDS / "small_house.world"
@@ -134,3 +136,34 @@ def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     # and it goes on in the map: its scans keep it there
     m.run_until(m.sim_time_s + 1.0)
     assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10
+
+
+def test_a_hand_placement_comes_back_from_the_journal(tmp_path: Path) -> None:
+    """A server restarted from its journal places the robot again, where it was placed."""
+    known = survey_map(WORLD, spacing_m=1.5)
+    cfg = demo_config(confirmations=1000, query_period_s=100.0)
+    spawn = free_poses(WORLD, 1, np.random.default_rng(5))
+    m = mission(WORLD, known, {"r1": spawn[0]}, cfg, np.zeros(3))
+    journal = JournalWriter(tmp_path)
+    live = m.core.on_scan
+
+    def journaled(scan: Scan, now_ns: int | None = None) -> Any:
+        journal.scan(scan, scan.stamp_ns)
+        return live(scan, scan.stamp_ns)
+
+    m.core.on_scan = journaled  # type: ignore[method-assign]
+    m.run_until(3.0)
+    cmd = parse({"action": "place", "robot_id": "r1",
+                 "pose": [float(v) for v in _truth(m) + np.array([0.3, 0.2, -0.1])]})
+    stamp = int(m.sim_time_s * 1e9)
+    journal.operator(cmd, stamp)
+    status, line = m.core.operate(cmd, stamp)
+    assert status == 200, line
+    journal.close()
+
+    again = ServerCore(cfg, known=known)
+    replay(again, tmp_path)
+    r, was = again.robots["r1"], m.core.robots["r1"]
+    assert r.team_id == MAP_TEAM
+    assert np.allclose(r.pose, was.pose, atol=1e-6), (r.pose, was.pose)
+    assert again.known is not None and again.known.counts["by_hand"] == 1
