@@ -95,6 +95,7 @@ def _place(m: KnownMission, pose: np.ndarray, stamp_ns: int) -> tuple[int, str]:
                                  "pose": [float(v) for v in pose]}), stamp_ns)
 
 
+@pytest.mark.slow
 def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     m, core = searching, searching.core
     r = core.robots["r1"]
@@ -137,7 +138,21 @@ def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     m.run_until(m.sim_time_s + 1.0)
     assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10
 
+    # carried away: its state says lost (searching again), and it can be placed by hand again
+    far = free_poses(WORLD, 1, np.random.default_rng(11), exclude=[tuple(_truth(m)[:2])],
+                     apart_m=4.0)[0]
+    m.sim.teleport("r1", tuple(far))
+    m.run_until(m.sim_time_s + 6.0, done=lambda k: k.core.robots["r1"].team_id != MAP_TEAM)
+    assert r.team_id != MAP_TEAM
+    assert core.robot_states(7).robots[0].localisation == "lost"
+    m.run_until(m.sim_time_s + 2.0)
+    status, line = _place(m, _truth(m) + np.array([0.3, 0.3, math.radians(-8)]), 8)
+    assert status == 200, line
+    assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10
+    assert core.robot_states(9).robots[0].localisation == "placed"
 
+
+@pytest.mark.slow
 def test_a_hand_placement_comes_back_from_the_journal(tmp_path: Path) -> None:
     """A server restarted from its journal places the robot again, where it was placed."""
     known = survey_map(WORLD, spacing_m=1.5)
