@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.messages import Hypothesis
+from schemas import Hypothesis
 from schemas.se2 import compose, inverse, wrap_angle
 from server.command.operator import Refused
 from server.fleet.model import RobotContext
