@@ -131,9 +131,12 @@ def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     assert kinds[-1][0] == "operator"
     assert core.known is not None and core.known.counts["by_hand"] == 1
 
-    # once placed, placing it again is refused (409)
+    # once placed, placing it again is refused (409), as is placing the map itself
     status, line = _place(m, truth, 6)
     assert status == 409 and "already placed" in line
+    status, line = core.operate(parse({"action": "place", "robot_id": "map",
+                                       "pose": [0.0, 0.0, 0.0]}), 6)
+    assert status == 409 and "no robot" in line
     # and it goes on in the map: its scans keep it there
     m.run_until(m.sim_time_s + 1.0)
     assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10

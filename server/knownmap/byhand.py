@@ -56,6 +56,8 @@ def place_by_hand(desk: KnownMapDesk, r: RobotContext, pose: tuple[float, float,
                   now_ns: int) -> str:
     """Place ``r`` (its team) with it at ``pose`` in the map's frame, refined and checked
     (the module docstring). Returns what was done; raises ``Refused`` with the reason."""
+    if r.ghost:
+        raise Refused(f"robot_id: {r.robot_id} holds part of the known map; it is no robot")
     if r.team_id == MAP_TEAM:
         raise Refused(f"robot_id: {r.robot_id} is already placed in the known map")
     fleet = desk.fleet
