@@ -185,3 +185,28 @@ def test_a_hand_placement_comes_back_from_the_journal(tmp_path: Path) -> None:
     assert r.team_id == MAP_TEAM
     assert np.allclose(r.pose, was.pose, atol=1e-6), (r.pose, was.pose)
     assert again.known is not None and again.known.counts["by_hand"] == 1
+
+
+@pytest.mark.slow
+def test_rooms_alike_the_operator_tells_them_apart() -> None:
+    """In the ambiguous wings the robot's map fits several rooms as well: the server does not
+    place it; the operator does, and is told that other places fit as well."""
+    world = WORLDS / "ambiguous_wings.world"
+    m = mission(world, survey_map(world, spacing_m=1.5),
+                {"r1": free_poses(world, 1, np.random.default_rng(1))[0]}, demo_config(),
+                np.zeros(3))
+    m.run_until(4.0)
+    r = m.core.robots["r1"]
+    assert r.team_id != MAP_TEAM
+    st = m.core.robot_states(1).robots[0]
+    assert st.localisation == "searching" and len(st.hypotheses) >= 2
+    far = [h for h in st.hypotheses if math.hypot(h.pose[0] - st.hypotheses[0].pose[0],
+                                                  h.pose[1] - st.hypotheses[0].pose[1]) > 5]
+    assert far and far[0].strength >= 0.8 * st.hypotheses[0].strength   # rooms alike
+    status, line = _place(m, _truth(m) + np.array([0.4, -0.2, 0.15]), 2)
+    assert status == 200, line
+    assert "other place(s) fit its map about as well" in line
+    m.run_until(m.sim_time_s + 1.0)
+    assert r.team_id == MAP_TEAM
+    err_m, err_deg = m.error("r1")
+    assert err_m <= 0.10 and err_deg <= 1.0, (err_m, err_deg)
