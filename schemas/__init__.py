@@ -4,6 +4,7 @@ from schemas.codec import MESSAGE_TYPES, decode, encode
 from schemas.errors import SchemaError
 from schemas.messages import (
     Event,
+    Hypothesis,
     LidarSweep,
     MapUpdate,
     Message,
@@ -32,9 +33,9 @@ from schemas.sim import (
 from schemas.types import NO_RETURN_MM, SCHEMA_VERSION
 
 __all__ = [
-    "MESSAGE_TYPES", "NO_RETURN_MM", "SCHEMA_VERSION", "Event", "LidarSweep", "MapUpdate",
-    "Message", "RobotEstimate", "RobotStates", "RobotStatus", "Scan", "SchemaError", "SimClock",
-    "SimGroundTruth", "SimImage", "SimLidar", "SimMotorCommand", "SimOdometry", "SimStepAck",
-    "TagDetection", "TagDetections", "TeamCoverage", "TruePose", "TrueRelative",
+    "MESSAGE_TYPES", "NO_RETURN_MM", "SCHEMA_VERSION", "Event", "Hypothesis", "LidarSweep",
+    "MapUpdate", "Message", "RobotEstimate", "RobotStates", "RobotStatus", "Scan", "SchemaError",
+    "SimClock", "SimGroundTruth", "SimImage", "SimLidar", "SimMotorCommand", "SimOdometry",
+    "SimStepAck", "TagDetection", "TagDetections", "TeamCoverage", "TruePose", "TrueRelative",
     "VelocityCommand", "decode", "encode", "quantise_ranges_mm", "ranges_from_mm",
 ]

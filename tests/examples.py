@@ -6,6 +6,7 @@ import numpy as np
 
 from schemas import (
     Event,
+    Hypothesis,
     MapUpdate,
     Message,
     RobotEstimate,
@@ -60,7 +61,11 @@ def all_examples() -> dict[str, Message]:
                                          origin=(-1.5, -1.0, 0.0)),
         "RobotStates": RobotStates(seq=5, stamp_ns=STAMP, robots=[
             RobotEstimate(robot_id="r1", team_id="t1", pose=(1.0, 2.0, 0.5), mode="exploring",
-                          target=(3.0, 4.0), distance_m=12.5, keyframes=40)],
+                          target=(3.0, 4.0), distance_m=12.5, keyframes=40),
+            RobotEstimate(robot_id="r2", team_id="t2", pose=(0.5, 0.0, 0.1),
+                          localisation="searching",
+                          hypotheses=[Hypothesis(pose=(4.0, 5.0, 1.5), strength=150.0),
+                                      Hypothesis(pose=(-4.0, 5.0, -1.5), strength=120.0)])],
             teams=[TeamCoverage(team_id="t1", robot_ids=["r1"], coverage=0.4,
                                 explored_m2=160.0)]),
         "Event": Event(seq=6, stamp_ns=STAMP, kind="merge", robot_ids=["r1", "r2"],

@@ -23,7 +23,7 @@ from server.console.service import Console
 from server.knownmap.ghosts import MAP_TEAM
 from tests.console_support import TOKEN
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
 try:
     chromium_path()

@@ -6,6 +6,7 @@ on its shape, refused where the maps contradict it, and joining the map where th
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -14,11 +15,12 @@ import pytest
 
 from bench.support.known_mission import WORLDS, KnownMission, demo_config, free_poses, mission
 from bench.support.survey import survey_map
-from schemas import RobotStates
+from schemas import RobotStates, Scan
 from schemas.codec import decode, encode
 from server.command.operator import OperatorCommand, OperatorError, parse
 from server.core import ServerCore
 from server.knownmap.ghosts import MAP_TEAM
+from server.runtime.journal import JournalWriter, replay
 from tests.test_server_journal import config
 
 WORLD = WORLDS / "small_house.world"
@@ -93,6 +95,7 @@ def _place(m: KnownMission, pose: np.ndarray, stamp_ns: int) -> tuple[int, str]:
                                  "pose": [float(v) for v in pose]}), stamp_ns)
 
 
+@pytest.mark.slow
 def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     m, core = searching, searching.core
     r = core.robots["r1"]
@@ -128,9 +131,82 @@ def test_hand_placement_wrong_then_right(searching: KnownMission) -> None:
     assert kinds[-1][0] == "operator"
     assert core.known is not None and core.known.counts["by_hand"] == 1
 
-    # once placed, placing it again is refused (409)
+    # once placed, placing it again is refused (409), as is placing the map itself
     status, line = _place(m, truth, 6)
     assert status == 409 and "already placed" in line
+    status, line = core.operate(parse({"action": "place", "robot_id": "map",
+                                       "pose": [0.0, 0.0, 0.0]}), 6)
+    assert status == 409 and "no robot" in line
     # and it goes on in the map: its scans keep it there
     m.run_until(m.sim_time_s + 1.0)
     assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10
+
+    # carried away: its state says lost (searching again), and it can be placed by hand again
+    far = free_poses(WORLD, 1, np.random.default_rng(11), exclude=[tuple(_truth(m)[:2])],
+                     apart_m=4.0)[0]
+    m.sim.teleport("r1", tuple(far))
+    m.run_until(m.sim_time_s + 6.0, done=lambda k: k.core.robots["r1"].team_id != MAP_TEAM)
+    assert r.team_id != MAP_TEAM
+    assert core.robot_states(7).robots[0].localisation == "lost"
+    m.run_until(m.sim_time_s + 2.0)
+    status, line = _place(m, _truth(m) + np.array([0.3, 0.3, math.radians(-8)]), 8)
+    assert status == 200, line
+    assert r.team_id == MAP_TEAM and m.error("r1")[0] <= 0.10
+    assert core.robot_states(9).robots[0].localisation == "placed"
+
+
+@pytest.mark.slow
+def test_a_hand_placement_comes_back_from_the_journal(tmp_path: Path) -> None:
+    """A server restarted from its journal places the robot again, where it was placed."""
+    known = survey_map(WORLD, spacing_m=1.5)
+    cfg = demo_config(confirmations=1000, query_period_s=100.0)
+    spawn = free_poses(WORLD, 1, np.random.default_rng(5))
+    m = mission(WORLD, known, {"r1": spawn[0]}, cfg, np.zeros(3))
+    journal = JournalWriter(tmp_path)
+    live = m.core.on_scan
+
+    def journaled(scan: Scan, now_ns: int | None = None) -> Any:
+        journal.scan(scan, scan.stamp_ns)
+        return live(scan, scan.stamp_ns)
+
+    m.core.on_scan = journaled  # type: ignore[method-assign]
+    m.run_until(3.0)
+    cmd = parse({"action": "place", "robot_id": "r1",
+                 "pose": [float(v) for v in _truth(m) + np.array([0.3, 0.2, -0.1])]})
+    stamp = int(m.sim_time_s * 1e9)
+    journal.operator(cmd, stamp)
+    status, line = m.core.operate(cmd, stamp)
+    assert status == 200, line
+    journal.close()
+
+    again = ServerCore(cfg, known=known)
+    replay(again, tmp_path)
+    r, was = again.robots["r1"], m.core.robots["r1"]
+    assert r.team_id == MAP_TEAM
+    assert np.allclose(r.pose, was.pose, atol=1e-6), (r.pose, was.pose)
+    assert again.known is not None and again.known.counts["by_hand"] == 1
+
+
+@pytest.mark.slow
+def test_rooms_alike_the_operator_tells_them_apart() -> None:
+    """In the ambiguous wings the robot's map fits several rooms as well: the server does not
+    place it; the operator does, and is told that other places fit as well."""
+    world = WORLDS / "ambiguous_wings.world"
+    m = mission(world, survey_map(world, spacing_m=1.5),
+                {"r1": free_poses(world, 1, np.random.default_rng(1))[0]}, demo_config(),
+                np.zeros(3))
+    m.run_until(4.0)
+    r = m.core.robots["r1"]
+    assert r.team_id != MAP_TEAM
+    st = m.core.robot_states(1).robots[0]
+    assert st.localisation == "searching" and len(st.hypotheses) >= 2
+    far = [h for h in st.hypotheses if math.hypot(h.pose[0] - st.hypotheses[0].pose[0],
+                                                  h.pose[1] - st.hypotheses[0].pose[1]) > 5]
+    assert far and far[0].strength >= 0.8 * st.hypotheses[0].strength   # rooms alike
+    status, line = _place(m, _truth(m) + np.array([0.4, -0.2, 0.15]), 2)
+    assert status == 200, line
+    assert "other place(s) fit its map about as well" in line
+    m.run_until(m.sim_time_s + 1.0)
+    assert r.team_id == MAP_TEAM
+    err_m, err_deg = m.error("r1")
+    assert err_m <= 0.10 and err_deg <= 1.0, (err_m, err_deg)
