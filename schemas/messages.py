@@ -219,6 +219,9 @@ class MapUpdate(Message, kw_only=True):
 
 
 RobotMode = Literal["waiting", "exploring", "returning", "stuck", "done", "lost", "idle"]
+#: on a known map (docs/known-map.md): searching for its place, placed in the map, or lost
+#: after it was placed (searching again)
+Localisation = Literal["searching", "placed", "lost"]
 
 
 class RobotEstimate(msgspec.Struct, kw_only=True):
@@ -231,6 +234,7 @@ class RobotEstimate(msgspec.Struct, kw_only=True):
     distance_m: PositiveMetres = 0.0
     keyframes: Seq = 0
     last_scan_stamp_ns: StampNs = 0
+    localisation: Localisation | None = None     # None: no known map
 
 
 class TeamCoverage(msgspec.Struct, kw_only=True):

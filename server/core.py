@@ -284,7 +284,8 @@ class ServerCore:
                 mode=mode if r.alive else "lost",  # type: ignore[arg-type]
                 target=(float(t[0]), float(t[1])) if t is not None else None,
                 distance_m=r.distance_m, keyframes=len(r.slam.keyframes),
-                last_scan_stamp_ns=r.last_stamp_ns))
+                last_scan_stamp_ns=r.last_stamp_ns,
+                localisation=None if self.known is None else self.known.state_of(r)))
         teams = [TeamCoverage(team_id=t.team_id, robot_ids=self._robots_of(t),
                               coverage=float(min(t.coverage, 1.0)), explored_m2=t.explored_m2)
                  for t in self.fleet.teams.values()]

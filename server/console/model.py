@@ -101,7 +101,7 @@ class ConsoleModel:
             x, y, th = r.pose
             self.robots[r.robot_id] = {
                 "robot_id": r.robot_id, "team_id": r.team_id, "pose": [x, y, th],
-                "sigma": list(r.pose_sigma), "mode": r.mode,
+                "sigma": list(r.pose_sigma), "mode": r.mode, "localisation": r.localisation,
                 "target": None if r.target is None else list(r.target),
                 "distance_m": r.distance_m, "keyframes": r.keyframes,
                 "last_scan_s": r.last_scan_stamp_ns * 1e-9}
