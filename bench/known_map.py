@@ -16,8 +16,13 @@ found again; prints JSON.
    its error then, and how far the map's keyframes moved meanwhile (the most the map's error
    against the truth can have changed).
 
+5. **Missions in a row** (``--missions N`` alone): each on the map the one before left, its
+   robots sent to random places for ``--mission-time``; the map's keyframes and the server's
+   state after each (goal: within 1.5× of the first's).
+
     PYTHONPATH=. python bench/known_map.py [--seeds 10] [--first-seed 0] [--robots 3]
         [--wings-seeds 3] [--lost-seeds 5] [--out out/known_map]
+    PYTHONPATH=. python bench/known_map.py --missions 4 [--mode extend|localize]
 """
 
 from __future__ import annotations
@@ -139,6 +144,42 @@ def lost_runs(known: KnownMap, frame: np.ndarray, seeds: list[int]) -> list[dict
     return rows
 
 
+def mission_chain(known: KnownMap, frame: np.ndarray, missions: int, mode: str,
+                  duration_s: float) -> list[dict[str, Any]]:
+    """Missions in a row, each on the map the one before left: 3 robots at random free poses,
+    placed, then each sent to random free places for ``duration_s``; the map's keyframes and
+    the server's state (pickled core) after each."""
+    import pickle
+
+    rows = []
+    for k in range(missions):
+        rng = np.random.default_rng(2000 + k)
+        spawn = {f"r{i + 1}": p for i, p in enumerate(free_poses(HOUSE, 3, rng))}
+        m = mission(HOUSE, known, spawn, demo_config("small-house-3", mode=mode), frame,
+                    seed=k)
+        t0 = time.monotonic()
+        while m.sim_time_s < duration_s:
+            m.step()
+            if m.steps % 50:
+                continue
+            for rid in spawn:       # a placed robot with nothing to do is sent somewhere
+                r = m.core.robots[rid]
+                if m._placed(rid) and r.nav.target_xy is None:
+                    g = _to_map(frame, free_poses(HOUSE, 1, rng)[0])
+                    m.core.operate(OperatorCommand("goto", rid, (float(g[0]), float(g[1]))),
+                                   int(m.sim_time_s * 1e9))
+        assert m.core.known is not None
+        left = m.core.known.mission_map()
+        assert left is not None
+        rows.append({"mission": k + 1, "placed": len(m.placed), "keyframes_before": len(known),
+                     "keyframes_after": len(left),
+                     "state_mb": round(len(pickle.dumps(m.core, protocol=5)) / 1e6, 2),
+                     "wall_s": round(time.monotonic() - t0, 1)})
+        print(json.dumps(rows[-1]), file=sys.stderr)
+        known = left
+    return rows
+
+
 def _to_map(frame: np.ndarray, p: np.ndarray) -> np.ndarray:
     from schemas.se2 import compose, inverse
     return compose(inverse(frame), p)
@@ -216,9 +257,22 @@ def main() -> None:
     ap.add_argument("--wings-time", type=float, default=60.0)
     ap.add_argument("--lost-seeds", type=int, default=5)
     ap.add_argument("--out", type=Path, default=_HERE.parent / "out" / "known_map")
+    ap.add_argument("--missions", type=int, default=0, help="only missions in a row, each on "
+                    "the map the one before left: the map's and the state's size")
+    ap.add_argument("--mode", default="extend", help="with --missions: localize or extend")
+    ap.add_argument("--mission-time", type=float, default=30.0)
     a = ap.parse_args()
     t0 = time.monotonic()
     known, frame, made = house_map(a.out)
+    if a.missions:
+        rows = mission_chain(known, frame, a.missions, a.mode, a.mission_time)
+        first = rows[0]["state_mb"]
+        print(json.dumps({"map": made, "mode": a.mode, "missions": rows,
+                          "state_vs_first_max": round(max(r["state_mb"] for r in rows)
+                                                      / first, 2),
+                          "goal_state_vs_first": 1.5,
+                          "wall_s": round(time.monotonic() - t0, 1)}, indent=2))
+        return
     seeds = list(range(a.first_seed, a.first_seed + a.seeds))
     house = placed_runs(known, frame, HOUSE, "small-house-3", seeds, a.robots, a.limit)
     wings_map = survey_map(WINGS)

@@ -25,6 +25,7 @@ from bench.support.known_mission import (
 from bench.support.survey import survey_map
 from server.command.operator import OperatorCommand
 from server.config import ServerConfig
+from server.console.model import ConsoleModel
 from server.core import ServerCore
 from server.knownmap.ghosts import MAP_ID
 from server.knownmap.mapdata import KnownMap
@@ -167,11 +168,19 @@ def test_a_placement_won_again_confirms_its_guess() -> None:
 def test_a_robot_at_an_unknown_pose_is_placed_in_the_small_house(house: KnownMap) -> None:
     spawn = free_poses(HOUSE, 1, np.random.default_rng(3))[0]
     m = _house_mission(house, spawn, seed=3)
+    first = m.core.robot_states(0)          # no scan yet: no robot
+    assert not first.robots
+    m.step()
+    assert [r.localisation for r in m.core.robot_states(0).robots] == ["searching"]
     m.run_until(20.0, lambda m: bool(m.placed))
     assert m.placed, m.core.known.summary() if m.core.known else None
     p = m.placed[0]
     assert p.error_m <= 0.10 and p.error_deg <= 1.0, p
     assert m.core.known is not None and m.core.known.state_of(m.core.robots["r1"]) == "placed"
+    # what the operator's page shows
+    page = ConsoleModel()
+    page.on_robots(m.core.robot_states(int(m.sim_time_s * 1e9)), 0.0)
+    assert page.robots["r1"]["localisation"] == "placed"
 
 
 @pytest.mark.slow

@@ -22,8 +22,8 @@ class KnownMapConfig(ConfigModel):
         "map written for another site is refused (the demo sets the world's name)")
     mode: MapMode = Field(
         "localize", description="localize: the map stays as it is and robots only localise "
-        "in it; extend: what the robots see is mapped into it, changes replace what is out "
-        "of date, and the robots first pass through the building")
+        "in it; extend: what the robots see is mapped into it, as a continuation of the "
+        "mission that made it")
     query_period_s: float = Field(
         1.0, gt=0.0, description="a robot not yet placed has its map matched against the "
         "known map this often")
@@ -43,16 +43,17 @@ class KnownMapConfig(ConfigModel):
         1.5, gt=0.0, description="a placed robot whose scans disagree with the map this long "
         "without a break is lost: it leaves the map's team and is placed again")
     supersede_m: float = Field(
-        0.4, ge=0.0, description="extend: a map keyframe this close to a new keyframe is "
-        "retired (the newer view replaces it; the map's size stays bounded; 0: never)")
+        0.4, ge=0.0, description="extend, not used yet: a map keyframe this close to a new "
+        "keyframe is to be retired (the newer view replacing it; 0: never)")
     change_votes: int = Field(
-        2, ge=1, description="extend: keyframes that must see a cell differ from the map "
-        "(a wall in open space, or open space through a wall) before the map's views that "
-        "contradict them are retired")
+        2, ge=1, description="extend, not used yet: keyframes that must see a cell differ "
+        "from the map (a wall in open space, or open space through a wall) before the "
+        "map's views that contradict them are retired")
     inspect: bool = Field(
-        True, description="extend: placed robots first pass through the building, each "
-        "sent where it sees most of what no robot has seen in this mission, before they "
-        "explore what is unknown")
+        True, description="extend, not used yet: placed robots first pass through the "
+        "building, each sent where it sees most of what no robot has seen in this "
+        "mission, before they explore what is unknown")
     inspected_share: float = Field(
-        0.95, gt=0.0, le=1.0, description="extend: the pass is over when this share of the "
-        "map's open space has been seen in this mission (or nothing more is in reach)")
+        0.95, gt=0.0, le=1.0, description="extend, not used yet: the pass is over when "
+        "this share of the map's open space has been seen in this mission (or nothing "
+        "more is in reach)")

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas import Scan
+from schemas.messages import Localisation
 from schemas.se2 import compose, inverse
 from server.config import ServerConfig
 from server.fleet.events import EventLog
@@ -220,7 +221,7 @@ class KnownMapDesk:
                          "once found", stamp_ns)
 
     # -- what others read --------------------------------------------------------------------
-    def state_of(self, r: RobotContext) -> str:
+    def state_of(self, r: RobotContext) -> Localisation:
         """searching, placed or lost (searching again after it was lost)."""
         if r.team_id == MAP_TEAM:
             return "placed"
