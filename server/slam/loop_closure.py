@@ -32,7 +32,8 @@ from server.slam.keyframes import Keyframe, points_in_frame, voxel_thin
 log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
-FIELD_CACHE = 24
+FIELD_CACHE = 24                 # likelihood fields kept (the submaps searched most lately) ...
+FIELD_CACHE_BYTES = 8 << 20      # ... within this many bytes (each is 8 levels of float32)
 LOOP_EDGE_LENGTH_M = 0.1
 
 
@@ -170,8 +171,11 @@ class LoopCloser:
             f = LikelihoodField(sm.points, self.cfg.resolution_m, sigma_m=self.cfg.resolution_m,
                                 margin_m=4 * self.cfg.resolution_m, levels=7)
             self._fields[sm_index] = f
-            if len(self._fields) > FIELD_CACHE:
-                self._fields.popitem(last=False)
+            held = sum(lv.nbytes for g in self._fields.values() for lv in g.pyramid)
+            while len(self._fields) > 1 and (len(self._fields) > FIELD_CACHE
+                                             or held > FIELD_CACHE_BYTES):
+                _, old = self._fields.popitem(last=False)
+                held -= sum(lv.nbytes for lv in old.pyramid)
         else:
             self._fields.move_to_end(sm_index)
         return f
