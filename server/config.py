@@ -179,7 +179,7 @@ class DetoursConfig(ConfigModel):
     keep clear, a turning camera's stop) is taken only when the team's expected time saved is
     larger than what the robot's time costs it (docs/detours.md)."""
 
-    enabled: bool = Field(True, description="price every detour and take only those worth "
+    enabled: bool = Field(False, description="price every detour and take only those worth "
                           "it (false: take every detour, and still record its price)")
     rate_window_s: float = Field(30.0, gt=0.0, description="a team's exploration rate is its "
                                  "explored area's growth over this long (and at least half "

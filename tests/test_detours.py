@@ -186,3 +186,23 @@ def test_a_turning_cameras_stop_is_priced_by_the_drift_since_its_last_whole_scan
     assert ev["p"] == pytest.approx(share)
     # its rate against the fleet's: r1's and r2's teams, and r3's at the least rate
     assert ev["cost_s"] == pytest.approx(cfg.sweep_s * 2.0 / (3.0 + cfg.min_rate_m2_s))
+
+
+def test_the_drift_of_a_stop_counts_from_where_the_last_whole_scan_came() -> None:
+    import math
+
+    f, events = fleet()
+    d = f.detours
+    grow(d, {"r1": 1.0, "r2": 2.0})
+    r2 = f.robots["r2"]
+    r2.distance_m = 3.0
+    assert d.sweep(r2, 20 * S)
+    r2.slam.stats.sweeps += 1                        # its whole scan came, 3 m along
+    d.tick(21 * S)
+    assert detour_events(events)[-1].keys() >= {"measured_s"} and d.pending == []
+    r2.distance_m = 4.0                              # a metre later, the next stop
+    d.sweep(r2, 30 * S)
+    cfg = f.cfg.detours
+    share = cfg.drift_m_per_sqrt_m * 1.0 * math.sqrt(2.0 / math.pi) / cfg.tolerance_m
+    ev = detour_events(events)[-1]
+    assert ev["p"] == pytest.approx(share) and ev["taken"] == 1.0

@@ -224,6 +224,8 @@ class Detours:
         for p in list(self.pending):
             r = self.fleet.robots.get(p.robot_id)
             if r is not None and p.kind == "sweep" and r.slam.stats.sweeps > p.count:
+                # the drift of the next stop's price counts from here, where the scan came
+                self.whole_at[p.robot_id] = (r.slam.stats.sweeps, r.distance_m)
                 shift = r.slam.stats.sweep_shift_m
                 self._settle(p, p.gain_s * min(1.0, shift / tol), stamp_ns,
                              f"its whole scan moved it {100 * shift:.1f} cm")
