@@ -98,6 +98,8 @@ def test_the_server_applies_its_configured_message_size_cap(tmp_path: Path, cap:
     try:
         with srv.client() as bus:
             robot = RoomRobot(srv.endpoint, "r1").start()   # 360 beams: under 1 kB a scan
+            # a client that has not yet learnt of the server's subscription sends into nothing
+            assert bus.wait_for_subscribers(keys.robot_scan("r1"), 10.0)
             for _ in range(5):   # valid scans are never this big: 8,192 beams at most
                 bus.session.put(keys.robot_scan("r1"), b"\x00" * 80_000,
                                 congestion_control=zenoh.CongestionControl.BLOCK)
