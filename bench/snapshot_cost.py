@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 
 def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bool,
-        fork: bool) -> dict[str, Any]:
+        fork: bool, huge_pages: bool = True) -> dict[str, Any]:
     import numpy as np
 
     from bench.support.load_gen import make_tracks, pingpong
@@ -66,6 +66,8 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
     folder = Path(tempfile.mkdtemp(prefix="mrslam-snapcost-"))
     snaps = Snapshots(folder)
     snaps.use_fork = fork
+    if not huge_pages:
+        snaps.huge_pages = None
     rows: list[dict[str, Any]] = []
     prof_out: list[dict[str, Any]] = []
     step_ms: list[tuple[float, bool]] = []     # each step's wall time, and whether a child ran
@@ -81,6 +83,8 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
         row["pickle_and_write_ms"] = round(snaps.last_seconds * 1e3, 2)
         if not isinstance(job, Pending):
             row["child_cpu_ms"] = round(snaps.last_cpu_s * 1e3, 2)
+            if (pages := snaps.huge_pages) is not None and pages.unavailable is None:
+                row["huge_pages_ms"] = round(pages.last_seconds * 1e3, 2)
         print(json.dumps(row), file=sys.stderr, flush=True)
 
     for k in range(steps):
@@ -107,7 +111,7 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
                "keyframes": sum(len(r.slam.keyframes) for r in core.robots.values()),
                "worker_ms": round((time.perf_counter() - w0) * 1e3, 2),
                "worker_cpu_ms": round((time.thread_time() - c0) * 1e3, 2),
-               "rss_mb": _rss_mb()}
+               "rss_mb": _rss_mb(), "huge_mb": _huge_mb()}
         rows.append(row)
         if prof is not None:
             prof_out = _top(pstats.Stats(prof))
@@ -131,6 +135,8 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
     out: dict[str, Any] = {
         "robots": robots, "steps": steps, "every": every, "late_from_step": late,
         "mode": "fork" if fork else "in process",
+        "huge_pages": (None if snaps.huge_pages is None else
+                       snaps.huge_pages.unavailable or "collapsed after each snapshot"),
         "wall_s": round(time.perf_counter() - t0, 1), "snapshots": rows,
         "late": {"snapshots": len(late_rows),
                  "worker_ms_p50": pct(held, 50), "worker_ms_p99": pct(held, 99),
@@ -155,6 +161,17 @@ def _rss_mb() -> float:
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
             return round(int(line.split()[1]) / 1024, 1)
+    return float("nan")
+
+
+def _huge_mb() -> float:
+    """The process's anonymous memory in huge pages (what a fork copies cheaply)."""
+    try:
+        for line in Path("/proc/self/smaps_rollup").read_text().splitlines():
+            if line.startswith("AnonHugePages:"):
+                return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
     return float("nan")
 
 
@@ -198,9 +215,11 @@ def main() -> None:
     ap.add_argument("--check", action="store_true", help="load the last snapshot back")
     ap.add_argument("--in-process", action="store_true",
                     help="pickle on the worker (Snapshots.prepare), as before the fork")
+    ap.add_argument("--no-huge-pages", action="store_true",
+                    help="leave the server's memory in small pages after each snapshot")
     a = ap.parse_args()
     print(json.dumps(run(a.robots, a.steps, a.every, a.late, a.profile, a.check,
-                         not a.in_process), indent=1))
+                         not a.in_process, not a.no_huge_pages), indent=1))
 
 
 if __name__ == "__main__":

@@ -324,6 +324,8 @@ def test_a_snapshot_taken_by_a_forked_copy_is_the_one_taken_in_process(tmp_path:
     j.close()
     assert _body(forked.paths()[0]) == _body(inproc.paths()[0])
     assert forked.last_bytes > 0 and forked.last_cpu_s > 0
+    pages = forked.huge_pages     # the writer gathered the server's pages once the child left
+    assert pages is not None and (pages.unavailable or pages.runs == 1)
     loaded = Snapshots(tmp_path / "journal").load()       # a new server: the store's index
     assert loaded is not None and loaded[1] == 200
     core, since = loaded

@@ -266,6 +266,10 @@ class StateKeeper:
             "snapshot_bytes": self.snapshots.last_bytes,
             "snapshot_bytes_total": self.snapshot_bytes,
             "writing": j is not None}
+        if (pages := self.snapshots.huge_pages) is not None:
+            out["huge_pages"] = ({"unavailable": pages.unavailable} if pages.unavailable else
+                                 {"collapses": pages.runs, "seconds": round(pages.seconds, 3),
+                                  "ranges_left": pages.refused})
         if self.failures:
             out |= {"failures": dict(self.failures), "not_journaled": self.not_journaled,
                     "resumed": self.resumed, "last_error": self.last_error}

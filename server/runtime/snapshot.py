@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from server.runtime.hugepages import Collapser
 from server.runtime.snapfork import Forked, fork
 
 if TYPE_CHECKING:
@@ -197,6 +198,9 @@ class Snapshots:
         self.last_bytes = 0
         self._blobs: BlobStore | None = None
         self.use_fork = True      # ``begin`` forks (copy-on-write) where it can
+        #: after each child, the writer gathers the server's memory into huge pages again, so
+        #: the next fork copies few page tables (``server.runtime.hugepages``); None: not
+        self.huge_pages: Collapser | None = Collapser()
 
     @property
     def blobs(self) -> BlobStore:
@@ -275,7 +279,11 @@ class Snapshots:
         waited for and put in its place; its new arrays join the blob store's index."""
         if isinstance(job, Pending):
             return self.commit(job)
-        report = job.collect()
+        try:
+            report = job.collect()
+        finally:
+            if self.huge_pages is not None:   # no child lives now: every page is ours alone
+                self.huge_pages.collapse()
         blobs = self.blobs
         for digest, start, n in report["blobs"]:
             blobs.index[digest] = (start, n)
