@@ -43,6 +43,10 @@ import numpy as np
 from server.runtime.hugepages import Collapser
 from server.runtime.snapfork import Forked, fork
 
+#: the memory is gathered into huge pages after a snapshot whose fork held the worker this
+#: long (gathering costs the writer about 1 ms of CPU per MB; below this it is not worth it)
+COLLAPSE_ABOVE_HOLD_S = 0.004
+
 if TYPE_CHECKING:
     from server.core import ServerCore
 
@@ -282,7 +286,8 @@ class Snapshots:
         try:
             report = job.collect()
         finally:
-            if self.huge_pages is not None:   # no child lives now: every page is ours alone
+            # no child lives now: every page is ours alone. A small server forks fast anyway
+            if self.huge_pages is not None and job.hold_s >= COLLAPSE_ABOVE_HOLD_S:
                 self.huge_pages.collapse()
         blobs = self.blobs
         for digest, start, n in report["blobs"]:
