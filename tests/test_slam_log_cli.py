@@ -143,3 +143,23 @@ def test_scans_released_as_they_are_fed_give_the_same_poses(fr079_slice: Path) -
     assert stamps_a == stamps_b and len(stamps_a) == 120
     np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
     assert all(s is None for s in freed) and all(s is not None for s in kept)
+
+
+def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path) -> None:
+    """``mrslam slam-log`` reads a CARMEN log without the scans' ranges and reads them again
+    from the file as it feeds the scans (``read_recording(stream=True)``): the same poses
+    as from scans read whole, the broken lines skipped alike."""
+    from server.offline.slam_log import SlamLogConfig, process, read_recording
+
+    cfg = SlamLogConfig()
+    whole = read_recording(fr079_slice, cfg)
+    light = read_recording(fr079_slice, cfg, stream=True)
+    assert whole.lines is None and light.lines is not None
+    assert light.clog.stats.skipped == whole.clog.stats.skipped
+    assert all(len(s.record.ranges_m) == 0 for s in light.scans)
+    a, stamps_a, _, _ = process(whole.scans[:160], cfg.slam)
+    b, stamps_b, _, _ = process(light.scans[:160], cfg.slam, release=True,
+                                ranges_of=light.lines.ranges)
+    light.lines.close()
+    assert stamps_a == stamps_b and len(stamps_a) == 160
+    np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
