@@ -163,3 +163,28 @@ def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path
     light.lines.close()
     assert stamps_a == stamps_b and len(stamps_a) == 160
     np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
+
+
+@pytest.mark.e2e
+def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
+    """``skip_scipy_blas`` (slam-log) readies numba without mapping SciPy's BLAS; the
+    compiled kernels give the same answers, and SciPy's BLAS still imports afterwards."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from server.slam.jit_memory import skip_scipy_blas\n"
+        "assert skip_scipy_blas()\n"
+        "from server.slam.icp_kernel import build_grid\n"
+        "x0, y0, nx, ny, start, order = build_grid(np.array([0.0, 1.0]), np.array([0.0, 1.0]),"
+        " 0.5)\n"
+        "assert (nx, ny) == (5, 5) and sorted(order) == [0, 1], (nx, ny, order)\n"
+        "assert 'scipy.linalg.cython_blas' not in sys.modules\n"
+        "assert not skip_scipy_blas()\n"
+        "import scipy.linalg.cython_blas\n"
+        "print('ok')\n")
+    root = Path(__file__).resolve().parent.parent
+    res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr[-2000:]
