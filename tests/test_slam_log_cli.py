@@ -174,7 +174,7 @@ def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
 
     code = (
         "import sys, numpy as np\n"
-        "from server.slam.jit_memory import skip_scipy_blas\n"
+        "from server.slam.jit import skip_scipy_blas\n"
         "assert skip_scipy_blas()\n"
         "from server.slam.icp_kernel import build_grid\n"
         "x0, y0, nx, ny, start, order = build_grid(np.array([0.0, 1.0]), np.array([0.0, 1.0]),"
@@ -188,3 +188,24 @@ def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
     res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
                          text=True, timeout=300, check=False)
     assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr[-2000:]
+
+
+def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Where numba can write its cache nowhere (a read-only install, no writable home), it
+    refuses ``cache=True``; ``njit_cached`` then compiles without the cache, says so once,
+    and the function gives the same answer."""
+    from numba.core import caching
+
+    from server.slam import jit
+
+    def add_one(x: float) -> float:
+        return x + 1.0
+
+    assert type(jit.njit_cached(add_one)._cache).__name__ == "FunctionCache"  # type: ignore[attr-defined]
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
+    monkeypatch.setattr(jit, "_uncached", [])
+    with caplog.at_level("WARNING", logger="server.slam.jit"):
+        a, b = jit.njit_cached(add_one), jit.njit_cached(add_one)
+    assert type(a._cache).__name__ == "NullCache" and a(2.0) == 3.0 == b(2.0)  # type: ignore[attr-defined]
+    assert len(jit._uncached) == 2 and caplog.text.count("can write its cache nowhere") == 1
