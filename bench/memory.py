@@ -133,9 +133,9 @@ def make_long_log(name: str, passes: int, out: Path) -> tuple[str, float]:
 
 
 def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
+    from server.jit import skip_scipy_blas
     from server.offline.slam_log import SlamLogConfig, process, read_recording
     from server.slam.export import write_nav2, write_ply
-    from server.slam.jit import skip_scipy_blas
 
     skip_scipy_blas()   # as ``mrslam slam-log``
     cfg = SlamLogConfig()

@@ -174,7 +174,7 @@ def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
 
     code = (
         "import sys, numpy as np\n"
-        "from server.slam.jit import skip_scipy_blas\n"
+        "from server.jit import skip_scipy_blas\n"
         "assert skip_scipy_blas()\n"
         "from server.slam.icp_kernel import build_grid\n"
         "x0, y0, nx, ny, start, order = build_grid(np.array([0.0, 1.0]), np.array([0.0, 1.0]),"
@@ -197,7 +197,7 @@ def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
     and the function gives the same answer."""
     from numba.core import caching
 
-    from server.slam import jit
+    from server import jit
 
     def add_one(x: float) -> float:
         return x + 1.0
@@ -205,7 +205,7 @@ def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
     assert type(jit.njit_cached(add_one)._cache).__name__ == "FunctionCache"  # type: ignore[attr-defined]
     monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
     monkeypatch.setattr(jit, "_uncached", [])
-    with caplog.at_level("WARNING", logger="server.slam.jit"):
+    with caplog.at_level("WARNING", logger="server.jit"):
         a, b = jit.njit_cached(add_one), jit.njit_cached(add_one)
     assert type(a._cache).__name__ == "NullCache" and a(2.0) == 3.0 == b(2.0)  # type: ignore[attr-defined]
     assert len(jit._uncached) == 2 and caplog.text.count("can write its cache nowhere") == 1

@@ -203,7 +203,7 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from schemas.config_loading import load_config, validate, write_resolved
-    from server.slam.jit import skip_scipy_blas
+    from server.jit import skip_scipy_blas
 
     skip_scipy_blas()   # 14 MB that no kernel uses
     t0 = time.perf_counter()
