@@ -133,12 +133,17 @@ def make_long_log(name: str, passes: int, out: Path) -> tuple[str, float]:
 
 
 def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
-    from server.offline.slam_log import SlamLogConfig, _read, process
+    from server.jit import skip_scipy_blas
+    from server.offline.slam_log import SlamLogConfig, process, read_recording
     from server.slam.export import write_nav2, write_ply
 
+    skip_scipy_blas()   # as ``mrslam slam-log``
     cfg = SlamLogConfig()
-    clog, scans, _, _ = _read(log_path(name, out.parent), cfg, None, None)
-    clog.lasers.clear()       # as ``mrslam slam-log``: the scans are freed once fed
+    # as ``mrslam slam-log``: the scans read without their ranges, which are read again from
+    # the file as the scans are fed, and each scan freed once fed
+    rec = read_recording(log_path(name, out.parent), cfg, stream=True)
+    clog, scans = rec.clog, rec.scans
+    clog.lasers.clear()
     clog.odometry.clear()
     after_read = rss_mb()
     stamps_s = [s.record.stamp_s for s in scans]
@@ -154,7 +159,8 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
             next_t[0] = t + every_s
 
     cpu0 = time.process_time()
-    slam, stamps, _, _ = process(scans, cfg.slam, progress, release=True)
+    slam, stamps, _, _ = process(scans, cfg.slam, progress, release=True,
+                                 ranges_of=rec.lines.ranges if rec.lines else None)
     cpu = time.process_time() - cpu0
     samples.append([round(stamps_s[-1] - t_first, 1), round(rss_mb(), 1)])
     out.mkdir(parents=True, exist_ok=True)

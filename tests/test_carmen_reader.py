@@ -13,6 +13,7 @@ import pytest
 
 from server.offline.logs import (
     CarmenError,
+    LaserLines,
     attach_odometry,
     guess_beam_angles,
     read_log,
@@ -86,6 +87,32 @@ def test_every_line_type_and_bad_lines(tmp_path: Path, name: str) -> None:
     assert raw.laser_pose is None and raw.stamp_text == "10.500000"
     # the scans of one stream share one read-only array of beam angles (a long log's memory)
     assert with_remissions.angles_rad is rl.angles_rad and not rl.angles_rad.flags.writeable
+
+
+@pytest.mark.parametrize("name", ["log.clf", "log.clf.bz2"])
+def test_scans_read_without_ranges_get_them_again_from_the_file(tmp_path: Path,
+                                                               name: str) -> None:
+    """``read_log(keep_ranges=False)`` reads and checks every line as a full read does but
+    keeps no ranges; ``LaserLines`` reads each scan's ranges again, in file order, and
+    refuses a line asked out of order or a file changed between the passes."""
+    path = write(tmp_path / name, LOG)
+    full, light = read_log(path), read_log(path, keep_ranges=False)
+    assert [(r.kind, r.stamp_text, r.line_no) for r in light.lasers] == \
+        [(r.kind, r.stamp_text, r.line_no) for r in full.lasers]
+    assert light.stats.skipped == full.stats.skipped and len(light.odometry) == 2
+    assert all(len(r.ranges_m) == 0 for r in light.lasers)
+    lines = LaserLines(path)
+    for f, r in zip(full.lasers[::2], light.lasers[::2], strict=True):   # some skipped
+        np.testing.assert_array_equal(lines.ranges(r), f.ranges_m)
+    with pytest.raises(ValueError, match="asked after"):
+        lines.ranges(light.lasers[0])
+    lines.close()
+    changed = write(tmp_path / ("changed-" + name), LOG.replace("10.070000", "10.071000"))
+    lines = LaserLines(changed)
+    assert len(lines.ranges(light.lasers[0])) == 5
+    rl = next(r for r in light.lasers if r.stamp_text == "10.070000")
+    with pytest.raises(CarmenError, match=f"line {rl.line_no} no longer holds"):
+        lines.ranges(rl)
 
 
 def test_old_format_beam_geometry() -> None:

@@ -116,6 +116,19 @@ def test_nav2_export_round_trip(tmp_path: Path) -> None:
     assert set(np.unique(img)) <= {0, 205, 254}
 
 
+def test_point_cloud_gathered_in_chunks_is_the_whole_thinning() -> None:
+    """``point_cloud`` thins a few keyframes at a time (a long run's returns are never all in
+    memory): the same points, in the same order, as thinning all of them at once."""
+    from server.slam.keyframes import voxel_thin
+    from server.slam.mapping import hits_in_map
+
+    kfs = room_keyframes()
+    assert len(kfs) >= 4
+    (whole,) = voxel_thin(hits_in_map(kfs, POSES), 0.05)
+    for chunk in (1, 2, 3):
+        np.testing.assert_array_equal(point_cloud(kfs, POSES, 0.05, chunk=chunk), whole)
+
+
 def test_ply_round_trip(tmp_path: Path) -> None:
     kfs = room_keyframes()
     cloud = point_cloud(kfs, POSES, voxel_m=0.05)

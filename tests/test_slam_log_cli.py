@@ -143,3 +143,69 @@ def test_scans_released_as_they_are_fed_give_the_same_poses(fr079_slice: Path) -
     assert stamps_a == stamps_b and len(stamps_a) == 120
     np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
     assert all(s is None for s in freed) and all(s is not None for s in kept)
+
+
+def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path) -> None:
+    """``mrslam slam-log`` reads a CARMEN log without the scans' ranges and reads them again
+    from the file as it feeds the scans (``read_recording(stream=True)``): the same poses
+    as from scans read whole, the broken lines skipped alike."""
+    from server.offline.slam_log import SlamLogConfig, process, read_recording
+
+    cfg = SlamLogConfig()
+    whole = read_recording(fr079_slice, cfg)
+    light = read_recording(fr079_slice, cfg, stream=True)
+    assert whole.lines is None and light.lines is not None
+    assert light.clog.stats.skipped == whole.clog.stats.skipped
+    assert all(len(s.record.ranges_m) == 0 for s in light.scans)
+    a, stamps_a, _, _ = process(whole.scans[:160], cfg.slam)
+    b, stamps_b, _, _ = process(light.scans[:160], cfg.slam, release=True,
+                                ranges_of=light.lines.ranges)
+    light.lines.close()
+    assert stamps_a == stamps_b and len(stamps_a) == 160
+    np.testing.assert_array_equal(a.scan_poses()[1], b.scan_poses()[1])
+
+
+@pytest.mark.e2e
+def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
+    """``skip_scipy_blas`` (slam-log) readies numba without mapping SciPy's BLAS; the
+    compiled kernels give the same answers, and SciPy's BLAS still imports afterwards."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from server.jit import skip_scipy_blas\n"
+        "assert skip_scipy_blas()\n"
+        "from server.slam.icp_kernel import build_grid\n"
+        "x0, y0, nx, ny, start, order = build_grid(np.array([0.0, 1.0]), np.array([0.0, 1.0]),"
+        " 0.5)\n"
+        "assert (nx, ny) == (5, 5) and sorted(order) == [0, 1], (nx, ny, order)\n"
+        "assert 'scipy.linalg.cython_blas' not in sys.modules\n"
+        "assert not skip_scipy_blas()\n"
+        "import scipy.linalg.cython_blas\n"
+        "print('ok')\n")
+    root = Path(__file__).resolve().parent.parent
+    res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
+                         text=True, timeout=300, check=False)
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr[-2000:]
+
+
+def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """Where numba can write its cache nowhere (a read-only install, no writable home), it
+    refuses ``cache=True``; ``njit_cached`` then compiles without the cache, says so once,
+    and the function gives the same answer."""
+    from numba.core import caching
+
+    from server import jit
+
+    def add_one(x: float) -> float:
+        return x + 1.0
+
+    assert type(jit.njit_cached(add_one)._cache).__name__ == "FunctionCache"  # type: ignore[attr-defined]
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
+    monkeypatch.setattr(jit, "_uncached", [])
+    with caplog.at_level("WARNING", logger="server.jit"):
+        a, b = jit.njit_cached(add_one), jit.njit_cached(add_one)
+    assert type(a._cache).__name__ == "NullCache" and a(2.0) == 3.0 == b(2.0)  # type: ignore[attr-defined]
+    assert len(jit._uncached) == 2 and caplog.text.count("can write its cache nowhere") == 1

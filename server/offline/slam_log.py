@@ -29,6 +29,7 @@ from server.offline.logs import (
     read_log,
     select_stream,
 )
+from server.offline.logs.carmen import LaserLines
 from server.offline.logs.records import F64
 from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
@@ -71,7 +72,8 @@ def laser_offset(clog: CarmenLog, laser: str) -> float:
 
 def process(scans: Sequence[LogScan], cfg: SlamConfig,
             progress: Callable[[int], None] | None = None, *, jitter_fraction: float = 0.5,
-            front: ScanOdometry | None = None, release: bool = False
+            front: ScanOdometry | None = None, release: bool = False,
+            ranges_of: Callable[[LaserRecord], F64] | None = None
             ) -> tuple[RobotSlam, list[str], int, StampPlan]:
     """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
     it (``plan_stamps``); a scan a little early is fed just after the one before it. Scans
@@ -81,7 +83,10 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
 
     ``release``: ``scans`` is a list that is the scans' only holder, and each scan is dropped
     from it (set to None) once fed, so a long log's scans are freed while its map grows: the
-    peak is the larger of the two, not their sum."""
+    peak is the larger of the two, not their sum.
+
+    ``ranges_of``: where a scan's ranges come from, if not its record (a log read without
+    them: ``LaserLines.ranges``, asked in file order)."""
     slam = RobotSlam("a", cfg)
     accepted: list[str] = []
     rejected = 0
@@ -95,7 +100,7 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
         if release:
             cast("list[LogScan | None]", scans)[i] = None
         rec = s.record
-        ranges = rec.ranges_m
+        ranges = rec.ranges_m if ranges_of is None else ranges_of(rec)
         if rec.max_range_m is not None:  # a reading at the sensor's maximum is no return
             ranges = np.where(ranges >= rec.max_range_m, np.inf, ranges)
         try:
@@ -142,11 +147,16 @@ class Read:
     laser: str
     source: str
     bag: dict[str, object] | None = None   # ``BagInfo`` of a bag, for the summary
+    lines: LaserLines | None = None        # the scans' ranges, read again (``stream``)
 
 
 def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = None,
-                   odom_topic: str | None = None) -> Read:
-    """The scans of a CARMEN log or a ROS bag with their odometry (``cfg.odometry``)."""
+                   odom_topic: str | None = None, stream: bool = False) -> Read:
+    """The scans of a CARMEN log or a ROS bag with their odometry (``cfg.odometry``).
+
+    ``stream``: a CARMEN log's scans are read without their ranges, which ``lines`` reads
+    again from the file as the scans are fed (in file order), so that a long log is never
+    held whole (a bag is read whole)."""
     from server.offline.logs.odomcheck import OdometryLimits
     from server.offline.logs.rosbag import is_bag, read_bag
 
@@ -161,7 +171,8 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
     if scan_topic or odom_topic or cfg.laser_pose:
         raise CarmenError(f"{log_file}: --scan-topic, --odom-topic and --laser-pose are for ROS "
                           f"bags")
-    clog = read_log(log_file)
+    clog = read_log(log_file, keep_ranges=not stream)
+    lines = LaserLines(log_file) if stream else None
     if clog.stats.skipped_total:
         log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
                     clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])
@@ -171,10 +182,10 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
                     "taking it from scan matching", log_file)
         use_odometry = False
     if not use_odometry:
-        return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans")
+        return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans", lines=lines)
     source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
     scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser), source))
-    return Read(clog, scans, lasers[0].kind, source)
+    return Read(clog, scans, lasers[0].kind, source, lines=lines)
 
 
 def _read(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None,
@@ -192,13 +203,15 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from schemas.config_loading import load_config, validate, write_resolved
+    from server.jit import skip_scipy_blas
 
+    skip_scipy_blas()   # 14 MB that no kernel uses
     t0 = time.perf_counter()
     cfg = load_config(SlamLogConfig, config)
     given = {k: v for k, v in overrides.items() if v is not None}
     if given:
         cfg = validate(SlamLogConfig, {**cfg.model_dump(), **given})
-    rec = read_recording(Path(log_file), cfg, scan_topic, odom_topic)
+    rec = read_recording(Path(log_file), cfg, scan_topic, odom_topic, stream=True)
     scans = rec.scans
     n_scans = len(scans)
     duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
@@ -215,8 +228,11 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
         task = bar.add_task("scans", total=n_scans)
         slam, stamps, rejected, plan = process(
             scans, cfg.slam, lambda i: bar.update(task, completed=i),
-            jitter_fraction=cfg.stamp_jitter_fraction, front=front, release=True)
+            jitter_fraction=cfg.stamp_jitter_fraction, front=front, release=True,
+            ranges_of=rec.lines.ranges if rec.lines is not None else None)
         bar.update(task, completed=n_scans)
+    if rec.lines is not None:
+        rec.lines.close()
     t_slam = time.perf_counter()
     _, poses = slam.scan_poses()
     with open(out / "poses.txt", "w") as f:

@@ -11,8 +11,9 @@ the state (g, parents, closed set, heap) carries over.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from server.jit import njit_cached
 
 SQRT2 = float(np.sqrt(2.0))
 
@@ -53,12 +54,12 @@ class Search:
         return int(self.state[1])
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _less(fa: float, va: int, fb: float, vb: int) -> bool:
     return fa < fb or (fa == fb and va < vb)
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _sift_down(hf: NDArray[np.float64], hv: NDArray[np.int64], start: int, pos: int) -> None:
     nf, nv = hf[pos], hv[pos]
     while pos > start:
@@ -71,7 +72,7 @@ def _sift_down(hf: NDArray[np.float64], hv: NDArray[np.int64], start: int, pos: 
     hf[pos], hv[pos] = nf, nv
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _sift_up(hf: NDArray[np.float64], hv: NDArray[np.int64], pos: int, end: int) -> None:
     start = pos
     nf, nv = hf[pos], hv[pos]
@@ -87,7 +88,7 @@ def _sift_up(hf: NDArray[np.float64], hv: NDArray[np.int64], pos: int, end: int)
     _sift_down(hf, hv, start, pos)
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _expand(u: int, c: NDArray[np.float64], w2: int, gr: int, gc: int, min_cost: float,
             g: NDArray[np.float64], parent: NDArray[np.int64], closed: NDArray[np.uint8],
             hf: NDArray[np.float64], hv: NDArray[np.int64], n: int) -> int:
@@ -129,7 +130,7 @@ def _expand(u: int, c: NDArray[np.float64], w2: int, gr: int, gc: int, min_cost:
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _search(c: NDArray[np.float64], w2: int, goal: int, min_cost: float,
             g: NDArray[np.float64], parent: NDArray[np.int64], closed: NDArray[np.uint8],
             hf: NDArray[np.float64], hv: NDArray[np.int64], state: NDArray[np.int64],

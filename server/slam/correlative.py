@@ -21,6 +21,9 @@ from schemas.se2 import wrap_angle
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 MAX_SURVIVORS = 30000
+#: cells looked up per chunk of candidates: each chunk's index arrays take 16 bytes a cell
+#: (4 MB here; two million cells took about 50 MB of short-lived arrays at once)
+CHUNK_CELLS = 250_000
 
 
 @dataclass(frozen=True)
@@ -105,11 +108,15 @@ def _evaluate(level: NDArray[np.float32], cx: I64, cy: I64, a: I64, dx: I64, dy:
     """Mean of ``level`` over the points of candidates (angle index a, offset dx, dy)."""
     h, w = level.shape
     out = np.empty(len(a), dtype=np.float64)
-    chunk = max(1, 2_000_000 // max(cx.shape[1], 1))
+    chunk = max(1, CHUNK_CELLS // max(cx.shape[1], 1))
     for s in range(0, len(a), chunk):
         sl = slice(s, s + chunk)
-        ix = np.clip(cx[a[sl]] + dx[sl, None], 0, w - 1)
-        iy = np.clip(cy[a[sl]] + dy[sl, None], 0, h - 1)
+        ix = cx[a[sl]]
+        ix += dx[sl, None]
+        np.clip(ix, 0, w - 1, out=ix)
+        iy = cy[a[sl]]
+        iy += dy[sl, None]
+        np.clip(iy, 0, h - 1, out=iy)
         out[sl] = level[iy, ix].mean(axis=1)
     return out
 

@@ -36,7 +36,9 @@ def write_ply(path: Path, points_xy: NDArray[np.float64]) -> None:
     header = ("ply\nformat binary_little_endian 1.0\n"
               f"element vertex {len(pts)}\n"
               "property float x\nproperty float y\nproperty float z\nend_header\n")
-    path.write_bytes(header.encode("ascii") + pts.tobytes())
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        pts.tofile(f)
 
 
 def read_ply_xy(path: Path) -> NDArray[np.float64]:

@@ -14,8 +14,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
+
+from server.jit import njit_cached
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -24,7 +25,7 @@ I64 = NDArray[np.int64]
 CELL_M = 0.5
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def build_grid(px: F64, py: F64, cell_m: float) -> tuple[float, float, int, int, I64, I64]:
     """Points bucketed by cell: origin, columns, rows, each cell's first index into
     ``order`` (cells + 1 of them) and ``order`` (point indices, by cell, ascending within)."""
@@ -50,7 +51,7 @@ def build_grid(px: F64, py: F64, cell_m: float) -> tuple[float, float, int, int,
     return x0, y0, nx, ny, start, order
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _nearest(qx: float, qy: float, d_max: float, px: F64, py: F64, x0: float, y0: float,
              nx: int, ny: int, start: I64, order: I64, cell_m: float) -> int:
     """The index of the map point nearest (qx, qy) closer than ``d_max``, or -1."""
@@ -73,7 +74,7 @@ def _nearest(qx: float, qy: float, d_max: float, px: F64, py: F64, x0: float, y0
     return best
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _wrap(a: float) -> float:
     """(−π, π], bit for bit as ``schemas.se2.wrap_angle`` (``math.remainder``, which numba
     lacks: ``fmod`` is exact, and so is the one correction, by Sterbenz's lemma)."""
@@ -86,7 +87,7 @@ def _wrap(a: float) -> float:
     return math.pi if r == -math.pi else r
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _solve3(H: F64, g0: float, g1: float, g2: float, out: F64) -> bool:
     a, b, c = H[0, 0], H[0, 1], H[0, 2]
     e, f, i = H[1, 1], H[1, 2], H[2, 2]
@@ -103,7 +104,7 @@ def _solve3(H: F64, g0: float, g1: float, g2: float, out: F64) -> bool:
     return True
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def icp_loop(sx: F64, sy: F64, snx: F64, sny: F64, have_normals: bool,
              px: F64, py: F64, pnx: F64, pny: F64, grid_x0: float, grid_y0: float,
              grid_nx: int, grid_ny: int, grid_start: I64, grid_order: I64,

@@ -86,13 +86,17 @@ def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64) -> tuple[F64, F64]:
     return pts, nrm
 
 
+def voxel_keys(points: F64, voxel_m: float) -> NDArray[np.int64]:
+    """A key per point naming its ``voxel_m`` cell (``voxel_thin``'s)."""
+    ij = np.floor(points / voxel_m).astype(np.int64)
+    return ij[:, 0] * 1_000_003 + ij[:, 1]
+
+
 def voxel_thin(points: F64, voxel_m: float, *extra: F64) -> tuple[F64, ...]:
     """Keep the first point per ``voxel_m`` cell (and the matching rows of ``extra``)."""
     if len(points) == 0 or voxel_m <= 0:
         return (points, *extra)
-    ij = np.floor(points / voxel_m).astype(np.int64)
-    key = ij[:, 0] * 1_000_003 + ij[:, 1]
-    _, first = np.unique(key, return_index=True)
+    _, first = np.unique(voxel_keys(points, voxel_m), return_index=True)
     first.sort()
     return (points[first], *(e[first] for e in extra))
 

@@ -46,13 +46,14 @@ def edge_length_m(T_i_j: F64) -> float:
 
 @dataclass
 class Submap:
-    """Keyframes ``members`` in the frame of keyframe ``anchor``."""
+    """Keyframes ``members`` in the frame of keyframe ``anchor``. Its points are indexed for
+    ICP (``PointMap``) only when a search verifies a closure on it: a long log holds
+    thousands of submaps, and the index of each would stay for the whole run."""
 
     anchor: int
     members: list[int]
     points: F64
     normals: F64
-    point_map: PointMap
 
 
 @dataclass(frozen=True)
@@ -162,7 +163,7 @@ class LoopCloser:
             nrm = np.zeros((len(pts), 2)) if len(nrm) == 0 else nrm
         pts, nrm = np.array(pts), np.array(nrm)
         pts.flags.writeable = nrm.flags.writeable = False
-        self.submaps.append(Submap(anchor, members, pts, nrm, PointMap(pts, nrm)))
+        self.submaps.append(Submap(anchor, members, pts, nrm))
 
     def _field(self, sm_index: int) -> LikelihoodField:
         f = self._fields.get(sm_index)
@@ -246,7 +247,8 @@ class LoopCloser:
         if coarse.second_score > 0.0:  # another pose in the window fits almost as well
             self.stats.rejected_ambiguous += 1
             return None
-        res: MatchResult = icp(q_pts, q_nrm, sm.point_map, coarse.T_map_scan, self.icp_params)
+        res: MatchResult = icp(q_pts, q_nrm, PointMap(sm.points, sm.normals), coarse.T_map_scan,
+                               self.icp_params)
         if res.inlier_fraction < c.min_inlier_fraction or not math.isfinite(res.rms_m):
             self.stats.rejected_icp += 1
             return None

@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from schemas.se2 import transform_points, wrap_angle
 from server.slam.grid import GridParams, OccupancyGrid
-from server.slam.keyframes import Keyframe, voxel_thin
+from server.slam.keyframes import Keyframe, voxel_keys, voxel_thin
 
 F64 = NDArray[np.float64]
 
@@ -95,7 +95,24 @@ class GridMapper:
         return self.grid
 
 
-def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05) -> F64:
-    """All keyframe points in the map frame, one per ``voxel_m`` cell."""
-    (thin,) = voxel_thin(hits_in_map(keyframes, poses), voxel_m)
-    return thin
+def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05,
+                chunk: int = 64) -> F64:
+    """All keyframe points in the map frame, one per ``voxel_m`` cell: the first point of
+    each cell in keyframe order (``voxel_thin`` of them all), gathered ``chunk`` keyframes at
+    a time so that a long run's returns are never all in memory at once."""
+    if voxel_m <= 0 or len(keyframes) <= chunk:
+        (thin,) = voxel_thin(hits_in_map(keyframes, poses), voxel_m)
+        return thin
+    seen = np.zeros(0, dtype=np.int64)    # the cells kept so far, sorted
+    parts = []
+    for s in range(0, len(keyframes), chunk):
+        pts = hits_in_map(keyframes[s:s + chunk], poses[s:s + chunk])
+        if len(pts) == 0:
+            continue
+        key = voxel_keys(pts, voxel_m)
+        _, first = np.unique(key, return_index=True)
+        first.sort()
+        new = ~np.isin(key[first], seen, assume_unique=True)
+        parts.append(pts[first[new]])
+        seen = np.union1d(seen, key[first[new]])
+    return np.concatenate(parts) if parts else np.zeros((0, 2))

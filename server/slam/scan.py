@@ -12,9 +12,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
 from numpy.typing import NDArray
 
+from server.jit import njit_cached
 from server.slam.errors import SlamInputError
 
 F64 = NDArray[np.float64]
@@ -84,7 +84,7 @@ def line_normals(points: F64, window: int, max_gap_m: F64 | float,
     return _normals(pts, int(window), gap, idx)
 
 
-@njit(cache=True, nogil=True)
+@njit_cached
 def _normals(points: F64, window: int, gap: F64, idx: NDArray[np.int64]) -> F64:
     n, m = len(points), len(idx)
     out = np.full((m, 2), np.nan)

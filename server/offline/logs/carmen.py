@@ -19,12 +19,14 @@ otherwise a 180° field of view. Lines that are truncated or corrupt are skipped
 from __future__ import annotations
 
 import bz2
+import dataclasses
 import functools
 import gzip
 import io
 import logging
 import math
-from collections.abc import Iterator
+import sys
+from collections.abc import Generator
 from pathlib import Path
 from typing import IO
 
@@ -188,7 +190,7 @@ def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | 
     return kind
 
 
-def iter_lines(path: Path, stats: ReadStats) -> Iterator[tuple[int, str]]:
+def iter_lines(path: Path, stats: ReadStats) -> Generator[tuple[int, str], None, None]:
     """Numbered lines of a log; a damaged compressed stream ends the iteration, noted in stats."""
     try:
         with open_text(path) as f:
@@ -200,8 +202,17 @@ def iter_lines(path: Path, stats: ReadStats) -> Iterator[tuple[int, str]]:
         log.warning("%s: stream ends early after %d lines (%s)", path, stats.lines, e)
 
 
-def read_log(path: str | Path) -> CarmenLog:
-    """Read a CARMEN log; corrupt lines are skipped and counted in ``stats``."""
+#: the ranges of a scan read without them (``read_log(keep_ranges=False)``)
+NO_RANGES: F64 = np.zeros(0)
+NO_RANGES.flags.writeable = False
+
+
+def read_log(path: str | Path, keep_ranges: bool = True) -> CarmenLog:
+    """Read a CARMEN log; corrupt lines are skipped and counted in ``stats``.
+
+    ``keep_ranges=False``: every line is read and checked as usual, but the scans keep no
+    ranges (``NO_RANGES``); ``LaserLines`` reads them again, scan by scan, when they are used.
+    A long log's scans then take a few hundred bytes each instead of a few kilobytes."""
     p = Path(path)
     if not p.exists():
         raise CarmenError(f"{p}: no such file")
@@ -232,6 +243,8 @@ def read_log(path: str | Path) -> CarmenLog:
                     stats.skip("unknown message", line_no, f"unknown message type {rec[:20]!r}")
                 continue
             stats.by_kind[rec.kind if isinstance(rec, LaserRecord) else "ODOM"] += 1
+            if not keep_ranges and isinstance(rec, LaserRecord):
+                rec = dataclasses.replace(rec, kind=sys.intern(rec.kind), ranges_m=NO_RANGES)
             (lasers if isinstance(rec, LaserRecord) else odometry).append(rec)  # type: ignore[arg-type]
     except PermissionError as e:
         raise CarmenError(f"{p}: cannot read ({e.strerror})") from None
@@ -239,3 +252,36 @@ def read_log(path: str | Path) -> CarmenLog:
         raise CarmenError(f"{p}: no laser scans found ({stats.lines} lines, "
                           f"{stats.skipped_total} unreadable)")
     return CarmenLog(lasers, odometry, params, stats)
+
+
+class LaserLines:
+    """The ranges of a log's scans read again from the file, in file order: the second pass
+    of a log read with ``read_log(keep_ranges=False)``. Each call reads forward to the scan's
+    line; asking for an earlier line than the last is an error, as is a line that no longer
+    holds that scan (the file changed between the passes)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._lines = iter_lines(self.path, ReadStats())
+        self._at = 0
+
+    def ranges(self, rec: LaserRecord) -> F64:
+        """The ranges of ``rec`` (a scan of this log, read without its ranges)."""
+        if rec.line_no <= self._at:
+            raise ValueError(f"line {rec.line_no} asked after line {self._at}")
+        for line_no, line in self._lines:
+            self._at = line_no
+            if line_no < rec.line_no:
+                continue
+            try:
+                again = parse_line(line, line_no)
+            except LineError:
+                again = None
+            if isinstance(again, LaserRecord) and again.stamp_text == rec.stamp_text:
+                return again.ranges_m
+            break
+        raise CarmenError(f"{self.path}: line {rec.line_no} no longer holds the scan read "
+                          f"there (the file changed while it was read)")
+
+    def close(self) -> None:
+        self._lines.close()
