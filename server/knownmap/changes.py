@@ -13,8 +13,10 @@ compared with them, by two rules:
 2. **Changed**: a cell the map shows open where a new keyframe has a return (a door closed, a
    box brought in), or one it shows occupied that a new keyframe's beam passes through (a
    door opened, a box taken away), gets a vote; a cell with votes from
-   ``known_map.change_votes`` keyframes, beside at least ``SUPPORT`` other such cells (a
-   change is a stretch of wall, not one stray return), is a change. The older keyframes that
+   ``known_map.change_votes`` keyframes over ``CHANGE_SPAN_S`` at least, with ``SUPPORT``
+   other such cells within ``SUPPORT_M`` (a change is a stretch of wall that stays, not one
+   stray return; a new wall a later beam passes through was a robot or a person that moved
+   on, and its votes are dropped), is a change. The older keyframes that
    contradict it are retired: those whose beams passed through a new wall, those with a
    return on a wall that is gone. What they alone showed elsewhere becomes unknown again, for
    the team to explore.
@@ -37,6 +39,7 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Fleet, RobotContext
 from server.knownmap.config import KnownMapConfig
+from server.knownmap.mapdata import KnownMap, harvest
 from server.rendezvous.mapmatch import Layers, _cells
 from server.slam.keyframes import Keyframe
 
@@ -48,8 +51,17 @@ COVER = 0.8
 REACH_TOL_M = 0.15
 #: bearing bins of a keyframe's beams (half a degree)
 BINS = 720
+#: the keyframes that vote a cell changed must span this long [s] (what moves on, a robot or
+#: a person, is seen through meanwhile and its votes dropped)
+CHANGE_SPAN_S = 4.0
 #: confirmed cells of the same kind a changed cell needs within ``SUPPORT_M``
-SUPPORT, SUPPORT_M = 2, 0.3
+SUPPORT, SUPPORT_M = 4, 0.3
+#: an older keyframe's place is inspected once a new keyframe is this near it [m]
+INSPECT_M = 1.5
+#: changed cells an older keyframe must contradict to be retired
+CONTRA = 3
+#: keyframes of one mission this near each other are of one place (``slam.keyframes``' spacing)
+SAME_MISSION_M = 0.5
 #: retirements are applied (the map drawn again) at most this often [s]
 APPLY_S = 2.0
 #: an older return is gone when the new beams toward it (nearer than this, [m]) pass it by
@@ -99,13 +111,16 @@ class Upkeep:
 
     k: KnownMapConfig
     seen: dict[str, int] = field(default_factory=dict)        # robot -> keyframes compared
-    votes: dict[tuple[str, int, int], int] = field(default_factory=dict)
+    #: cell -> (keyframes that saw it changed, the first one's stamp)
+    votes: dict[tuple[str, int, int], tuple[int, int]] = field(default_factory=dict)
     confirmed: dict[tuple[str, int, int], int] = field(default_factory=dict)  # -> applied?
     pending: list[tuple[str, int, str, int, str]] = field(default_factory=list)
     #: robot -> (its keyframe, ghost, ghost's keyframe) retired because of it
     retired_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
     applied_ns: int = 0
     fresh: list[F64] = field(default_factory=list)      # changed cells not yet reported
+    claimed: list[tuple[float, float]] = field(default_factory=list)   # inspection goals
+    inspected: bool = False
     counts: dict[str, int] = field(default_factory=lambda: {
         "superseded": 0, "contradicted": 0, "changed_cells": 0})
     _cache: dict[tuple[str, int], tuple[F64, F64]] = field(default_factory=dict)
@@ -192,10 +207,27 @@ class Upkeep:
             found.append(("gone", xy[gone]))
         cells = {(kind, int(r), int(c)) for kind, xy in found
                  for c, r in np.floor(xy / step).astype(np.int64)}
+        self._clear(T, prof, step, cells)
         for key in cells:           # keyed by place, not by the view's cells
-            v = self.votes[key] = self.votes.get(key, 0) + 1
-            if v >= self.k.change_votes:
+            n, first = self.votes.get(key, (0, kf.stamp_ns))
+            self.votes[key] = (n + 1, first)
+            if n + 1 >= self.k.change_votes and kf.stamp_ns - first >= CHANGE_SPAN_S * 1e9:
                 self.confirmed.setdefault(key, 0)
+
+    def _clear(self, T: F64, prof: F64, step: float, cells: set[tuple[str, int, int]]) -> None:
+        """New walls the keyframe's beams pass through (not among its ``cells``) were
+        something that moved on (a robot, a person): their votes are dropped."""
+        keys = [key for key in self.votes if key[0] == "wall" and key not in cells
+                and not self.confirmed.get(key, 0)]
+        if not keys:
+            return
+        xy = np.array([((c + 0.5) * step, (r + 0.5) * step) for _, r, c in keys])
+        dist, got = reach(prof, T, xy)
+        for key, through in zip(keys, np.isfinite(got) & (got > dist + REACH_TOL_M),
+                                strict=True):
+            if through:
+                del self.votes[key]
+                self.confirmed.pop(key, None)
 
     def changed_xy(self, kind: str, step: float, fresh: bool = False) -> F64:
         """Centres of confirmed changed cells of ``kind`` (cells of ``step``) with enough
@@ -226,12 +258,43 @@ class Upkeep:
             hit = False
             if len(walls):          # its beams passed through where a wall now is
                 dist, got = reach(prof, T, walls)
-                hit = bool((np.isfinite(got) & (got > dist + REACH_TOL_M)).any())
+                hit = int((np.isfinite(got) & (got > dist + REACH_TOL_M)).sum()) >= CONTRA
             if not hit and len(gone) and len(xy):   # it saw a wall that is gone
                 d = np.hypot(xy[:, None, 0] - gone[None, :, 0], xy[:, None, 1] - gone[None, :, 1])
-                hit = bool((d.min(axis=0) <= 1.5 * lay.fine_m).any())
+                hit = int((d.min(axis=0) <= 1.5 * lay.fine_m).sum()) >= CONTRA
             if hit:
                 self.pending.append((rid, k, gid, i, "contradicted"))
+
+    # -- the pass over the map ---------------------------------------------------------------
+    def inspect_goal(self, fleet: Fleet, team_id: str, r: RobotContext
+                     ) -> tuple[float, float] | None:
+        """The nearest of the older keyframes' places no new keyframe (nor a robot sent
+        there) has come within ``INSPECT_M`` of; None once ``known_map.inspected_share`` of
+        them has been (the pass is over: the team explores what is unknown)."""
+        if self.inspected:
+            return None
+        old = self._old(fleet, team_id)
+        if not len(old.poses):
+            return None
+        xy = old.poses[:, :2]
+        team = fleet.teams[team_id]
+        new = [fleet.robots[rid].slam.keyframe_poses()[:, :2] for rid in team.robot_ids
+               if not fleet.robots[rid].ghost and fleet.robots[rid].slam.keyframes]
+        near = np.vstack([np.zeros((0, 2)), *new, np.array(self.claimed).reshape(-1, 2)])
+        seen = np.zeros(len(xy), dtype=bool)
+        for q in near:
+            seen |= np.hypot(xy[:, 0] - q[0], xy[:, 1] - q[1]) <= INSPECT_M
+        # the retired ones were seen again too
+        share = (seen.sum() + sum(len(g) for g in self.retired_by.values())) / \
+            (len(xy) + sum(len(g) for g in self.retired_by.values()))
+        if seen.all() or share >= self.k.inspected_share:
+            self.inspected = True
+            return None
+        d = np.hypot(xy[:, 0] - r.pose[0], xy[:, 1] - r.pose[1])
+        d[seen] = np.inf
+        x, y = xy[int(np.argmin(d))]
+        self.claimed.append((float(x), float(y)))
+        return float(x), float(y)
 
     # -- applying ----------------------------------------------------------------------------
     def apply(self, fleet: Fleet, now_ns: int) -> tuple[dict[str, int], list[F64]] | None:
@@ -268,6 +331,53 @@ class Upkeep:
                 g.retired.discard(i)
         self.seen[rid] = 0
         return len(back)
+
+
+def consolidated(known: KnownMap, supersede_m: float) -> tuple[KnownMap, int]:
+    """The map a mission leaves, its keyframes that newer ones see again dropped: the rule
+    of superseding (``COVER``, within ``supersede_m``), the newest first (by mission, then
+    stamp), among this mission's keyframes within ``SAME_MISSION_M`` (its robots passing the
+    same place again leave one) and between missions (an earlier one's for a later one's).
+    Returns the map and how many were dropped."""
+    if supersede_m <= 0 or len(known) < 2:
+        return known, 0
+
+    def mission_of(source: str) -> int:
+        head = source.split(":", 1)[0]
+        return int(head) if head.isdigit() else 0
+
+    missions = [mission_of(s) for s in known.sources]
+    last = max(missions)
+    order = sorted(range(len(known)), key=lambda k: (missions[k], known.keyframes[k].stamp_ns),
+                   reverse=True)
+    kept: list[int] = []
+    profs: dict[int, F64] = {}
+    for k in order:
+        kf, T = known.keyframes[k], known.poses[k]
+        # a keyframe of an earlier mission goes for a later one's; this mission's keep one
+        # per place as one robot's keyframes do (their spacing); earlier missions' own are
+        # left as those missions left them
+        near = [q for q in kept if math.hypot(*(known.poses[q, :2] - T[:2])) <= (
+            supersede_m if missions[q] > missions[k] else
+            min(supersede_m, SAME_MISSION_M) if missions[k] == last else -1.0)]
+        xy = transform_points(T, np.asarray(kf.hits, np.float64)) if near else np.zeros((0, 2))
+        covered = False
+        for q in near:
+            if q not in profs:
+                profs[q] = beams(known.keyframes[q])
+            dist, got = reach(profs[q], known.poses[q], xy)
+            if len(xy) and np.mean(np.isfinite(got) & (got >= dist - REACH_TOL_M)) >= COVER:
+                covered = True
+                break
+        if not covered:
+            kept.append(k)
+    keep = sorted(kept)
+    if len(keep) == len(known):
+        return known, 0
+    out = harvest([([known.sources[k] for k in keep], [known.keyframes[k] for k in keep],
+                    known.poses[keep])], known.resolution_m, known.anchor, known.missions,
+                  known.notes)
+    return out, len(known) - len(keep)
 
 
 def _regions(xy: F64, apart_m: float = 0.5) -> list[F64]:

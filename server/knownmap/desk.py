@@ -34,7 +34,7 @@ from server.config import ServerConfig
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext, Team
 from server.knownmap import ghosts
-from server.knownmap.changes import Upkeep
+from server.knownmap.changes import Upkeep, consolidated
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM
 from server.knownmap.mapdata import KnownMap
 from server.knownmap.placing import MapTarget, candidates, clear_winner, placements
@@ -62,6 +62,7 @@ class MapVersion:
     version: int
     target: MapTarget | None = None
     layers: Layers | None = None
+    older: Layers | None = None     # extend: the older keyframes' alone (``changes``)
 
 
 class KnownMapDesk:
@@ -103,21 +104,25 @@ class KnownMapDesk:
     def view(self) -> MapVersion:
         v = self._view
         if v is None or v.version != self.version:
-            grid = self._map_grid()
+            grid = self._map_grid(self.extend)
             v = self._view = MapVersion(self.version, MapTarget(grid, self.params),
                                         layers(grid, self.params.cell_m))
+            if self.extend:     # what this mission's keyframes are compared with
+                v.older = layers(self._map_grid(False), self.params.cell_m)
         return v
 
-    def _map_grid(self) -> OccupancyGrid:
-        """The map's grid: its own keyframes not retired, and (extend) what placed robots
-        added to it so far."""
+    def _map_grid(self, added: bool) -> OccupancyGrid:
+        """The map's grid: the keyframes its ghosts hold, not retired, and (``added``) those
+        placed robots added to it so far."""
         fleet = self.fleet
         kfs: list[Any] = []
         poses = [np.zeros((0, 3))]
-        for rid in fleet.teams[MAP_TEAM].robot_ids if self.extend else [MAP_ID]:
-            k, p = fleet.robots[rid].mapped_keyframes()
-            kfs += list(k)
-            poses.append(np.asarray(p).reshape(-1, 3))
+        for rid in fleet.teams[MAP_TEAM].robot_ids:
+            r = fleet.robots[rid]
+            if r.ghost or added:
+                k, p = r.mapped_keyframes()
+                kfs += list(k)
+                poses.append(np.asarray(p).reshape(-1, 3))
         return render_grid(fleet.stages.mapper().params, kfs, np.concatenate(poses))
 
     def map_changed(self) -> None:
@@ -213,7 +218,9 @@ class KnownMapDesk:
         a = scan_agreement(lay, r.pose, scan_points(ranges, angles, r.sensor_range_m))
         if not w.update(a, stamp_ns, len(r.slam.keyframes)):
             if self.upkeep is not None and w.bad_since_ns is None:
-                self._keep_up(r, lay, stamp_ns)
+                older = self.view().older
+                assert older is not None
+                self._keep_up(r, older, stamp_ns)
         else:
             self._lose(r, w, stamp_ns)
             # it starts afresh from this scan, its first keyframe
@@ -241,6 +248,19 @@ class KnownMapDesk:
                 stamp_ns, figures={"x0": float(x0), "y0": float(y0), "x1": float(x1),
                                    "y1": float(y1), "cells": float(len(xy)),
                                    **{k: float(v) for k, v in counts.items()}})
+
+    def inspect_goal(self, r: RobotContext) -> tuple[float, float] | None:
+        """Extend with ``known_map.inspect``: where ``r`` (placed, without an errand) goes
+        next on its pass over the map (``changes.Upkeep.inspect_goal``); None: nowhere."""
+        if self.upkeep is None or not self.k.inspect or r.team_id != MAP_TEAM or \
+                r.robot_id not in self.watches:
+            return None
+        return self.upkeep.inspect_goal(self.fleet, MAP_TEAM, r)
+
+    def unreachable(self, goal: tuple[float, float], why: str) -> None:
+        assert self.upkeep is not None
+        self.upkeep.claimed.append(goal)
+        log.info("inspection goal (%.1f, %.1f) skipped: %s", *goal, why)
 
     def _lose(self, r: RobotContext, w: LossWatch, stamp_ns: int) -> None:
         why = (f"{w.last.conflict} of {w.last.known} returns on mapped ground in open space "
@@ -284,6 +304,10 @@ class KnownMapDesk:
                                 self.notes)
         if known is not None:
             known.anchor = self.known_anchor
+        if known is not None and self.extend:
+            known, dropped = consolidated(known, self.k.supersede_m)
+            if dropped:
+                log.info("map left: %d keyframes that newer ones see again dropped", dropped)
         return known
 
     def summary(self) -> dict[str, Any]:
