@@ -62,6 +62,7 @@ from bench.support.known_mission import (  # noqa: E402
     pose_away,
 )
 from bench.support.survey import survey_map  # noqa: E402
+from schemas.se2 import compose, inverse  # noqa: E402
 from server.command.operator import OperatorCommand  # noqa: E402
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM  # noqa: E402
 from server.knownmap.mapdata import KnownMap  # noqa: E402
@@ -240,6 +241,10 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
             "vs_first": None if up_to_date is None else round(up_to_date / first_s, 3),
             "goal_vs_first": 0.30, "placed": len(m.placed),
             "map_changed_regions": len(regions), "false_changes": len(false),
+            "false_changes_at_world": [
+                [round(float(v), 2) for v in compose(frame, np.array(
+                    [(g["x0"] + g["x1"]) / 2, (g["y0"] + g["y1"]) / 2, 0.0]))[:2]]
+                + [int(g["cells"])] for g in false],
             "upkeep": m.core.known.summary().get("upkeep"),
             "keyframes_left": len(m.core.known.mission_map() or []),
             "map_known_m2": dict(zip(["start", "all_shown", "end"] if len(known_m2) == 3
@@ -261,7 +266,6 @@ def _occupied_near(grid: Any, xy: np.ndarray, r: float) -> bool:
 
 
 def _to_map(frame: np.ndarray, p: np.ndarray) -> np.ndarray:
-    from schemas.se2 import compose, inverse
     return compose(inverse(frame), p)
 
 

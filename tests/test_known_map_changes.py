@@ -60,7 +60,7 @@ def test_a_closed_door_is_shown_closed_after_one_pass(house: KnownMap) -> None:
     after, _ = _occupied(m, left, *door)
     assert after > 0, "the map left shows the door closed"
     counts = m.core.known.upkeep.counts
-    assert counts["contradicted"] >= 1 and counts["superseded"] >= 1
+    assert counts["trimmed"] >= 1 and counts["superseded"] >= 1
     # what it retired is out of the map left: it holds fewer of the survey's keyframes
     assert sum(s == "survey" for s in left.sources) <= len(house) - counts["superseded"]
 

@@ -11,25 +11,23 @@ compared with them, by two rules:
    it. Where robots pass again the map keeps about one keyframe per place, so it does not
    grow from mission to mission.
 2. **Changed**: a cell the map shows open where a new keyframe has a return (a door closed, a
-   box brought in), or one it shows occupied that a new keyframe's beam passes through (a
+   box brought in), or where an older return lies that the new beams pass well beyond (a
    door opened, a box taken away), gets a vote; a cell with votes from
    ``known_map.change_votes`` keyframes over ``CHANGE_SPAN_S`` at least, with ``SUPPORT``
    other such cells within ``SUPPORT_M`` (a change is a stretch of wall that stays, not one
    stray return; a new wall a later beam passes through was a robot or a person that moved
-   on, and its votes are dropped), is a change. The older keyframes that
-   contradict it are retired: those whose beams passed through a new wall, those with a
-   return on a wall that is gone. What they alone showed elsewhere becomes unknown again, for
-   the team to explore.
+   on, and its votes are dropped), is a change. The older keyframes that contradict it are
+   cut (``trimmed``): their beams through a new wall, their returns on a wall that is gone,
+   are dropped from what the map is drawn from; the rest of what they show stays.
 
 Retired keyframes stay in the graph (held by their priors, they move nothing) and out of the
-map drawn and the map left for the next mission. Retirements are applied together at most
-every ``APPLY_S`` (each makes the team's map be drawn again). A robot found lost gives back
-what its keyframes since it went astray retired. No I/O here.
+map drawn and the map left for the next mission; cut ones are written cut. Both are applied
+together at most every ``APPLY_S`` (each makes the team's map be drawn again). A robot found
+lost gives back what its keyframes since it went astray retired or cut. No I/O here.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,18 +37,13 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Fleet, RobotContext
 from server.knownmap.config import KnownMapConfig
-from server.knownmap.mapdata import KnownMap, harvest
+from server.knownmap.views import BINS, COVER, REACH_TOL_M, _bins, beams, reach
 from server.rendezvous.mapmatch import Layers, _cells
 from server.slam.keyframes import Keyframe
+from server.slam.render_store import RenderScan
 
 F64 = NDArray[np.float64]
 
-#: share of an older keyframe's returns a newer one's beams must reach to supersede it
-COVER = 0.8
-#: how far short of a return a beam may end and still reach it [m]
-REACH_TOL_M = 0.15
-#: bearing bins of a keyframe's beams (half a degree)
-BINS = 720
 #: the keyframes that vote a cell changed must span this long [s] (what moves on, a robot or
 #: a person, is seen through meanwhile and its votes dropped)
 CHANGE_SPAN_S = 4.0
@@ -58,43 +51,14 @@ CHANGE_SPAN_S = 4.0
 SUPPORT, SUPPORT_M = 4, 0.3
 #: an older keyframe's place is inspected once a new keyframe is this near it [m]
 INSPECT_M = 1.5
-#: changed cells an older keyframe must contradict to be retired
-CONTRA = 3
-#: keyframes of one mission this near each other are of one place (``slam.keyframes``' spacing)
-SAME_MISSION_M = 0.5
+#: beams an older keyframe must have through changed cells to be cut; a beam passing this
+#: many cells from a changed cell's centre passes through it
+CONTRA, CROSS_CELLS = 3, 0.75
 #: retirements are applied (the map drawn again) at most this often [s]
 APPLY_S = 2.0
 #: an older return is gone when the new beams toward it (nearer than this, [m]) pass it by
 #: this much [m]
 PASS_FROM_M, PASS_MARGIN_M = 0.3, 0.3
-
-
-def beams(kf: Keyframe) -> F64:
-    """A keyframe's beams by bearing (``BINS``): how far each reached (a return or the end of
-    an empty beam), NaN where it had none; each bin the farthest of it and its neighbours."""
-    pts = np.asarray(kf.render.stored(), dtype=np.float64)
-    out = np.full(BINS, np.nan)
-    if not len(pts):
-        return out
-    b = _bins(np.arctan2(pts[:, 1], pts[:, 0]))
-    np.fmax.at(out, b, np.hypot(pts[:, 0], pts[:, 1]))
-    return out
-
-
-def _bins(bearing: F64) -> NDArray[np.int64]:
-    return (np.floor((bearing + math.pi) / (2 * math.pi) * BINS).astype(np.int64)) % BINS
-
-
-def reach(prof: F64, T_kf: F64, xy: F64) -> tuple[F64, F64]:
-    """For points in the map frame: their distance from the keyframe at ``T_kf``, and how far
-    its beams toward them reached (the farthest of the nearest three bins; NaN: no beam)."""
-    q = transform_points(inverse(T_kf), xy)
-    b = _bins(np.arctan2(q[:, 1], q[:, 0]))
-    near = np.stack([prof[(b + s) % BINS] for s in (-1, 0, 1)])
-    ok = np.isfinite(near).any(axis=0)
-    r = np.full(len(b), np.nan)
-    r[ok] = np.nanmax(near[:, ok], axis=0)
-    return np.hypot(q[:, 0], q[:, 1]), r
 
 
 @dataclass
@@ -117,12 +81,17 @@ class Upkeep:
     pending: list[tuple[str, int, str, int, str]] = field(default_factory=list)
     #: robot -> (its keyframe, ghost, ghost's keyframe) retired because of it
     retired_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
+    #: older keyframes cut to what the changes leave true: (robot, its keyframe, ghost,
+    #: ghost's keyframe, the keyframe cut), to apply; those applied, by robot; the originals
+    trims: list[tuple[str, int, str, int, Keyframe]] = field(default_factory=list)
+    trimmed_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
+    originals: dict[tuple[str, int], Keyframe] = field(default_factory=dict)
     applied_ns: int = 0
     fresh: list[F64] = field(default_factory=list)      # changed cells not yet reported
     claimed: list[tuple[float, float]] = field(default_factory=list)   # inspection goals
     inspected: bool = False
     counts: dict[str, int] = field(default_factory=lambda: {
-        "superseded": 0, "contradicted": 0, "changed_cells": 0})
+        "superseded": 0, "trimmed": 0, "changed_cells": 0})
     _cache: dict[tuple[str, int], tuple[F64, F64]] = field(default_factory=dict)
 
     def __getstate__(self) -> dict[str, Any]:
@@ -252,18 +221,31 @@ class Upkeep:
             return
         self.counts["changed_cells"] += len(walls) + len(gone)
         self.fresh += [walls, gone]
+        r_m = CROSS_CELLS * lay.fine_m
         for gid, i in old.owners:
-            xy, prof = self._hits(fleet, gid, i)
-            T = fleet.robots[gid].slam.keyframe_pose(i)
-            hit = False
-            if len(walls):          # its beams passed through where a wall now is
-                dist, got = reach(prof, T, walls)
-                hit = int((np.isfinite(got) & (got > dist + REACH_TOL_M)).sum()) >= CONTRA
-            if not hit and len(gone) and len(xy):   # it saw a wall that is gone
-                d = np.hypot(xy[:, None, 0] - gone[None, :, 0], xy[:, None, 1] - gone[None, :, 1])
-                hit = int((d.min(axis=0) <= 1.5 * lay.fine_m).sum()) >= CONTRA
-            if hit:
-                self.pending.append((rid, k, gid, i, "contradicted"))
+            g = fleet.robots[gid]
+            kf, T = g.slam.keyframes[i], g.slam.keyframe_pose(i)
+            pts = np.asarray(kf.render.stored(), dtype=np.float64)
+            drop = np.zeros(len(pts), dtype=bool)
+            if len(walls):          # its beams that passed where a wall now is
+                c = transform_points(inverse(T), walls)
+                rng = np.hypot(pts[:, 0], pts[:, 1])
+                u = pts / np.maximum(rng, 1e-9)[:, None]
+                t = u @ c.T                                     # (N, M) along each beam
+                perp = np.abs(u[:, :1] * c[None, :, 1] - u[:, 1:] * c[None, :, 0])
+                drop |= ((t > 0) & (t < rng[:, None] - REACH_TOL_M) & (perp <= r_m)).any(axis=1)
+            if len(gone):           # its returns on a wall that is gone
+                c = transform_points(inverse(T), gone)
+                h = pts[:kf.render.n_hits]
+                d = np.hypot(h[:, None, 0] - c[None, :, 0], h[:, None, 1] - c[None, :, 1])
+                drop[:len(h)] |= d.min(axis=1) <= r_m
+            if drop.sum() >= CONTRA:
+                n = kf.render.n_hits
+                keep = ~drop
+                render = RenderScan.of(pts[:n][keep[:n]], pts[n:][keep[n:]])
+                self.trims.append((rid, k, gid, i, Keyframe(kf.index, kf.stamp_ns,
+                                                              kf.T_odom_robot, kf.matchable,
+                                                              render)))
 
     # -- the pass over the map ---------------------------------------------------------------
     def inspect_goal(self, fleet: Fleet, team_id: str, r: RobotContext
@@ -301,12 +283,12 @@ class Upkeep:
         """Retire what is pending, if ``APPLY_S`` has passed since the last time: how many
         by each rule, and the changed regions found since (each its changed cells' centres);
         None: nothing applied."""
-        if not self.pending or now_ns - self.applied_ns < APPLY_S * 1e9:
+        if not (self.pending or self.trims) or now_ns - self.applied_ns < APPLY_S * 1e9:
             return None
         self.applied_ns = now_ns
         regions = _regions(np.vstack([np.zeros((0, 2)), *self.fresh]))
         self.fresh = []
-        done = {"superseded": 0, "contradicted": 0}
+        done = {"superseded": 0, "trimmed": 0}
         for rid, k, gid, i, why in self.pending:
             g = fleet.robots.get(gid)
             if g is None or i in g.retired:
@@ -317,12 +299,31 @@ class Upkeep:
             done[why] += 1
             self.counts[why] += 1
         self.pending = []
+        for rid, k, gid, i, kf in self.trims:
+            g = fleet.robots.get(gid)
+            if g is None or i in g.retired:
+                continue
+            self.originals.setdefault((gid, i), g.slam.keyframes[i])
+            g.slam.keyframes[i] = kf
+            self.trimmed_by.setdefault(rid, []).append((k, gid, i))
+            self._cache.pop((gid, i), None)
+            done["trimmed"] += 1
+            self.counts["trimmed"] += 1
+        self.trims = []
         return (done, regions) if any(done.values()) or regions else None
 
     def forget(self, fleet: Fleet, rid: str, kept: int) -> int:
         """``rid`` is lost: what its keyframes from ``kept`` on retired is drawn again, and its
         new keyframes are compared from its first. Returns how many were given back."""
         self.pending = [p for p in self.pending if not (p[0] == rid and p[1] >= kept)]
+        self.trims = [p for p in self.trims if not (p[0] == rid and p[1] >= kept)]
+        cut = [t for t in self.trimmed_by.get(rid, []) if t[0] >= kept]
+        self.trimmed_by[rid] = [t for t in self.trimmed_by.get(rid, []) if t[0] < kept]
+        for _, gid, i in cut:
+            g, kf = fleet.robots.get(gid), self.originals.pop((gid, i), None)
+            if g is not None and kf is not None:
+                g.slam.keyframes[i] = kf
+                self._cache.pop((gid, i), None)
         back = [t for t in self.retired_by.get(rid, []) if t[0] >= kept]
         self.retired_by[rid] = [t for t in self.retired_by.get(rid, []) if t[0] < kept]
         for _, gid, i in back:
@@ -330,54 +331,7 @@ class Upkeep:
             if g is not None:
                 g.retired.discard(i)
         self.seen[rid] = 0
-        return len(back)
-
-
-def consolidated(known: KnownMap, supersede_m: float) -> tuple[KnownMap, int]:
-    """The map a mission leaves, its keyframes that newer ones see again dropped: the rule
-    of superseding (``COVER``, within ``supersede_m``), the newest first (by mission, then
-    stamp), among this mission's keyframes within ``SAME_MISSION_M`` (its robots passing the
-    same place again leave one) and between missions (an earlier one's for a later one's).
-    Returns the map and how many were dropped."""
-    if supersede_m <= 0 or len(known) < 2:
-        return known, 0
-
-    def mission_of(source: str) -> int:
-        head = source.split(":", 1)[0]
-        return int(head) if head.isdigit() else 0
-
-    missions = [mission_of(s) for s in known.sources]
-    last = max(missions)
-    order = sorted(range(len(known)), key=lambda k: (missions[k], known.keyframes[k].stamp_ns),
-                   reverse=True)
-    kept: list[int] = []
-    profs: dict[int, F64] = {}
-    for k in order:
-        kf, T = known.keyframes[k], known.poses[k]
-        # a keyframe of an earlier mission goes for a later one's; this mission's keep one
-        # per place as one robot's keyframes do (their spacing); earlier missions' own are
-        # left as those missions left them
-        near = [q for q in kept if math.hypot(*(known.poses[q, :2] - T[:2])) <= (
-            supersede_m if missions[q] > missions[k] else
-            min(supersede_m, SAME_MISSION_M) if missions[k] == last else -1.0)]
-        xy = transform_points(T, np.asarray(kf.hits, np.float64)) if near else np.zeros((0, 2))
-        covered = False
-        for q in near:
-            if q not in profs:
-                profs[q] = beams(known.keyframes[q])
-            dist, got = reach(profs[q], known.poses[q], xy)
-            if len(xy) and np.mean(np.isfinite(got) & (got >= dist - REACH_TOL_M)) >= COVER:
-                covered = True
-                break
-        if not covered:
-            kept.append(k)
-    keep = sorted(kept)
-    if len(keep) == len(known):
-        return known, 0
-    out = harvest([([known.sources[k] for k in keep], [known.keyframes[k] for k in keep],
-                    known.poses[keep])], known.resolution_m, known.anchor, known.missions,
-                  known.notes)
-    return out, len(known) - len(keep)
+        return len(back) + len(cut)
 
 
 def _regions(xy: F64, apart_m: float = 0.5) -> list[F64]:

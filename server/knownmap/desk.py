@@ -34,11 +34,12 @@ from server.config import ServerConfig
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext, Team
 from server.knownmap import ghosts
-from server.knownmap.changes import Upkeep, consolidated
+from server.knownmap.changes import Upkeep
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM
 from server.knownmap.mapdata import KnownMap
 from server.knownmap.placing import MapTarget, candidates, clear_winner, placements
 from server.knownmap.search import Guess, Search
+from server.knownmap.views import consolidated
 from server.knownmap.watch import LossWatch, scan_agreement, scan_points
 from server.rendezvous.evidence import MergeProposal
 from server.rendezvous.mapmatch import Layers, MatchParams, layers
