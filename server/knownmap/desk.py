@@ -231,7 +231,7 @@ class KnownMapDesk:
 
     def _keep_up(self, r: RobotContext, lay: Layers, stamp_ns: int) -> None:
         """Extend: ``r``'s new keyframes compared with the map; what they show out of date
-        retired (``changes``), now and then, and the changed regions reported."""
+        retired or cut (``changes``), now and then, and the changed regions reported."""
         assert self.upkeep is not None
         self.upkeep.on_scan(self.fleet, MAP_TEAM, r, lay)
         done = self.upkeep.apply(self.fleet, stamp_ns)
@@ -245,7 +245,7 @@ class KnownMapDesk:
             self.events.emit(
                 "map_changed", [r.robot_id], MAP_TEAM,
                 f"the building has changed at ({x0:.1f}, {y0:.1f})–({x1:.1f}, {y1:.1f}): "
-                f"{len(xy)} cells; the map's views that showed it otherwise retired",
+                f"{len(xy)} cells; the map's views that showed it otherwise cut",
                 stamp_ns, figures={"x0": float(x0), "y0": float(y0), "x1": float(x1),
                                    "y1": float(y1), "cells": float(len(xy)),
                                    **{k: float(v) for k, v in counts.items()}})
