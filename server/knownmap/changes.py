@@ -51,6 +51,8 @@ CHANGE_SPAN_S = 4.0
 SUPPORT, SUPPORT_M = 4, 0.3
 #: an older keyframe's place is inspected once a new keyframe is this near it [m]
 INSPECT_M = 1.5
+#: a place on the pass is worth the places not seen again within this of it [m]
+GAIN_M = 3.0
 #: beams an older keyframe must have through changed cells to be cut; a beam passing this
 #: many cells from a changed cell's centre passes through it
 CONTRA, CROSS_CELLS = 3, 0.75
@@ -250,9 +252,10 @@ class Upkeep:
     # -- the pass over the map ---------------------------------------------------------------
     def inspect_goal(self, fleet: Fleet, team_id: str, r: RobotContext
                      ) -> tuple[float, float] | None:
-        """The nearest of the older keyframes' places no new keyframe (nor a robot sent
-        there) has come within ``INSPECT_M`` of; None once ``known_map.inspected_share`` of
-        them has been (the pass is over: the team explores what is unknown)."""
+        """Of the older keyframes' places no new keyframe (nor a robot sent there) has come
+        within ``INSPECT_M`` of, the one with most such places within ``GAIN_M``, for the
+        way there; None once ``known_map.inspected_share`` of them has been (the pass is
+        over: the team explores what is unknown)."""
         if self.inspected:
             return None
         old = self._old(fleet, team_id)
@@ -272,9 +275,14 @@ class Upkeep:
         if seen.all() or share >= self.k.inspected_share:
             self.inspected = True
             return None
+        # the place whose neighbourhood holds most places not seen again, for the way there
         d = np.hypot(xy[:, 0] - r.pose[0], xy[:, 1] - r.pose[1])
-        d[seen] = np.inf
-        x, y = xy[int(np.argmin(d))]
+        todo = xy[~seen]
+        gain = (np.hypot(xy[:, None, 0] - todo[None, :, 0], xy[:, None, 1] - todo[None, :, 1])
+                <= GAIN_M).sum(axis=1)
+        score = gain / (d + 1.0)
+        score[seen] = -1.0
+        x, y = xy[int(np.argmax(score))]
         self.claimed.append((float(x), float(y)))
         return float(x), float(y)
 

@@ -52,8 +52,9 @@ class KnownMapConfig(ConfigModel):
         "map's views that contradict the change are retired")
     inspect: bool = Field(
         True, description="extend: placed robots first pass over the map, each sent to the "
-        "nearest place of the map's keyframes no robot has come within 1.5 m of in this "
-        "mission, before they explore what is unknown")
+        "place of the map's keyframes with most places no robot of this mission has come "
+        "within 1.5 m of around it (3 m), for the way there, before they explore what is "
+        "unknown")
     inspected_share: float = Field(
         0.95, gt=0.0, le=1.0, description="extend: the pass is over when this share of "
         "the map's keyframes has had a robot of this mission within 1.5 m (or retired)")
