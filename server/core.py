@@ -99,6 +99,7 @@ class ServerCore:
         self.known = None if known is None else KnownMapDesk(cfg, self.fleet, self.merger,
                                                               self.events, known)
         if self.known is not None:   # its map is there to see (and plan on) from the start
+            self.progress.hold = self.known.on_pass
             self.progress.update(0, MAP_TEAM)
 
     def use_pools(self, planner: Callable[[], Executor | None],

@@ -34,7 +34,7 @@ from server.config import ServerConfig
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext, Team
 from server.knownmap import ghosts
-from server.knownmap.changes import Upkeep
+from server.knownmap.changes import SUPPORT, Upkeep
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM
 from server.knownmap.mapdata import KnownMap
 from server.knownmap.placing import MapTarget, candidates, clear_winner, placements
@@ -241,6 +241,8 @@ class KnownMapDesk:
         if any(counts.values()):
             self.map_changed()
         for xy in regions:
+            if len(xy) <= SUPPORT:      # a few more cells of a change reported before
+                continue
             (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
             self.events.emit(
                 "map_changed", [r.robot_id], MAP_TEAM,
@@ -257,6 +259,12 @@ class KnownMapDesk:
                 r.robot_id not in self.watches:
             return None
         return self.upkeep.inspect_goal(self.fleet, MAP_TEAM, r)
+
+    def on_pass(self, team: Team) -> bool:
+        """The map's team is on its pass over the map (extend, ``inspect``): not done yet,
+        whatever its coverage (the map it started with has it)."""
+        return (team.team_id == MAP_TEAM and self.upkeep is not None and self.k.inspect
+                and not self.upkeep.inspected)
 
     def unreachable(self, goal: tuple[float, float], why: str) -> None:
         assert self.upkeep is not None
