@@ -23,12 +23,25 @@ found again; prints JSON.
     PYTHONPATH=. python bench/known_map.py [--seeds 10] [--first-seed 0] [--robots 3]
         [--wings-seeds 3] [--lost-seeds 5] [--out out/known_map]
     PYTHONPATH=. python bench/known_map.py --missions 4 [--mode extend|localize]
+
+6. **A changed building** (``--changed``): the small house's map, the robots at the first
+   exploration's spawns in ``small_house.changed`` (two doors closed, three boxes brought
+   in), ``extend`` mode, the server's pass over the map on (``known_map.inspect``). The
+   time until every change shows in the
+   team's map (an occupied cell within 0.15 m of a closed door's centre, or of a box's
+   sides) against the first exploration's time to its coverage (goal: 30 % or less), the
+   ``map_changed`` regions farther than 1 m from every change (false changes), and the map's
+   known area at the start, when every change is shown and at ``--changed-time`` (what the
+   retired keyframes alone had shown is unknown until the robots see it again).
+
+    PYTHONPATH=. python bench/known_map.py --changed [--changed-time 72]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import time
@@ -49,13 +62,15 @@ from bench.support.known_mission import (  # noqa: E402
     pose_away,
 )
 from bench.support.survey import survey_map  # noqa: E402
+from schemas.se2 import compose, inverse  # noqa: E402
 from server.command.operator import OperatorCommand  # noqa: E402
-from server.knownmap.ghosts import MAP_ID  # noqa: E402
+from server.knownmap.ghosts import MAP_ID, MAP_TEAM  # noqa: E402
 from server.knownmap.mapdata import KnownMap  # noqa: E402
 from server.runtime.mapfind import find_map  # noqa: E402
 from server.runtime.mapstore import read_map, write_map  # noqa: E402
 
 HOUSE, WINGS = WORLDS / "small_house.world", WORLDS / "ambiguous_wings.world"
+CHANGED = WORLDS / "small_house.changed.world"
 GOALS = {"placed_within_s": 15.0, "placed_share": 0.9, "error_m": 0.10, "error_deg": 1.0,
          "wrong": 0, "noticed_s": 5.0, "placed_again_s": 20.0, "map_moved_m": 0.05}
 
@@ -171,17 +186,86 @@ def mission_chain(known: KnownMap, frame: np.ndarray, missions: int, mode: str,
         assert m.core.known is not None
         left = m.core.known.mission_map()
         assert left is not None
+        from server.slam.mapping import render_grid
+        mapped = render_grid(m.core.fleet.stages.mapper().params, left.keyframes, left.poses)
         rows.append({"mission": k + 1, "placed": len(m.placed), "keyframes_before": len(known),
-                     "keyframes_after": len(left),
+                     "keyframes_after": len(left), "map_known_m2": _known_m2(mapped),
                      "state_mb": round(len(pickle.dumps(m.core, protocol=5)) / 1e6, 2),
+                     "upkeep": m.core.known.summary().get("upkeep"),
                      "wall_s": round(time.monotonic() - t0, 1)})
         print(json.dumps(rows[-1]), file=sys.stderr)
         known = left
     return rows
 
 
+def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: float,
+                go_on: bool = True) -> dict[str, Any]:
+    """The map brought up to date in the changed house (see the module docstring, 6)."""
+    from sim.config import DEFAULT_SCENARIOS, load_scenario
+    from sim.floorplan import SMALL_HOUSE_BOXES, SMALL_HOUSE_CLOSED
+
+    changes = [("door", x, y, 0.15) for x, y in SMALL_HOUSE_CLOSED] + \
+        [("box", b[0], b[1], 0.5 * max(b[3], b[4]) + 0.15) for b in SMALL_HOUSE_BOXES]
+    spawn = {rid: np.array(p, dtype=float) for rid, p in
+             load_scenario(DEFAULT_SCENARIOS, "small-house-3")["robots"].items()}
+    m = mission(CHANGED, known, spawn, demo_config("small-house-3", mode="extend"), frame)
+    at = [_to_map(frame, np.array([x, y, 0.0]))[:2] for _, x, y, _ in changes]
+    shown: dict[int, float] = {}
+    known_m2 = [_known_m2(m.core.fleet.team_grid(MAP_TEAM))]
+    t0 = time.monotonic()
+    while m.sim_time_s < limit_s:
+        m.step()
+        if m.steps % 10:
+            continue
+        grid = m.core.fleet.team_grid(MAP_TEAM)
+        for k, ((_, _, _, r), xy) in enumerate(zip(changes, at, strict=True)):
+            if k not in shown and _occupied_near(grid, xy, r):
+                shown[k] = round(m.sim_time_s, 1)
+                if len(shown) == len(changes):
+                    known_m2.append(_known_m2(grid))
+        if len(shown) == len(changes) and not go_on:
+            break
+    regions = [e.figures or {} for e in m.core.events.all if e.kind == "map_changed"]
+    false = [g for g in regions if min(math.hypot((g["x0"] + g["x1"]) / 2 - xy[0],
+                                                  (g["y0"] + g["y1"]) / 2 - xy[1])
+                                       for xy in at) > 1.0]
+    up_to_date = max(shown.values()) if len(shown) == len(changes) else None
+    known_m2.append(_known_m2(m.core.fleet.team_grid(MAP_TEAM)))
+    still = [k for k, (_, _, _, r) in enumerate(changes) if k in shown and not
+             _occupied_near(m.core.fleet.team_grid(MAP_TEAM), at[k], r)]
+    assert m.core.known is not None
+    return {"first_exploration_s": first_s,
+            "changes": [{"what": w, "x": x, "y": y, "shown_at_s": shown.get(k)}
+                        for k, (w, x, y, _) in enumerate(changes)],
+            "all_shown": len(shown) == len(changes), "up_to_date_s": up_to_date,
+            "vs_first": None if up_to_date is None else round(up_to_date / first_s, 3),
+            "goal_vs_first": 0.30, "placed": len(m.placed),
+            "map_changed_regions": len(regions), "false_changes": len(false),
+            "false_changes_at_world": [
+                [round(float(v), 2) for v in compose(frame, np.array(
+                    [(g["x0"] + g["x1"]) / 2, (g["y0"] + g["y1"]) / 2, 0.0]))[:2]]
+                + [int(g["cells"])] for g in false],
+            "upkeep": m.core.known.summary().get("upkeep"),
+            "keyframes_left": len(m.core.known.mission_map() or []),
+            "map_known_m2": dict(zip(["start", "all_shown", "end"] if len(known_m2) == 3
+                                     else ["start", "end"], known_m2, strict=True)),
+            "shown_then_lost": len(still),
+            "sim_s": round(m.sim_time_s, 1), "wall_s": round(time.monotonic() - t0, 1)}
+
+
+def _known_m2(grid: Any) -> float:
+    return round(float(grid.observed.sum()) * grid.resolution_m ** 2, 1)
+
+
+def _occupied_near(grid: Any, xy: np.ndarray, r: float) -> bool:
+    """Any occupied cell of ``grid`` within ``r`` of ``xy``."""
+    lo, hi = grid.cell_of(np.array([xy - r, xy + r]))
+    occ = grid.occupied_mask()
+    h, w = occ.shape
+    return bool(occ[max(lo[1], 0):min(hi[1] + 1, h), max(lo[0], 0):min(hi[0] + 1, w)].any())
+
+
 def _to_map(frame: np.ndarray, p: np.ndarray) -> np.ndarray:
-    from schemas.se2 import compose, inverse
     return compose(inverse(frame), p)
 
 
@@ -261,9 +345,19 @@ def main() -> None:
                     "the map the one before left: the map's and the state's size")
     ap.add_argument("--mode", default="extend", help="with --missions: localize or extend")
     ap.add_argument("--mission-time", type=float, default=30.0)
+    ap.add_argument("--changed", action="store_true", help="only the changed house: the "
+                    "time to bring the map up to date against the first exploration's")
+    ap.add_argument("--changed-time", type=float, default=72.0, help="sim seconds at most")
     a = ap.parse_args()
     t0 = time.monotonic()
     known, frame, made = house_map(a.out)
+    if a.changed:
+        first = json.loads((a.out / "demo" / "report.json").read_text())
+        row = changed_run(known, frame, float(first["first_team_time_to_threshold_s"]),
+                          a.changed_time)
+        print(json.dumps({"map": made, **row, "wall_s": round(time.monotonic() - t0, 1)},
+                         indent=2))
+        return
     if a.missions:
         rows = mission_chain(known, frame, a.missions, a.mode, a.mission_time)
         first = rows[0]["state_mb"]

@@ -27,6 +27,7 @@ from schemas.config_loading import ConfigError, load_config, write_resolved
 from schemas.stopping import SignalStop
 from server.knownmap.config import MapMode
 from sim.config import SensorKind
+from sim.loader import site_of
 
 if TYPE_CHECKING:
     from mrslam.monitor import Monitor
@@ -229,7 +230,7 @@ def _start_map(path: str, plan: dict[str, Any], out: Path
     from server.runtime.mapfind import find_map
     from server.runtime.mapstore import write_map
 
-    site = Path(plan["world"]).stem
+    site = site_of(plan["world"])
     known, where = find_map(path, site)
     log.warning("known map: %d keyframes from %s", len(known), where)
     frame = _map_frame(known.notes.get(WORLD_FRAME), known.anchor, Path(path))
@@ -290,7 +291,7 @@ def _configs(cfg: DemoConfig, plan: dict[str, Any], out: Path, endpoint: str) ->
         "exit_when_done": True,
     }
     if plan.get("map"):
-        server["known_map"] = {"path": plan["map"], "site": Path(plan["world"]).stem,
+        server["known_map"] = {"path": plan["map"], "site": site_of(plan["world"]),
                                "mode": cfg.map_mode}
     (out / "server.yaml").write_text(yaml.safe_dump(server, sort_keys=False))
     for rid in plan["robots"]:

@@ -265,7 +265,7 @@ class RobotStates(Message, kw_only=True):
 
 EventKind = Literal[
     "robot_joined", "robot_lost", "merge", "merge_rejected", "merge_undone", "target_reached",
-    "stuck", "terminated", "error", "meeting", "operator", "detour",
+    "stuck", "terminated", "error", "meeting", "operator", "detour", "map_changed",
 ]
 
 

@@ -64,6 +64,9 @@ from server.rendezvous.surgery import GraphSurgery
 
 F64 = NDArray[np.float64]
 
+#: a place on the pass over a known map not reached within this long is given up [s]
+INSPECT_GIVE_UP_S = 30.0
+
 
 class ServerCore:
     """Per-robot SLAM and navigation, teams and their merges; one thread calls it."""
@@ -96,6 +99,7 @@ class ServerCore:
         self.known = None if known is None else KnownMapDesk(cfg, self.fleet, self.merger,
                                                               self.events, known)
         if self.known is not None:   # its map is there to see (and plan on) from the start
+            self.progress.hold = self.known.on_pass
             self.progress.update(0, MAP_TEAM)
 
     def use_pools(self, planner: Callable[[], Executor | None],
@@ -136,6 +140,9 @@ class ServerCore:
         self.progress.tick(scan.stamp_ns if now_ns is None else now_ns, team.team_id)
         if team.finished:
             r.nav.finish("team coverage reached")
+        # 4b. extending a known map: a placed robot with no errand passes over the map first
+        if self.known is not None:
+            self._inspect(r, scan.stamp_ns)
         # explored: where the robot passes again it re-uses keyframes rather than adds them
         r.slam.reusing = team.finished and r.slam.cfg.keyframes.reuse
         # 5. the command: the lookout's, or the navigator's — or a stop, for a scan the
@@ -189,6 +196,21 @@ class ServerCore:
     def on_tags(self, msg: TagDetections) -> None:
         """A robot's tag sightings (see ``server.rendezvous.desk``)."""
         self.desk.receive(msg)
+
+    def _inspect(self, r: RobotContext, stamp_ns: int) -> None:
+        """Its next place on the pass over the known map (``KnownMapDesk.inspect_goal``); a
+        place not reached within ``INSPECT_GIVE_UP_S`` (a door now closed) is given up."""
+        assert self.known is not None
+        e = self.orders.errands.get(r.robot_id)
+        if e is not None and e.kind == "inspect" and \
+                stamp_ns - e.since_ns > INSPECT_GIVE_UP_S * 1e9:
+            del self.orders.errands[r.robot_id]
+            e = None
+        if e is None and (goal := self.known.inspect_goal(r)) is not None:
+            try:
+                self.orders.send(r, self.fleet, "inspect", goal, stamp_ns)
+            except OperatorError as err:
+                self.known.unreachable(goal, str(err))
 
     def operate(self, cmd: OperatorCommand, stamp_ns: int) -> tuple[int, str]:
         """Carry out an operator's order (``server.command.operator``); an event says what was done

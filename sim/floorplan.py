@@ -60,6 +60,8 @@ class Plan:
     name: str
     walls: tuple[Wall, ...]
     pillars: tuple[tuple[float, float, float], ...] = ()   # (x, y, side) [m]
+    #: loose boxes standing on the floor: (x, y, yaw [rad], length, width) [m]
+    boxes: tuple[tuple[float, float, float, float, float], ...] = ()
 
 
 def hwall(y: float, x0: float, x1: float, doors: tuple[float, ...] = (),
@@ -251,12 +253,47 @@ def office_floor() -> Plan:
     return Plan("office_floor", tuple(walls))
 
 
+def changed(plan: Plan, name: str, closed: tuple[Point, ...],
+            boxes: tuple[tuple[float, float, float, float, float], ...]) -> Plan:
+    """``plan`` as a later visit may find it: the doors centred at the points ``closed``
+    shut (the wall run through them) and ``boxes`` standing on the floor. A point that is
+    no door's centre (within 5 cm) raises ValueError naming it."""
+    walls = list(plan.walls)
+    for x, y in closed:
+        for i, w in enumerate(walls):
+            ux, uy = (w.b[0] - w.a[0]) / w.length_m, (w.b[1] - w.a[1]) / w.length_m
+            keep = tuple(d for d in w.doors if math.dist(
+                (w.a[0] + d[0] * ux, w.a[1] + d[0] * uy), (x, y)) > 0.05)
+            if len(keep) < len(w.doors):
+                walls[i] = Wall(w.a, w.b, keep)
+                break
+        else:
+            raise ValueError(f"{name}: no door of {plan.name} is centred at ({x}, {y})")
+    return Plan(name, tuple(walls), plan.pillars, plan.boxes + boxes)
+
+
+#: the small house's changes in ``small_house.changed``: the doors closed (their centres)
+#: and the boxes standing where the house has open floor (x, y, yaw, length, width)
+SMALL_HOUSE_CLOSED = ((-7.0, 3.5), (-4.0, -5.5))
+SMALL_HOUSE_BOXES = ((-3.0, 7.0, 0.0, 0.6, 0.6), (6.0, -0.5, 0.4, 0.8, 0.5),
+                     (6.0, -6.5, 0.0, 0.6, 0.6))
+
+
+def small_house_changed() -> Plan:
+    """The small house with two doors closed (the north-west room's from the hall, and the
+    one between the two south-west rooms) and three boxes in rooms that had none: the
+    same site (a variant: ``<site>.<variant>.world``), for missions on its map."""
+    return changed(small_house(), "small_house.changed", SMALL_HOUSE_CLOSED,
+                   SMALL_HOUSE_BOXES)
+
+
 #: the symmetry-breaking features of ``ambiguous_wings``: (what, x, y) of a point on each
 AMBIGUOUS_BREAKS = (("slanted partition", 12.25, 13.8), ("nook wall", -9.5, -7.0),
                     ("spine pillar", 0.7, 5.0))
 
 PLANS = {"small_house": small_house, "large_house": large_house,
-         "ambiguous_wings": ambiguous_wings, "office_floor": office_floor}
+         "ambiguous_wings": ambiguous_wings, "office_floor": office_floor,
+         "small_house.changed": small_house_changed}
 
 
 def _box(name: str, x: float, y: float, yaw: float, length: float, width: float,
@@ -287,6 +324,8 @@ def to_sdf(plan: Plan, thickness_m: float = WALL_THICKNESS_M,
             k += 1
     for i, (x, y, side) in enumerate(plan.pillars):
         lines += _box(f"pillar_{i}", x, y, 0.0, side, side, height_m)
+    for i, (x, y, yaw, length, width) in enumerate(plan.boxes):
+        lines += _box(f"box_{i}", x, y, yaw, length, width, 1.0)
     lines += ["      </link>", "    </model>", "  </world>", "</sdf>", ""]
     return "\n".join(lines)
 

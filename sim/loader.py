@@ -10,6 +10,19 @@ from sim.sdf import load_sdf
 from sim.world import World
 
 
+def site_of(path: str | Path) -> str:
+    """The building a world file shows: its name up to the first dot. A variant of a site
+    (the same building changed: doors closed, boxes moved) is ``<site>.<variant>.world``,
+    so a map made in the site is accepted in its variants. Raises WorldError for a name
+    without a site (``.changed.world``)."""
+    p = Path(path)
+    site = p.name.split(".")[0]
+    if not site:
+        raise WorldError(f"{p}: a world file's name must start with its site "
+                         "(<site>.world or <site>.<variant>.world)")
+    return site
+
+
 def load_world(path: str | Path, model_path: list[str | Path] | None = None,
                lidar_height_m: float = 0.2) -> World:
     """The world in ``path``, cut by the plane ``z = lidar_height_m``; raises WorldError."""

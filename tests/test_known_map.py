@@ -47,8 +47,8 @@ def _part(known: KnownMap, keep: list[int]) -> KnownMap:
 
 
 def _house_mission(known: KnownMap, spawn: np.ndarray, mode: str = "localize",
-                   seed: int = 0) -> KnownMission:
-    return mission(HOUSE, known, {"r1": spawn}, demo_config("small-house-3", mode=mode),
+                   seed: int = 0, **more: object) -> KnownMission:
+    return mission(HOUSE, known, {"r1": spawn}, demo_config("small-house-3", mode=mode, **more),
                    np.zeros(3), seed=seed)
 
 
@@ -224,7 +224,8 @@ def test_a_robot_carried_away_is_noticed_lost_and_placed_again(house: KnownMap) 
 def test_localize_keeps_the_map_extend_maps_new_ground(house: KnownMap, mode: str) -> None:
     """The map knows the house's west half; a robot placed there is sent east."""
     west = _part(house, [k for k in range(len(house)) if house.poses[k, 0] < 0])
-    m = _house_mission(west, np.array([-8.0, 9.0, 0.0]), mode)
+    # (no pass over the map first: the robot goes where it is sent at once)
+    m = _house_mission(west, np.array([-8.0, 9.0, 0.0]), mode, inspect=False)
     m.run_until(15.0, lambda m: bool(m.placed))
     assert m.placed and m.placed[0].error_m <= 0.10
     m.core.operate(OperatorCommand("goto", "r1", (3.0, 9.0)), int(m.sim_time_s * 1e9))
@@ -232,10 +233,17 @@ def test_localize_keeps_the_map_extend_maps_new_ground(house: KnownMap, mode: st
     assert m.core.known is not None
     left = m.core.known.mission_map()
     assert left is not None
-    np.testing.assert_allclose(left.poses[:len(west)], west.poses, atol=0.01)
+    # the map's keyframes it keeps have not moved (extend retires those seen again)
+    kept = [k for k, s in enumerate(left.sources) if s == "survey"]
+    at = {int(t): k for k, t in enumerate(west.stamps_ns)}
+    np.testing.assert_allclose(left.poses[kept],
+                               west.poses[[at[int(left.stamps_ns[k])] for k in kept]],
+                               atol=0.01)
     added = [s for s in left.sources if s != "survey"]
     if mode == "localize":
         assert len(left) == len(west) and not added
     else:
-        assert len(added) >= 10 and set(added) == {"2:r1"}
+        # its keyframes (the map left keeps one of a mission's keyframes within 0.5 m that
+        # see the same)
+        assert len(added) >= 5 and set(added) == {"2:r1"}
         assert left.missions == 2

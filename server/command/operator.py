@@ -147,11 +147,12 @@ def _pose(action: str, rid: str | None, pose: Any) -> tuple[float, float, float]
 class Errand:
     """A path the operator sent a robot along, in its team's frame at the time."""
 
-    kind: str                      # goto | home
+    kind: str                      # goto | home | inspect (``server.knownmap``'s pass)
     team_id: str
     goal_xy: tuple[float, float]
     path_xy: F64
     pursuit: PurePursuit
+    since_ns: int = 0              # when it was given (the server's own are given up after a while)
 
 
 @dataclass
@@ -248,6 +249,12 @@ class OperatorOrders:
         self.errands[r.robot_id] = self._errand(r, fleet, "goto", cmd.point_xy)
         return (f"{cmd.describe()}: path of "
                 f"{len(self.errands[r.robot_id].path_xy)} points planned")
+
+    def send(self, r: RobotContext, fleet: Fleet, kind: str, goal_xy: tuple[float, float],
+             stamp_ns: int) -> None:
+        """``r`` sent to ``goal_xy`` by the server itself; raises OperatorError (no way)."""
+        self.errands[r.robot_id] = self._errand(r, fleet, kind, goal_xy)
+        self.errands[r.robot_id].since_ns = stamp_ns
 
     def _errand(self, r: RobotContext, fleet: Fleet, kind: str,
                 goal_xy: tuple[float, float]) -> Errand:

@@ -9,6 +9,8 @@ robot that is alive is outside a team, robots range out to meet it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from server.config import ServerConfig
 from server.exploration import explored_area_m2
 from server.exploration.navigator import NavMode
@@ -27,6 +29,9 @@ class Progress:
         self.map_stamp_ns = 0
         #: teams whose grid was made again since ``changed_teams`` was last asked
         self._changed: set[str] = set()
+        #: a team not to finish yet whatever its coverage (a known map's team on its pass
+        #: over the map: ``server.knownmap``)
+        self.hold: Callable[[Team], bool] | None = None
 
     def tick(self, stamp_ns: int, team_id: str) -> None:
         """``update`` the team when ``map_period_s`` has passed since its last one (each team
@@ -56,9 +61,11 @@ class Progress:
             team.coverage = team.explored_m2 / total if total else 0.0
             team.history.append((stamp_ns, team.coverage))
             fleet.detours.observe(team.team_id, team.robot_ids, stamp_ns, team.explored_m2)
-            if total and not team.finished and team.coverage >= self.cfg.explore.coverage_threshold:
+            if team.finished or (self.hold is not None and self.hold(team)):
+                pass
+            elif total and team.coverage >= self.cfg.explore.coverage_threshold:
                 self.finish_team(team, stamp_ns, f"coverage {team.coverage:.3f} reached")
-            elif not team.finished and (alive := [
+            elif (alive := [
                     rid for rid in team.robot_ids if fleet.robots[rid].alive]) and all(
                     fleet.robots[rid].nav.mode == NavMode.DONE for rid in alive):
                 # (a robot that vanished does not hold its team back; one that comes back to

@@ -43,17 +43,18 @@ class KnownMapConfig(ConfigModel):
         1.5, gt=0.0, description="a placed robot whose scans disagree with the map this long "
         "without a break is lost: it leaves the map's team and is placed again")
     supersede_m: float = Field(
-        0.4, ge=0.0, description="extend, not used yet: a map keyframe this close to a new "
-        "keyframe is to be retired (the newer view replacing it; 0: never)")
+        1.5, ge=0.0, description="extend: a map keyframe this close to a new keyframe whose "
+        "beams reach 80 % of its returns is retired, the newer view replacing it "
+        "(server/knownmap/changes.py; 0: never)")
     change_votes: int = Field(
-        2, ge=1, description="extend, not used yet: keyframes that must see a cell differ "
-        "from the map (a wall in open space, or open space through a wall) before the "
-        "map's views that contradict them are retired")
+        2, ge=1, description="extend: keyframes that must see a cell differ from the map (a "
+        "return in its open space, or a beam well past one of its returns) before the "
+        "map's views that contradict the change are retired")
     inspect: bool = Field(
-        True, description="extend, not used yet: placed robots first pass through the "
-        "building, each sent where it sees most of what no robot has seen in this "
-        "mission, before they explore what is unknown")
+        True, description="extend: placed robots first pass over the map, each sent to the "
+        "place of the map's keyframes with most places no robot of this mission has come "
+        "within 1.5 m of around it (3 m), for the way there, before they explore what is "
+        "unknown")
     inspected_share: float = Field(
-        0.95, gt=0.0, le=1.0, description="extend, not used yet: the pass is over when "
-        "this share of the map's open space has been seen in this mission (or nothing "
-        "more is in reach)")
+        0.95, gt=0.0, le=1.0, description="extend: the pass is over when this share of "
+        "the map's keyframes has had a robot of this mission within 1.5 m (or retired)")

@@ -34,10 +34,12 @@ from server.config import ServerConfig
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext, Team
 from server.knownmap import ghosts
+from server.knownmap.changes import SUPPORT, Upkeep
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM
 from server.knownmap.mapdata import KnownMap
 from server.knownmap.placing import MapTarget, candidates, clear_winner, placements
 from server.knownmap.search import Guess, Search
+from server.knownmap.views import consolidated
 from server.knownmap.watch import LossWatch, scan_agreement, scan_points
 from server.rendezvous.evidence import MergeProposal
 from server.rendezvous.mapmatch import Layers, MatchParams, layers
@@ -61,6 +63,7 @@ class MapVersion:
     version: int
     target: MapTarget | None = None
     layers: Layers | None = None
+    older: Layers | None = None     # extend: the older keyframes' alone (``changes``)
 
 
 class KnownMapDesk:
@@ -83,6 +86,8 @@ class KnownMapDesk:
         self.counts = {"queries": 0, "placed": 0, "refused": 0, "lost": 0, "by_hand": 0}
         self.version = 0                        # of the map's own keyframes
         self._view: MapVersion | None = None
+        #: extend: the map kept up to date by what placed robots see (``changes``)
+        self.upkeep = Upkeep(self.k) if self.extend else None
         if not self.extend:
             # nothing to explore: the map stays as it is, the robots wait for orders
             team = fleet.teams[MAP_TEAM]
@@ -100,15 +105,26 @@ class KnownMapDesk:
     def view(self) -> MapVersion:
         v = self._view
         if v is None or v.version != self.version:
-            grid = self._map_grid()
+            grid = self._map_grid(self.extend)
             v = self._view = MapVersion(self.version, MapTarget(grid, self.params),
                                         layers(grid, self.params.cell_m))
+            if self.extend:     # what this mission's keyframes are compared with
+                v.older = layers(self._map_grid(False), self.params.cell_m)
         return v
 
-    def _map_grid(self) -> OccupancyGrid:
-        g = self.fleet.robots[MAP_ID]
-        kfs, poses = g.mapped_keyframes()
-        return render_grid(self.fleet.stages.mapper().params, kfs, poses)
+    def _map_grid(self, added: bool) -> OccupancyGrid:
+        """The map's grid: the keyframes its ghosts hold, not retired, and (``added``) those
+        placed robots added to it so far."""
+        fleet = self.fleet
+        kfs: list[Any] = []
+        poses = [np.zeros((0, 3))]
+        for rid in fleet.teams[MAP_TEAM].robot_ids:
+            r = fleet.robots[rid]
+            if r.ghost or added:
+                k, p = r.mapped_keyframes()
+                kfs += list(k)
+                poses.append(np.asarray(p).reshape(-1, 3))
+        return render_grid(fleet.stages.mapper().params, kfs, np.concatenate(poses))
 
     def map_changed(self) -> None:
         """The map's own keyframes changed (retired, trimmed): its grid is made again."""
@@ -201,16 +217,66 @@ class KnownMapDesk:
         lay = self.view().layers
         assert lay is not None
         a = scan_agreement(lay, r.pose, scan_points(ranges, angles, r.sensor_range_m))
-        if w.update(a, stamp_ns, len(r.slam.keyframes)):
+        if not w.update(a, stamp_ns, len(r.slam.keyframes)):
+            if self.upkeep is not None and w.bad_since_ns is None:
+                older = self.view().older
+                assert older is not None
+                self._keep_up(r, older, stamp_ns)
+        else:
             self._lose(r, w, stamp_ns)
             # it starts afresh from this scan, its first keyframe
             r.slam.add_scan(stamp_ns, scan.odom_pose, ranges, angles, r.sensor_range_m)
             r.pose = r.slam.pose
             r.start_pose = r.pose.copy()
 
+    def _keep_up(self, r: RobotContext, lay: Layers, stamp_ns: int) -> None:
+        """Extend: ``r``'s new keyframes compared with the map; what they show out of date
+        retired or cut (``changes``), now and then, and the changed regions reported."""
+        assert self.upkeep is not None
+        self.upkeep.on_scan(self.fleet, MAP_TEAM, r, lay)
+        done = self.upkeep.apply(self.fleet, stamp_ns)
+        if done is None:
+            return
+        counts, regions = done
+        if any(counts.values()):
+            self.map_changed()
+        for xy in regions:
+            if len(xy) <= SUPPORT:      # a few more cells of a change reported before
+                continue
+            (x0, y0), (x1, y1) = xy.min(axis=0), xy.max(axis=0)
+            self.events.emit(
+                "map_changed", [r.robot_id], MAP_TEAM,
+                f"the building has changed at ({x0:.1f}, {y0:.1f})–({x1:.1f}, {y1:.1f}): "
+                f"{len(xy)} cells; the map's views that showed it otherwise cut",
+                stamp_ns, figures={"x0": float(x0), "y0": float(y0), "x1": float(x1),
+                                   "y1": float(y1), "cells": float(len(xy)),
+                                   **{k: float(v) for k, v in counts.items()}})
+
+    def inspect_goal(self, r: RobotContext) -> tuple[float, float] | None:
+        """Extend with ``known_map.inspect``: where ``r`` (placed, without an errand) goes
+        next on its pass over the map (``changes.Upkeep.inspect_goal``); None: nowhere."""
+        if self.upkeep is None or not self.k.inspect or r.team_id != MAP_TEAM or \
+                r.robot_id not in self.watches:
+            return None
+        return self.upkeep.inspect_goal(self.fleet, MAP_TEAM, r)
+
+    def on_pass(self, team: Team) -> bool:
+        """The map's team is on its pass over the map (extend, ``inspect``): not done yet,
+        whatever its coverage (the map it started with has it)."""
+        return (team.team_id == MAP_TEAM and self.upkeep is not None and self.k.inspect
+                and not self.upkeep.inspected)
+
+    def unreachable(self, goal: tuple[float, float], why: str) -> None:
+        assert self.upkeep is not None
+        self.upkeep.claimed.append(goal)
+        log.info("inspection goal (%.1f, %.1f) skipped: %s", *goal, why)
+
     def _lose(self, r: RobotContext, w: LossWatch, stamp_ns: int) -> None:
         why = (f"{w.last.conflict} of {w.last.known} returns on mapped ground in open space "
                f"for {(stamp_ns - (w.bad_since_ns or stamp_ns)) * 1e-9:.1f} s")
+        if self.upkeep is not None and self.upkeep.forget(self.fleet, r.robot_id,
+                                                          w.good_keyframes):
+            self.map_changed()
         ghosts.detach(self.fleet, r, w.good_keyframes, stamp_ns)
         del self.watches[r.robot_id]
         self.lost[r.robot_id] = stamp_ns
@@ -247,10 +313,15 @@ class KnownMapDesk:
                                 self.notes)
         if known is not None:
             known.anchor = self.known_anchor
+        if known is not None and self.extend:
+            known, dropped = consolidated(known, self.k.supersede_m)
+            if dropped:
+                log.info("map left: %d keyframes that newer ones see again dropped", dropped)
         return known
 
     def summary(self) -> dict[str, Any]:
         return {"mode": self.k.mode, "missions": self.missions, **self.counts,
+                **({} if self.upkeep is None else {"upkeep": dict(self.upkeep.counts)}),
                 "robots": {d["robot_id"]: d["state"] for d in self.states()},
                 "placed_at_s": {rid: round(ns * 1e-9, 2) for rid, ns in self.placed_at.items()},
                 "guesses": {tid: [g.as_dict() for g in s.guesses]

@@ -1,0 +1,356 @@
+"""Keeping a known map up to date in ``extend`` mode: newer views retire the older ones.
+
+The map is drawn from keyframes; an out-of-date map is older keyframes that no longer show
+the building as it is. The older keyframes are those the map's ghosts hold (made by earlier
+missions, or in this one by a robot since lost); each new keyframe of a placed robot is
+compared with them, by two rules:
+
+1. **Superseded**: an older keyframe within ``known_map.supersede_m`` of the new one, of
+   whose returns the new one's beams reach at least ``COVER`` (they end there or beyond: the
+   new view sees what the older saw, or sees through it), is retired: the newer view replaces
+   it. Where robots pass again the map keeps about one keyframe per place, so it does not
+   grow from mission to mission.
+2. **Changed**: a cell the map shows open where a new keyframe has a return (a door closed, a
+   box brought in), or where an older return lies that the new beams pass well beyond (a
+   door opened, a box taken away), gets a vote; a cell with votes from
+   ``known_map.change_votes`` keyframes over ``CHANGE_SPAN_S`` at least, with ``SUPPORT``
+   other such cells within ``SUPPORT_M`` (a change is a stretch of wall that stays, not one
+   stray return; a new wall a later beam passes through was a robot or a person that moved
+   on, and its votes are dropped), is a change. The older keyframes that contradict it are
+   cut (``trimmed``): their beams through a new wall, their returns on a wall that is gone,
+   are dropped from what the map is drawn from; the rest of what they show stays.
+
+Retired keyframes stay in the graph (held by their priors, they move nothing) and out of the
+map drawn and the map left for the next mission; cut ones are written cut. Both are applied
+together at most every ``APPLY_S`` (each makes the team's map be drawn again). A robot found
+lost gives back what its keyframes since it went astray retired or cut. No I/O here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.se2 import inverse, transform_points
+from server.fleet.model import Fleet, RobotContext
+from server.knownmap.config import KnownMapConfig
+from server.knownmap.views import BINS, COVER, REACH_TOL_M, _bins, beams, reach
+from server.rendezvous.mapmatch import Layers, _cells
+from server.slam.keyframes import Keyframe
+from server.slam.render_store import RenderScan
+
+F64 = NDArray[np.float64]
+
+#: the keyframes that vote a cell changed must span this long [s] (what moves on, a robot or
+#: a person, is seen through meanwhile and its votes dropped)
+CHANGE_SPAN_S = 4.0
+#: confirmed cells of the same kind a changed cell needs within ``SUPPORT_M``
+SUPPORT, SUPPORT_M = 4, 0.3
+#: an older keyframe's place is inspected once a new keyframe is this near it [m]
+INSPECT_M = 1.5
+#: a place on the pass is worth the places not seen again within this of it [m]
+GAIN_M = 3.0
+#: beams an older keyframe must have through changed cells to be cut; a beam passing this
+#: many cells from a changed cell's centre passes through it
+CONTRA, CROSS_CELLS = 3, 0.75
+#: retirements are applied (the map drawn again) at most this often [s]
+APPLY_S = 2.0
+#: an older return is gone when the new beams toward it (nearer than this, [m]) pass it by
+#: this much [m]
+PASS_FROM_M, PASS_MARGIN_M = 0.3, 0.3
+
+
+@dataclass
+class Old:
+    """The older keyframes (the map ghosts'), not retired: who holds each, and where."""
+
+    owners: list[tuple[str, int]]
+    poses: F64
+
+
+@dataclass
+class Upkeep:
+    """The votes and retirements of one mission (see the module docstring)."""
+
+    k: KnownMapConfig
+    seen: dict[str, int] = field(default_factory=dict)        # robot -> keyframes compared
+    #: cell -> (keyframes that saw it changed, the first one's stamp)
+    votes: dict[tuple[str, int, int], tuple[int, int]] = field(default_factory=dict)
+    confirmed: dict[tuple[str, int, int], int] = field(default_factory=dict)  # -> applied?
+    pending: list[tuple[str, int, str, int, str]] = field(default_factory=list)
+    #: robot -> (its keyframe, ghost, ghost's keyframe) retired because of it
+    retired_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
+    #: older keyframes cut to what the changes leave true: (robot, its keyframe, ghost,
+    #: ghost's keyframe, the keyframe cut), to apply; those applied, by robot; the originals
+    trims: list[tuple[str, int, str, int, Keyframe]] = field(default_factory=list)
+    trimmed_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
+    originals: dict[tuple[str, int], Keyframe] = field(default_factory=dict)
+    applied_ns: int = 0
+    fresh: list[F64] = field(default_factory=list)      # changed cells not yet reported
+    claimed: list[tuple[float, float]] = field(default_factory=list)   # inspection goals
+    inspected: bool = False
+    counts: dict[str, int] = field(default_factory=lambda: {
+        "superseded": 0, "trimmed": 0, "changed_cells": 0})
+    _cache: dict[tuple[str, int], tuple[F64, F64]] = field(default_factory=dict)
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_cache": {}}      # made again on demand
+
+    # -- per keyframe ------------------------------------------------------------------------
+    def on_scan(self, fleet: Fleet, team_id: str, r: RobotContext, lay: Layers) -> None:
+        """Compare ``r``'s keyframes not compared yet with the older ones and the map."""
+        n = len(r.slam.keyframes)
+        start = self.seen.get(r.robot_id, 0)
+        if n <= start or r.unmapped:
+            return
+        self.seen[r.robot_id] = n
+        old = self._old(fleet, team_id)
+        for k in range(start, n):
+            kf, T = r.slam.keyframes[k], r.slam.keyframe_pose(k)
+            prof = beams(kf)
+            self._supersede(fleet, r.robot_id, k, T, prof, old)
+            self._vote(fleet, kf, T, prof, old, lay)
+        self._contradict(fleet, r.robot_id, n - 1, old, lay)
+
+    def _old(self, fleet: Fleet, team_id: str) -> Old:
+        owners: list[tuple[str, int]] = []
+        poses = []
+        taken = {(g, i) for _, _, g, i, _ in self.pending}
+        for rid in fleet.teams[team_id].robot_ids:
+            g = fleet.robots[rid]
+            if not g.ghost or g.unmapped:
+                continue
+            P = g.slam.keyframe_poses()
+            for i in range(len(g.slam.keyframes)):
+                if i not in g.retired and (rid, i) not in taken:
+                    owners.append((rid, i))
+                    poses.append(P[i])
+        return Old(owners, np.array(poses).reshape(-1, 3))
+
+    def _hits(self, fleet: Fleet, gid: str, i: int) -> tuple[F64, F64]:
+        """An older keyframe's returns in the map frame, and its beams (cached)."""
+        c = self._cache.get((gid, i))
+        if c is None:
+            g = fleet.robots[gid]
+            kf = g.slam.keyframes[i]
+            c = self._cache[(gid, i)] = (
+                transform_points(g.slam.keyframe_pose(i), np.asarray(kf.hits, np.float64)),
+                beams(kf))
+        return c
+
+    def _supersede(self, fleet: Fleet, rid: str, k: int, T: F64, prof: F64, old: Old) -> None:
+        if self.k.supersede_m <= 0 or not len(old.poses):
+            return
+        d = np.hypot(*(old.poses[:, :2] - T[:2]).T)
+        for j in np.flatnonzero(d <= self.k.supersede_m):
+            gid, i = old.owners[j]
+            xy, _ = self._hits(fleet, gid, i)
+            if not len(xy):
+                continue
+            dist, got = reach(prof, T, xy)
+            if np.mean(np.isfinite(got) & (got >= dist - REACH_TOL_M)) >= COVER:
+                self.pending.append((rid, k, gid, i, "superseded"))
+
+    def _vote(self, fleet: Fleet, kf: Keyframe, T: F64, prof: F64, old: Old,
+              lay: Layers) -> None:
+        step = lay.fine_m
+        hits = transform_points(T, np.asarray(kf.hits, np.float64))
+        i, j, ok = _cells(lay, hits)
+        new_wall = np.zeros(len(hits), dtype=bool)
+        new_wall[ok] = lay.fine_clear[i[ok], j[ok]]
+        found = [("wall", hits[new_wall])]
+        # the older keyframes' returns the new beams pass well beyond (each of the three
+        # nearest: a beam grazing a wall that is still there has a neighbour short of it)
+        span = float(np.nanmax(prof, initial=0.0))
+        near = np.hypot(*(old.poses[:, :2] - T[:2]).T) <= span if len(old.poses) else []
+        for jj in np.flatnonzero(near):
+            xy, _ = self._hits(fleet, *old.owners[jj])
+            if not len(xy):
+                continue
+            q = transform_points(inverse(T), xy)
+            dist = np.hypot(q[:, 0], q[:, 1])
+            b = _bins(np.arctan2(q[:, 1], q[:, 0]))
+            short = np.min(np.stack([prof[(b + s) % BINS] for s in (-1, 0, 1)]), axis=0)
+            gone = np.isfinite(short) & (short > dist + PASS_MARGIN_M) & (dist >= PASS_FROM_M)
+            found.append(("gone", xy[gone]))
+        cells = {(kind, int(r), int(c)) for kind, xy in found
+                 for c, r in np.floor(xy / step).astype(np.int64)}
+        self._clear(T, prof, step, cells)
+        for key in cells:           # keyed by place, not by the view's cells
+            n, first = self.votes.get(key, (0, kf.stamp_ns))
+            self.votes[key] = (n + 1, first)
+            if n + 1 >= self.k.change_votes and kf.stamp_ns - first >= CHANGE_SPAN_S * 1e9:
+                self.confirmed.setdefault(key, 0)
+
+    def _clear(self, T: F64, prof: F64, step: float, cells: set[tuple[str, int, int]]) -> None:
+        """New walls the keyframe's beams pass through (not among its ``cells``) were
+        something that moved on (a robot, a person): their votes are dropped."""
+        keys = [key for key in self.votes if key[0] == "wall" and key not in cells
+                and not self.confirmed.get(key, 0)]
+        if not keys:
+            return
+        xy = np.array([((c + 0.5) * step, (r + 0.5) * step) for _, r, c in keys])
+        dist, got = reach(prof, T, xy)
+        for key, through in zip(keys, np.isfinite(got) & (got > dist + REACH_TOL_M),
+                                strict=True):
+            if through:
+                del self.votes[key]
+                self.confirmed.pop(key, None)
+
+    def changed_xy(self, kind: str, step: float, fresh: bool = False) -> F64:
+        """Centres of confirmed changed cells of ``kind`` (cells of ``step``) with enough
+        support; ``fresh``: only those not yet acted on, which are then marked so."""
+        keys = [key for key in self.confirmed if key[0] == kind]
+        if not keys:
+            return np.zeros((0, 2))
+        xy = np.array([((c + 0.5) * step, (r + 0.5) * step) for _, r, c in keys])
+        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        keep = (d <= SUPPORT_M).sum(axis=1) - 1 >= SUPPORT
+        if fresh:
+            keep &= np.array([self.confirmed[key] == 0 for key in keys])
+            for key, kept in zip(keys, keep, strict=True):
+                if kept:
+                    self.confirmed[key] = 1
+        return xy[keep]
+
+    def _contradict(self, fleet: Fleet, rid: str, k: int, old: Old, lay: Layers) -> None:
+        walls = self.changed_xy("wall", lay.fine_m, True)
+        gone = self.changed_xy("gone", lay.fine_m, True)
+        if not (len(walls) or len(gone)):
+            return
+        self.counts["changed_cells"] += len(walls) + len(gone)
+        self.fresh += [walls, gone]
+        r_m = CROSS_CELLS * lay.fine_m
+        for gid, i in old.owners:
+            g = fleet.robots[gid]
+            kf, T = g.slam.keyframes[i], g.slam.keyframe_pose(i)
+            pts = np.asarray(kf.render.stored(), dtype=np.float64)
+            drop = np.zeros(len(pts), dtype=bool)
+            if len(walls):          # its beams that passed where a wall now is
+                c = transform_points(inverse(T), walls)
+                rng = np.hypot(pts[:, 0], pts[:, 1])
+                u = pts / np.maximum(rng, 1e-9)[:, None]
+                t = u @ c.T                                     # (N, M) along each beam
+                perp = np.abs(u[:, :1] * c[None, :, 1] - u[:, 1:] * c[None, :, 0])
+                drop |= ((t > 0) & (t < rng[:, None] - REACH_TOL_M) & (perp <= r_m)).any(axis=1)
+            if len(gone):           # its returns on a wall that is gone
+                c = transform_points(inverse(T), gone)
+                h = pts[:kf.render.n_hits]
+                d = np.hypot(h[:, None, 0] - c[None, :, 0], h[:, None, 1] - c[None, :, 1])
+                drop[:len(h)] |= d.min(axis=1) <= r_m
+            if drop.sum() >= CONTRA:
+                n = kf.render.n_hits
+                keep = ~drop
+                render = RenderScan.of(pts[:n][keep[:n]], pts[n:][keep[n:]])
+                self.trims.append((rid, k, gid, i, Keyframe(kf.index, kf.stamp_ns,
+                                                              kf.T_odom_robot, kf.matchable,
+                                                              render)))
+
+    # -- the pass over the map ---------------------------------------------------------------
+    def inspect_goal(self, fleet: Fleet, team_id: str, r: RobotContext
+                     ) -> tuple[float, float] | None:
+        """Of the older keyframes' places no new keyframe (nor a robot sent there) has come
+        within ``INSPECT_M`` of, the one with most such places within ``GAIN_M``, for the
+        way there; None once ``known_map.inspected_share`` of them has been (the pass is
+        over: the team explores what is unknown)."""
+        if self.inspected:
+            return None
+        old = self._old(fleet, team_id)
+        if not len(old.poses):
+            return None
+        xy = old.poses[:, :2]
+        team = fleet.teams[team_id]
+        new = [fleet.robots[rid].slam.keyframe_poses()[:, :2] for rid in team.robot_ids
+               if not fleet.robots[rid].ghost and fleet.robots[rid].slam.keyframes]
+        near = np.vstack([np.zeros((0, 2)), *new, np.array(self.claimed).reshape(-1, 2)])
+        seen = np.zeros(len(xy), dtype=bool)
+        for q in near:
+            seen |= np.hypot(xy[:, 0] - q[0], xy[:, 1] - q[1]) <= INSPECT_M
+        # the retired ones were seen again too
+        share = (seen.sum() + sum(len(g) for g in self.retired_by.values())) / \
+            (len(xy) + sum(len(g) for g in self.retired_by.values()))
+        if seen.all() or share >= self.k.inspected_share:
+            self.inspected = True
+            return None
+        # the place whose neighbourhood holds most places not seen again, for the way there
+        d = np.hypot(xy[:, 0] - r.pose[0], xy[:, 1] - r.pose[1])
+        todo = xy[~seen]
+        gain = (np.hypot(xy[:, None, 0] - todo[None, :, 0], xy[:, None, 1] - todo[None, :, 1])
+                <= GAIN_M).sum(axis=1)
+        score = gain / (d + 1.0)
+        score[seen] = -1.0
+        x, y = xy[int(np.argmax(score))]
+        self.claimed.append((float(x), float(y)))
+        return float(x), float(y)
+
+    # -- applying ----------------------------------------------------------------------------
+    def apply(self, fleet: Fleet, now_ns: int) -> tuple[dict[str, int], list[F64]] | None:
+        """Retire what is pending, if ``APPLY_S`` has passed since the last time: how many
+        by each rule, and the changed regions found since (each its changed cells' centres);
+        None: nothing applied."""
+        if not (self.pending or self.trims) or now_ns - self.applied_ns < APPLY_S * 1e9:
+            return None
+        self.applied_ns = now_ns
+        regions = _regions(np.vstack([np.zeros((0, 2)), *self.fresh]))
+        self.fresh = []
+        done = {"superseded": 0, "trimmed": 0}
+        for rid, k, gid, i, why in self.pending:
+            g = fleet.robots.get(gid)
+            if g is None or i in g.retired:
+                continue
+            g.retired.add(i)
+            self.retired_by.setdefault(rid, []).append((k, gid, i))
+            self._cache.pop((gid, i), None)
+            done[why] += 1
+            self.counts[why] += 1
+        self.pending = []
+        for rid, k, gid, i, kf in self.trims:
+            g = fleet.robots.get(gid)
+            if g is None or i in g.retired:
+                continue
+            self.originals.setdefault((gid, i), g.slam.keyframes[i])
+            g.slam.keyframes[i] = kf
+            self.trimmed_by.setdefault(rid, []).append((k, gid, i))
+            self._cache.pop((gid, i), None)
+            done["trimmed"] += 1
+            self.counts["trimmed"] += 1
+        self.trims = []
+        return (done, regions) if any(done.values()) or regions else None
+
+    def forget(self, fleet: Fleet, rid: str, kept: int) -> int:
+        """``rid`` is lost: what its keyframes from ``kept`` on retired is drawn again, and its
+        new keyframes are compared from its first. Returns how many were given back."""
+        self.pending = [p for p in self.pending if not (p[0] == rid and p[1] >= kept)]
+        self.trims = [p for p in self.trims if not (p[0] == rid and p[1] >= kept)]
+        cut = [t for t in self.trimmed_by.get(rid, []) if t[0] >= kept]
+        self.trimmed_by[rid] = [t for t in self.trimmed_by.get(rid, []) if t[0] < kept]
+        for _, gid, i in cut:
+            g, kf = fleet.robots.get(gid), self.originals.pop((gid, i), None)
+            if g is not None and kf is not None:
+                g.slam.keyframes[i] = kf
+                self._cache.pop((gid, i), None)
+        back = [t for t in self.retired_by.get(rid, []) if t[0] >= kept]
+        self.retired_by[rid] = [t for t in self.retired_by.get(rid, []) if t[0] < kept]
+        for _, gid, i in back:
+            g = fleet.robots.get(gid)
+            if g is not None:
+                g.retired.discard(i)
+        self.seen[rid] = 0
+        return len(back) + len(cut)
+
+
+def _regions(xy: F64, apart_m: float = 0.5) -> list[F64]:
+    """Points grouped into regions: those nearer than ``apart_m``, one after another."""
+    if not len(xy):
+        return []
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xy).query_pairs(apart_m, output_type="ndarray")
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xy),) * 2)
+    _, label = connected_components(g, directed=False)
+    return [xy[label == c] for c in range(int(label.max()) + 1)]
