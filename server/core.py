@@ -65,8 +65,8 @@ from server.rendezvous.surgery import GraphSurgery
 F64 = NDArray[np.float64]
 
 #: a place on the pass over a known map not reached within this long is given up [s], and so
-#: is one the robot has come no nearer to by ``INSPECT_STALL_M`` for ``INSPECT_STALL_S`` (a box
-#: or a closed door on the way)
+#: is one the robot has come no nearer to (along its path) by ``INSPECT_STALL_M`` for
+#: ``INSPECT_STALL_S`` (a box or a closed door on the way)
 INSPECT_GIVE_UP_S = 30.0
 INSPECT_STALL_S, INSPECT_STALL_M = 8.0, 0.3
 
@@ -208,7 +208,7 @@ class ServerCore:
         assert self.known is not None
         e = self.orders.errands.get(r.robot_id)
         if e is not None and e.kind == "inspect":
-            d = math.hypot(e.goal_xy[0] - r.pose[0], e.goal_xy[1] - r.pose[1])
+            d = _left_m(e.path_xy, r.pose)
             if d < e.nearest_m - INSPECT_STALL_M:
                 e.nearest_m, e.nearest_ns = d, stamp_ns
         if e is not None and e.kind == "inspect" and (
@@ -348,3 +348,12 @@ class ServerCore:
                 sigma = (0.0, 0.0, 0.0)
         self._sigmas[r.robot_id] = (n, sigma)
         return sigma
+
+
+def _left_m(path_xy: F64, pose: F64) -> float:
+    """How far ``pose`` is from a path's end along it: to its nearest point, then on."""
+    if not len(path_xy):
+        return 0.0
+    d = np.hypot(path_xy[:, 0] - pose[0], path_xy[:, 1] - pose[1])
+    k = int(np.argmin(d))
+    return float(d[k] + np.hypot(*np.diff(path_xy[k:], axis=0).T).sum())
