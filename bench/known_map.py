@@ -34,7 +34,7 @@ found again; prints JSON.
    known area at the start, when every change is shown and at ``--changed-time`` (what the
    retired keyframes alone had shown is unknown until the robots see it again).
 
-    PYTHONPATH=. python bench/known_map.py --changed [--changed-time 72]
+    PYTHONPATH=. python bench/known_map.py --changed [--changed-time 72] [--changed-seed N]
 """
 
 from __future__ import annotations
@@ -199,7 +199,7 @@ def mission_chain(known: KnownMap, frame: np.ndarray, missions: int, mode: str,
 
 
 def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: float,
-                go_on: bool = True) -> dict[str, Any]:
+                go_on: bool = True, seed: int | None = None) -> dict[str, Any]:
     """The map brought up to date in the changed house (see the module docstring, 6)."""
     from sim.config import DEFAULT_SCENARIOS, load_scenario
     from sim.floorplan import SMALL_HOUSE_BOXES, SMALL_HOUSE_CLOSED
@@ -208,6 +208,10 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
         [("box", b[0], b[1], 0.5 * max(b[3], b[4]) + 0.15) for b in SMALL_HOUSE_BOXES]
     spawn = {rid: np.array(p, dtype=float) for rid, p in
              load_scenario(DEFAULT_SCENARIOS, "small-house-3")["robots"].items()}
+    if seed is not None:        # random free poses instead of the first exploration's spawns
+        rng = np.random.default_rng(seed)
+        spawn = {f"r{k + 1}": np.asarray(p, dtype=float)
+                 for k, p in enumerate(free_poses(CHANGED, 3, rng))}
     m = mission(CHANGED, known, spawn, demo_config("small-house-3", mode="extend"), frame)
     at = [_to_map(frame, np.array([x, y, 0.0]))[:2] for _, x, y, _ in changes]
     shown: dict[int, float] = {}
@@ -234,7 +238,7 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
     still = [k for k, (_, _, _, r) in enumerate(changes) if k in shown and not
              _occupied_near(m.core.fleet.team_grid(MAP_TEAM), at[k], r)]
     assert m.core.known is not None
-    return {"first_exploration_s": first_s,
+    return {"first_exploration_s": first_s, "spawn_seed": seed,
             "changes": [{"what": w, "x": x, "y": y, "shown_at_s": shown.get(k)}
                         for k, (w, x, y, _) in enumerate(changes)],
             "all_shown": len(shown) == len(changes), "up_to_date_s": up_to_date,
@@ -348,13 +352,15 @@ def main() -> None:
     ap.add_argument("--changed", action="store_true", help="only the changed house: the "
                     "time to bring the map up to date against the first exploration's")
     ap.add_argument("--changed-time", type=float, default=72.0, help="sim seconds at most")
+    ap.add_argument("--changed-seed", type=int, default=None, help="with --changed: the robots "
+                    "at random free poses of this seed (default: the first exploration's spawns)")
     a = ap.parse_args()
     t0 = time.monotonic()
     known, frame, made = house_map(a.out)
     if a.changed:
         first = json.loads((a.out / "demo" / "report.json").read_text())
         row = changed_run(known, frame, float(first["first_team_time_to_threshold_s"]),
-                          a.changed_time)
+                          a.changed_time, seed=a.changed_seed)
         print(json.dumps({"map": made, **row, "wall_s": round(time.monotonic() - t0, 1)},
                          indent=2))
         return

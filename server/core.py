@@ -64,8 +64,11 @@ from server.rendezvous.surgery import GraphSurgery
 
 F64 = NDArray[np.float64]
 
-#: a place on the pass over a known map not reached within this long is given up [s]
+#: a place on the pass over a known map not reached within this long is given up [s], and so
+#: is one the robot has come no nearer to (along its path) by ``INSPECT_STALL_M`` for
+#: ``INSPECT_STALL_S`` (a box or a closed door on the way)
 INSPECT_GIVE_UP_S = 30.0
+INSPECT_STALL_S, INSPECT_STALL_M = 8.0, 0.3
 
 
 class ServerCore:
@@ -199,11 +202,19 @@ class ServerCore:
 
     def _inspect(self, r: RobotContext, stamp_ns: int) -> None:
         """Its next place on the pass over the known map (``KnownMapDesk.inspect_goal``); a
-        place not reached within ``INSPECT_GIVE_UP_S`` (a door now closed) is given up."""
+        place not reached within ``INSPECT_GIVE_UP_S``, or come no nearer to for
+        ``INSPECT_STALL_S`` (a door now closed), or left with little to see again
+        (``KnownMapDesk.inspect_stale``), is given up."""
         assert self.known is not None
         e = self.orders.errands.get(r.robot_id)
-        if e is not None and e.kind == "inspect" and \
-                stamp_ns - e.since_ns > INSPECT_GIVE_UP_S * 1e9:
+        if e is not None and e.kind == "inspect":
+            d = _left_m(e.path_xy, r.pose)
+            if d < e.nearest_m - INSPECT_STALL_M:
+                e.nearest_m, e.nearest_ns = d, stamp_ns
+        if e is not None and e.kind == "inspect" and (
+                stamp_ns - e.since_ns > INSPECT_GIVE_UP_S * 1e9 or
+                stamp_ns - max(e.nearest_ns, e.since_ns) > INSPECT_STALL_S * 1e9 or
+                self.known.inspect_stale(r)):
             del self.orders.errands[r.robot_id]
             e = None
         if e is None and (goal := self.known.inspect_goal(r)) is not None:
@@ -337,3 +348,12 @@ class ServerCore:
                 sigma = (0.0, 0.0, 0.0)
         self._sigmas[r.robot_id] = (n, sigma)
         return sigma
+
+
+def _left_m(path_xy: F64, pose: F64) -> float:
+    """How far ``pose`` is from a path's end along it: to its nearest point, then on."""
+    if not len(path_xy):
+        return 0.0
+    d = np.hypot(path_xy[:, 0] - pose[0], path_xy[:, 1] - pose[1])
+    k = int(np.argmin(d))
+    return float(d[k] + np.hypot(*np.diff(path_xy[k:], axis=0).T).sum())

@@ -153,6 +153,9 @@ class Errand:
     path_xy: F64
     pursuit: PurePursuit
     since_ns: int = 0              # when it was given (the server's own are given up after a while)
+    #: the server's own: the nearest it has come to its goal [m], and when
+    nearest_m: float = float("inf")
+    nearest_ns: int = 0
 
 
 @dataclass

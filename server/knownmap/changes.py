@@ -28,6 +28,7 @@ lost gives back what its keyframes since it went astray retired or cut. No I/O h
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -37,6 +38,7 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Fleet, RobotContext
 from server.knownmap.config import KnownMapConfig
+from server.knownmap.sweep import Sweep
 from server.knownmap.views import BINS, COVER, REACH_TOL_M, _bins, beams, reach
 from server.rendezvous.mapmatch import Layers, _cells
 from server.slam.keyframes import Keyframe
@@ -49,10 +51,9 @@ F64 = NDArray[np.float64]
 CHANGE_SPAN_S = 4.0
 #: confirmed cells of the same kind a changed cell needs within ``SUPPORT_M``
 SUPPORT, SUPPORT_M = 4, 0.3
-#: an older keyframe's place is inspected once a new keyframe is this near it [m]
-INSPECT_M = 1.5
-#: a place on the pass is worth the places not seen again within this of it [m]
-GAIN_M = 3.0
+#: a new return is on the map's open floor only this far from every wall the map shows [m]:
+#: an earlier mission's map is some centimetres off here and there
+WALL_GAP_M = 0.3
 #: beams an older keyframe must have through changed cells to be cut; a beam passing this
 #: many cells from a changed cell's centre passes through it
 CONTRA, CROSS_CELLS = 3, 0.75
@@ -90,14 +91,26 @@ class Upkeep:
     originals: dict[tuple[str, int], Keyframe] = field(default_factory=dict)
     applied_ns: int = 0
     fresh: list[F64] = field(default_factory=list)      # changed cells not yet reported
-    claimed: list[tuple[float, float]] = field(default_factory=list)   # inspection goals
+    sweep: Sweep = field(default_factory=Sweep)                        # the pass
     inspected: bool = False
     counts: dict[str, int] = field(default_factory=lambda: {
         "superseded": 0, "trimmed": 0, "changed_cells": 0})
     _cache: dict[tuple[str, int], tuple[F64, F64]] = field(default_factory=dict)
+    _far: tuple[Layers, NDArray[np.bool_]] | None = None
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_cache": {}}      # made again on demand
+        return {**self.__dict__, "_cache": {}, "_far": None}      # made again on demand
+
+    def _open(self, lay: Layers) -> NDArray[np.bool_]:
+        """The map's open floor ``WALL_GAP_M`` or more from every wall it shows (a return
+        there is a new wall; nearer, it may be a wall the older map drew a little off)."""
+        if self._far is None or self._far[0] is not lay:
+            from scipy.ndimage import binary_dilation
+            n = max(2, int(np.ceil(WALL_GAP_M / lay.fine_m)))
+            yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
+            near = binary_dilation(lay.fine_occ, structure=xx ** 2 + yy ** 2 <= n * n)
+            self._far = (lay, lay.fine_clear & ~near)
+        return self._far[1]
 
     # -- per keyframe ------------------------------------------------------------------------
     def on_scan(self, fleet: Fleet, team_id: str, r: RobotContext, lay: Layers) -> None:
@@ -112,6 +125,8 @@ class Upkeep:
             kf, T = r.slam.keyframes[k], r.slam.keyframe_pose(k)
             prof = beams(kf)
             self._supersede(fleet, r.robot_id, k, T, prof, old)
+            self.sweep.start(old.owners, self._xy(fleet))
+            self.sweep.saw(prof, T)
             self._vote(fleet, kf, T, prof, old, lay)
         self._contradict(fleet, r.robot_id, n - 1, old, lay)
 
@@ -160,7 +175,7 @@ class Upkeep:
         hits = transform_points(T, np.asarray(kf.hits, np.float64))
         i, j, ok = _cells(lay, hits)
         new_wall = np.zeros(len(hits), dtype=bool)
-        new_wall[ok] = lay.fine_clear[i[ok], j[ok]]
+        new_wall[ok] = self._open(lay)[i[ok], j[ok]]
         found = [("wall", hits[new_wall])]
         # the older keyframes' returns the new beams pass well beyond (each of the three
         # nearest: a beam grazing a wall that is still there has a neighbour short of it)
@@ -252,39 +267,27 @@ class Upkeep:
     # -- the pass over the map ---------------------------------------------------------------
     def inspect_goal(self, fleet: Fleet, team_id: str, r: RobotContext
                      ) -> tuple[float, float] | None:
-        """Of the older keyframes' places no new keyframe (nor a robot sent there) has come
-        within ``INSPECT_M`` of, the one with most such places within ``GAIN_M``, for the
-        way there; None once ``known_map.inspected_share`` of them has been (the pass is
-        over: the team explores what is unknown)."""
+        """The place of an older keyframe ``r`` goes to next on the pass over the map
+        (``sweep.Sweep.goal``: most of what it saw not seen again, per metre of the way);
+        None once the pass is over (the team explores what is unknown)."""
         if self.inspected:
             return None
         old = self._old(fleet, team_id)
-        if not len(old.poses):
-            return None
-        xy = old.poses[:, :2]
-        team = fleet.teams[team_id]
-        new = [fleet.robots[rid].slam.keyframe_poses()[:, :2] for rid in team.robot_ids
-               if not fleet.robots[rid].ghost and fleet.robots[rid].slam.keyframes]
-        near = np.vstack([np.zeros((0, 2)), *new, np.array(self.claimed).reshape(-1, 2)])
-        seen = np.zeros(len(xy), dtype=bool)
-        for q in near:
-            seen |= np.hypot(xy[:, 0] - q[0], xy[:, 1] - q[1]) <= INSPECT_M
-        # the retired ones were seen again too
-        share = (seen.sum() + sum(len(g) for g in self.retired_by.values())) / \
-            (len(xy) + sum(len(g) for g in self.retired_by.values()))
-        if seen.all() or share >= self.k.inspected_share:
+        hits = self._xy(fleet)
+        self.sweep.start(old.owners, hits)
+        goal = None
+        if self.sweep.share_seen() < self.k.inspected_share and len(old.poses):
+            goal = self.sweep.goal(r.robot_id, r.pose, old.owners, old.poses[:, :2], hits)
+        if goal is None:
             self.inspected = True
-            return None
-        # the place whose neighbourhood holds most places not seen again, for the way there
-        d = np.hypot(xy[:, 0] - r.pose[0], xy[:, 1] - r.pose[1])
-        todo = xy[~seen]
-        gain = (np.hypot(xy[:, None, 0] - todo[None, :, 0], xy[:, None, 1] - todo[None, :, 1])
-                <= GAIN_M).sum(axis=1)
-        score = gain / (d + 1.0)
-        score[seen] = -1.0
-        x, y = xy[int(np.argmax(score))]
-        self.claimed.append((float(x), float(y)))
-        return float(x), float(y)
+        return goal
+
+    def inspect_stale(self, fleet: Fleet, r: RobotContext) -> bool:
+        """``r``'s place on the pass shows little not seen again by now (``Sweep.stale``)."""
+        return self.sweep.stale(r.robot_id, self._xy(fleet))
+
+    def _xy(self, fleet: Fleet) -> Callable[[str, int], F64]:
+        return lambda gid, i: self._hits(fleet, gid, i)[0]
 
     # -- applying ----------------------------------------------------------------------------
     def apply(self, fleet: Fleet, now_ns: int) -> tuple[dict[str, int], list[F64]] | None:

@@ -57,4 +57,5 @@ class KnownMapConfig(ConfigModel):
         "unknown")
     inspected_share: float = Field(
         0.95, gt=0.0, le=1.0, description="extend: the pass is over when this share of "
-        "the map's keyframes has had a robot of this mission within 1.5 m (or retired)")
+        "what the map's older keyframes saw (0.25 m cells of their returns) has been seen again "
+        "by this mission's beams, or when no place is left worth going to")

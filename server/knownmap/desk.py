@@ -266,9 +266,12 @@ class KnownMapDesk:
         return (team.team_id == MAP_TEAM and self.upkeep is not None and self.k.inspect
                 and not self.upkeep.inspected)
 
+    def inspect_stale(self, r: RobotContext) -> bool:
+        """``r``'s place on the pass has little left to see again: it is sent on."""
+        return self.upkeep is not None and self.upkeep.inspect_stale(self.fleet, r)
+
     def unreachable(self, goal: tuple[float, float], why: str) -> None:
         assert self.upkeep is not None
-        self.upkeep.claimed.append(goal)
         log.info("inspection goal (%.1f, %.1f) skipped: %s", *goal, why)
 
     def _lose(self, r: RobotContext, w: LossWatch, stamp_ns: int) -> None:

@@ -1,0 +1,81 @@
+"""The pass over a known map: what is left to see again, and where each robot is sent."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from server.knownmap.sweep import CELL_M, MIN_GAIN, Sweep
+from server.knownmap.views import BINS
+
+
+def _wall(x: float, y0: float, y1: float) -> np.ndarray:
+    ys = np.arange(y0, y1, CELL_M / 2)
+    return np.column_stack([np.full(len(ys), x), ys])
+
+
+#: two older views: one near (x = 1) sees a short wall, one far (x = 10) a long one
+HITS = {("g", 0): _wall(2.0, -1.0, 1.0), ("g", 1): _wall(12.0, -4.0, 4.0)}
+OWNERS = list(HITS)
+XY = np.array([[1.0, 0.0], [10.0, 0.0]])
+
+
+def hits(gid: str, i: int) -> np.ndarray:
+    return HITS[(gid, i)]
+
+
+def _started() -> Sweep:
+    s = Sweep()
+    s.start(OWNERS, hits)
+    return s
+
+
+def test_cells_are_seen_again_by_beams_that_reach_them() -> None:
+    s = _started()
+    total = s.total
+    assert total > 2 * MIN_GAIN
+    # beams of 1 m: nothing reached
+    s.saw(np.full(BINS, 1.0), np.array([0.0, 0.0, 0.0]))
+    assert s.share_seen() == 0.0
+    # from (0, 0), beams reaching 3 m: the near wall (x = 2) is seen again, the far one not
+    s.saw(np.full(BINS, 3.0), np.array([0.0, 0.0, 0.0]))
+    assert s.todo is not None and 0.0 < s.share_seen() < 1.0
+    assert all(c[0] * CELL_M >= 11.0 for c in s.todo)
+
+
+def test_a_robot_goes_where_most_is_left_per_metre_and_two_robots_split() -> None:
+    s = _started()
+    pose = np.array([0.0, 0.0, 0.0])
+    # the far view shows four times as much: worth the way there
+    assert s.goal("r1", pose, OWNERS, XY, hits) == (10.0, 0.0)
+    # a second robot is not sent to what the first will see: the near place is left
+    assert s.goal("r2", pose, OWNERS, XY, hits) == (1.0, 0.0)
+    # once what r1's place shows has been seen on the way, r1 is sent on; nothing is left
+    assert not s.stale("r1", hits)
+    s.saw(np.full(BINS, 5.0), np.array([8.0, 0.0, 0.0]))
+    assert s.stale("r1", hits)
+    assert s.goal("r1", np.array([8.0, 0.0, 0.0]), OWNERS, XY, hits) is None
+
+
+def test_a_return_near_a_wall_the_map_shows_is_no_new_wall() -> None:
+    """An earlier mission's wall drawn some centimetres off: returns on the true wall, near
+    it, are not taken for a new wall; returns well out on the open floor are."""
+    from scipy.ndimage import binary_dilation
+
+    from server.knownmap.changes import WALL_GAP_M, Upkeep
+    from server.knownmap.config import KnownMapConfig
+    from server.rendezvous.mapmatch import Layers
+
+    fine_m, n = 0.05, 60
+    occ = np.zeros((n, n), dtype=bool)
+    occ[30, :] = True                                   # a wall along a row
+    free = ~occ
+    clear = free & ~binary_dilation(occ, iterations=2)
+    lay = Layers(np.zeros(2), 0.2, occ[::4, ::4], free[::4, ::4], np.zeros(2), fine_m,
+                 occ, free, binary_dilation(occ), clear)
+    u = Upkeep(KnownMapConfig())
+    open_ = u._open(lay)
+    off = 30 + round(0.15 / fine_m)                # 0.15 m from the wall drawn
+    far = 30 + round((WALL_GAP_M + 0.1) / fine_m)
+    assert clear[off, 10] and not open_[off, 10]
+    assert open_[far, 10] and not open_[30, 10]
+    assert u._open(lay) is open_                        # kept for the same layers
