@@ -171,3 +171,16 @@ def icp(scan_points: F64, scan_normals: F64 | None, target: PointMap, T_init: F6
     rms = math.sqrt(wr2 / max(sw, 1e-9))
     degenerate = translation_degeneracy(H, p.degenerate_eigen_ratio)
     return MatchResult(T, info, rms, inliers / max(n_pts, 1), it, bool(converged), degenerate)
+
+
+def _warm_up() -> None:
+    """Compile the kernels (or load them from numba's cache) now, at import: a first scan
+    that waited seconds for the compiler would change what a lockstep run does (scans queued
+    or dropped meanwhile), so a fresh install would not repeat a cached one."""
+    t = np.linspace(0.0, 2.0 * np.pi, 16, endpoint=False)
+    pts = np.column_stack([2.0 * np.cos(t), np.sin(t)])
+    icp(pts, -pts / np.linalg.norm(pts, axis=1, keepdims=True), PointMap(pts, -pts),
+        np.zeros(3), IcpParams())
+
+
+_warm_up()

@@ -188,3 +188,7 @@ def field_of_view(angles_rad: F64) -> tuple[float, float]:
     inc = abs(float(a[-1] - a[0])) / (len(a) - 1)
     return min(abs(float(a[-1] - a[0])) + inc, 2 * np.pi), 0.5 * float(a[0] + a[-1])
 
+
+
+# compiled now, at import, not on a first scan (see ``server.slam.icp._warm_up``)
+line_normals(np.array([[1.0, -0.2], [1.0, -0.1], [1.0, 0.0], [1.0, 0.1], [1.0, 0.2]]), 2, 0.5)
