@@ -23,6 +23,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+import termios  # pyserial's POSIX flush raises its error (EIO on an unplugged port)
 import threading
 import time
 from collections import Counter, deque
@@ -151,7 +152,7 @@ class SerialBase:
     def _session(self) -> None:
         try:
             port = self.serial_factory(self.port, self.baud, timeout=self.keepalive_s)
-        except (serial.SerialException, OSError) as e:
+        except (serial.SerialException, OSError, termios.error) as e:
             raise BaseDisconnected(f"cannot open {self.port}: {e}") from None
         with self._lock:
             self._target_tps = (0, 0)        # never resume an old command after a reconnect
@@ -171,7 +172,7 @@ class SerialBase:
                 next_keepalive = now + self.keepalive_s
             try:
                 data = port.read(max(port.in_waiting, 1))
-            except (serial.SerialException, OSError) as e:
+            except (serial.SerialException, OSError, termios.error) as e:
                 raise BaseDisconnected(f"{self.port}: read failed: {e}") from None
             recv_ns = time.time_ns()
             bad = parser.bad_frames
@@ -207,11 +208,11 @@ class SerialBase:
         try:  # best effort: the port may be gone
             port.write(proto.stop_frame(self._next_seq()))
             port.flush()
-        except (serial.SerialException, OSError):
+        except (serial.SerialException, OSError, termios.error):
             pass
         try:
             port.close()
-        except (serial.SerialException, OSError) as e:
+        except (serial.SerialException, OSError, termios.error) as e:
             log.debug("closing %s: %s", self.port, e)
 
     # -- frames -----------------------------------------------------------------------------
@@ -226,7 +227,7 @@ class SerialBase:
             try:
                 self._serial.write(data)
                 self._serial.flush()
-            except (serial.SerialException, OSError) as e:
+            except (serial.SerialException, OSError, termios.error) as e:
                 self.counters["write_errors"] += 1
                 raise BaseDisconnected(f"{self.port}: write failed: {e}") from None
 
