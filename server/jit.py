@@ -1,4 +1,4 @@
-"""Setting up numba for the compiled kernels (ICP, normals, A*).
+"""Setting up numba for the compiled kernels (ICP, normals, A*, the map analysis).
 
 ``njit_cached``: compile once and keep the machine code in numba's cache, so that later
 processes load it instead of compiling (compiling costs seconds and about 50 MB more at the

@@ -14,11 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
-from server.planning.grid import EIGHT_CONNECTED
-
-_FOUR_CONNECTED = ndimage.generate_binary_structure(2, 1)
+from server.exploration.frontiers_kernel import clusters
 
 
 @dataclass(frozen=True, eq=False)
@@ -40,11 +37,23 @@ def frontier_mask(space: NDArray[np.bool_], unexplored: NDArray[np.bool_],
                   walls: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
     """Cells of ``space`` (known free) with a 4-neighbour in ``unexplored`` and, when ``walls``
     is given, no 8-neighbour in ``walls``."""
-    near = ndimage.binary_dilation(unexplored, structure=_FOUR_CONNECTED)
-    mask = space & near
+    mask = space & dilate(unexplored, eight=False)
     if walls is not None:
-        mask &= ~ndimage.binary_dilation(walls, structure=EIGHT_CONNECTED)
+        mask &= ~dilate(walls, eight=True)
     return mask
+
+
+def dilate(m: NDArray[np.bool_], *, eight: bool) -> NDArray[np.bool_]:
+    """``m`` grown by one cell, to the 8-neighbours or to the 4-neighbours (cells outside the
+    array count as unset): ``ndimage.binary_dilation`` with that structure, by shifted ORs."""
+    rows = m.copy()
+    rows[1:] |= m[:-1]
+    rows[:-1] |= m[1:]
+    out = rows.copy() if eight else rows
+    src = rows if eight else m
+    out[:, 1:] |= src[:, :-1]
+    out[:, :-1] |= src[:, 1:]
+    return out
 
 
 def find_frontiers(space: NDArray[np.bool_], unexplored: NDArray[np.bool_], *,
@@ -56,21 +65,16 @@ def find_frontiers(space: NDArray[np.bool_], unexplored: NDArray[np.bool_], *,
 
 def cluster_frontiers(mask: NDArray[np.bool_], *, min_cells: int) -> Frontiers:
     """Frontier cells ``mask`` grouped 8-connected; clusters under ``min_cells`` are dropped."""
-    labels, n = ndimage.label(mask, structure=EIGHT_CONNECTED)
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    keep = sizes >= max(1, min_cells)
-    keep[0] = False
-    remap = np.full(n + 1, -1, dtype=np.int64)
-    remap[keep] = np.arange(int(keep.sum()))
-    cluster_of = remap[labels]
-    mask = cluster_of >= 0
-    cells = np.argwhere(mask).astype(np.int64)
-    cell_cluster = cluster_of[mask]
-    k = int(keep.sum())
+    flat, cell_cluster, k = clusters(np.ascontiguousarray(mask, dtype=bool), max(1, min_cells))
+    W = mask.shape[1]
+    mask = np.zeros(mask.shape, dtype=bool)
+    mask.ravel()[flat] = True
+    cells = np.stack(np.divmod(flat, W), axis=1).astype(np.int64)
     size = np.bincount(cell_cluster, minlength=k).astype(np.int64)
     if k == 0:
         empty = np.zeros((0, 2))
-        return Frontiers(mask, cells, cell_cluster, empty, empty.astype(np.int64), size)
+        return Frontiers(mask, cells.reshape(0, 2), cell_cluster, empty,
+                         empty.astype(np.int64), size)
     centroid = np.stack([np.bincount(cell_cluster, weights=cells[:, i], minlength=k)
                          for i in (0, 1)], axis=1) / size[:, None]
     d2 = np.sum((cells - centroid[cell_cluster]) ** 2, axis=1)

@@ -20,12 +20,12 @@ from numpy.typing import NDArray
 from scipy import ndimage
 from skimage.morphology import skeletonize
 
+from server.exploration.skeleton_kernel import ridge_cells
+from server.planning.edt_kernel import edt_with_indices
 from server.planning.grid import EIGHT_CONNECTED
 
 JUNCTION, END = 2, 1
 _NEIGHBOURS = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], dtype=np.uint8)
-# Half of the 8-neighbourhood: each unordered neighbour pair is visited once.
-_HALF_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1))
 _ALL_OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, -1), (-1, 0), (-1, -1), (-1, 1))
 
 
@@ -49,17 +49,11 @@ def voronoi_skeleton(space: NDArray[np.bool_], *, min_separation_cells: float,
     if not space.any() or space.all():
         return np.zeros_like(space)
     if nearest_boundary is None:
-        _, nearest_boundary = ndimage.distance_transform_edt(space, return_indices=True)
-    fr = nearest_boundary[0].astype(np.int32)
-    fc = nearest_boundary[1].astype(np.int32)
-    tau2 = min_separation_cells * min_separation_cells
+        _, nearest_boundary = edt_with_indices(space)
     ridge = np.zeros(space.shape, dtype=bool)
-    for dr, dc in _HALF_OFFSETS:
-        a, b = _pair_slices(dr, dc, space.shape)
-        sep2 = (fr[a] - fr[b]) ** 2 + (fc[a] - fc[b]) ** 2
-        m = space[a] & space[b] & (sep2 >= tau2)
-        ridge[a] |= m
-        ridge[b] |= m
+    ridge_cells(np.ascontiguousarray(space), np.ascontiguousarray(nearest_boundary[0]),
+                np.ascontiguousarray(nearest_boundary[1]),
+                float(min_separation_cells * min_separation_cells), ridge)
     return np.asarray(skeletonize(ridge), dtype=bool)
 
 

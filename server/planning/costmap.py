@@ -22,8 +22,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
+from server.planning.edt_kernel import edt_with_indices
 from server.planning.grid import GridGeometry, OccupancyGrid, small_components
 
 
@@ -121,7 +121,7 @@ def build_cost_layer(grid: OccupancyGrid, params: CostParams,
     space = ~obstacles
     nearest: NDArray[np.intp] | None
     if obstacles.any():
-        edt, nearest = ndimage.distance_transform_edt(space, return_indices=True)
+        edt, nearest = edt_with_indices(space)   # scipy's, to the bit, compiled
         clearance = (edt - 0.5) * res
     else:  # no obstacle anywhere: everything is far from one
         clearance, nearest = np.full(grid.data.shape, np.inf), None

@@ -17,9 +17,9 @@ from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
 
 from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
+from server.planning.grid_kernel import small_pockets
 
 EIGHT_CONNECTED = np.ones((3, 3), dtype=bool)
 
@@ -144,12 +144,7 @@ def small_components(mask: NDArray[np.bool_], max_cells: int) -> NDArray[np.bool
     Used to find pockets of unobserved cells inside observed space (gaps between LIDAR beams),
     which are treated as free so they neither look like frontiers nor break the skeleton.
     """
-    if max_cells <= 0 or not mask.any():
-        return np.zeros_like(mask)
-    labels, n = ndimage.label(mask, structure=EIGHT_CONNECTED)
-    sizes = np.bincount(labels.ravel(), minlength=n + 1)
-    small = sizes <= max_cells
-    small[0] = False
-    border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
-    small[border] = False
-    return small[labels]
+    out = np.zeros(mask.shape, dtype=bool)
+    if max_cells > 0:
+        small_pockets(np.ascontiguousarray(mask, dtype=bool), max_cells, out)
+    return out
