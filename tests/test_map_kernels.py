@@ -116,3 +116,24 @@ def test_voronoi_skeleton_as_by_shifts() -> None:
         np.testing.assert_array_equal(voronoi_skeleton(m, min_separation_cells=sep), want)
         nonempty += int(want.any())
     assert nonempty > 30
+
+
+def test_dijkstra_trace_as_mcp_traceback() -> None:
+    from skimage.graph import MCP_Geometric
+
+    from server.planning.dijkstra import _trace
+
+    rng = np.random.default_rng(6)
+    traced = 0
+    for _ in range(10):
+        cost = rng.uniform(1.0, 3.0, (25, 35))
+        cost[rng.random(cost.shape) < 0.25] = np.inf
+        cost[4, 4] = 1.0
+        mcp = MCP_Geometric(cost, fully_connected=True)
+        cum, back = mcp.find_costs([(4, 4)], [(20, 30)], find_all_ends=True)
+        offsets = np.asarray(mcp.offsets, dtype=np.int64)
+        for r, c in np.argwhere(np.isfinite(cum)):
+            want = np.asarray(mcp.traceback((r, c)), dtype=np.int64).reshape(-1, 2)
+            np.testing.assert_array_equal(_trace(back, offsets, int(r), int(c)), want)
+            traced += 1
+    assert traced > 1000

@@ -26,6 +26,7 @@ from scipy import ndimage
 
 from server.exploration.frontiers import Frontiers
 from server.planning.costmap import CostLayer
+from server.planning.edt_kernel import edt_with_indices
 from server.planning.grid import EIGHT_CONNECTED
 
 # Frontier cells tried per cluster before it is given up as out of reach.
@@ -61,7 +62,7 @@ class TargetPlacer:
         self.occupied = occupied
         self.any = bool(reachable.any())
         if self.any:
-            dist, idx = ndimage.distance_transform_edt(~reachable, return_indices=True)
+            dist, idx = edt_with_indices(~reachable)   # scipy's, compiled
             self._dist_cells = dist
             self._near_r, self._near_c = idx[0], idx[1]
 

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from skimage.graph import MCP_Geometric
 
+from server.jit import njit_cached
 from server.planning.astar import cells_to_path
 from server.planning.costmap import CostLayer
 from server.planning.errors import GoalOccupied, NoPath, OutsideGrid, StartOccupied, describe_xy
@@ -52,11 +53,12 @@ class CostField:
         self._search(ends)
 
     def _search(self, ends: list[tuple[int, int]] | None) -> None:
-        self._mcp = MCP_Geometric(self.layer.cost, fully_connected=True)
+        mcp = MCP_Geometric(self.layer.cost, fully_connected=True)
         if ends is None:
-            self._cum, _ = self._mcp.find_costs([self.start_rc])
+            self._cum, self._back = mcp.find_costs([self.start_rc])
         else:
-            self._cum, _ = self._mcp.find_costs([self.start_rc], ends, find_all_ends=True)
+            self._cum, self._back = mcp.find_costs([self.start_rc], ends, find_all_ends=True)
+        self._offsets = np.asarray(mcp.offsets, dtype=np.int64)
 
     def _cell(self, xy: ArrayLike) -> tuple[int, int]:
         rc = self.layer.geometry.world_to_cell(np.asarray(xy, np.float64).reshape(2))
@@ -94,7 +96,7 @@ class CostField:
         value = self._settled(rc)
         if not np.isfinite(value):
             raise NoPath(f"goal cell {rc} not reachable from {self.start_rc}")
-        return np.asarray(self._mcp.traceback(rc), dtype=np.int64).reshape(-1, 2), value
+        return _trace(self._back, self._offsets, rc[0], rc[1]), value
 
     def path_to(self, goal_xy: ArrayLike, *, smooth: bool = True) -> Path:
         """The minimum-cost path to ``goal_xy``; raises OutsideGrid, GoalOccupied or NoPath."""
@@ -113,3 +115,29 @@ class CostField:
         inner = centres if self.escaped else centres[1:]
         goal = np.asarray(goal_xy, np.float64).reshape(1, 2)
         return polyline_length_m(np.vstack([self.start_xy[None, :], inner[:-1], goal]))
+
+
+@njit_cached
+def _trace(back: NDArray[np.int16], offsets: NDArray[np.int64], r: int, c: int
+           ) -> NDArray[np.int64]:
+    """The cells (K, 2) from the start to (r, c) along the search's traceback array (each
+    cell's index into ``offsets`` of the step that reached it, -1 at the start): the path
+    ``MCP.traceback`` gives, without its per-cell Python objects."""
+    n = 1
+    rr, cc = r, c
+    while back[rr, cc] >= 0:
+        k = back[rr, cc]
+        rr, cc = rr - offsets[k, 0], cc - offsets[k, 1]
+        n += 1
+    out = np.empty((n, 2), np.int64)
+    for i in range(n - 1, -1, -1):
+        out[i, 0], out[i, 1] = r, c
+        if i:
+            k = back[r, c]
+            r, c = r - offsets[k, 0], c - offsets[k, 1]
+    return out
+
+
+# compiled (or loaded from numba's cache) now, at import, not in a decision's time
+_trace(np.array([[-1, 4]], np.int16), np.array([[-1, -1], [-1, 0], [-1, 1], [0, -1], [0, 1],
+                                                [1, -1], [1, 0], [1, 1]], np.int64), 0, 1)
