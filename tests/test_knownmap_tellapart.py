@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from numpy.typing import NDArray
 
 from server.knownmap import tellapart
@@ -80,3 +81,22 @@ def test_alike_placements_are_told_apart_only_once_the_difference_is_seen() -> N
     # a placement far weaker is no tie: the ordinary clear winner decides, not this rule
     assert tellapart.told_apart([right, Placement(TURNED, (), 10.0, 0.9)], 0.8, own, oc,
                                 known, kc) is None
+
+
+@pytest.mark.slow
+def test_in_the_ambiguous_wings_a_robot_is_sent_to_tell_them_apart_and_placed_right() -> None:
+    """Closed loop, the real simulator and core: a robot in the mirror-image wings (seed 1:
+    its corridor fits both wings' and their other corridors) is sent where its placements
+    differ and placed, right, well within the 120 s it was not placed in before."""
+    from bench.support.known_mission import WORLDS, demo_config, free_poses, mission
+    from bench.support.survey import survey_map
+
+    world = WORLDS / "ambiguous_wings.world"
+    m = mission(world, survey_map(world), {"r1": free_poses(world, 1,
+                                                            np.random.default_rng(1))[0]},
+                demo_config("ambiguous-2"), np.zeros(3), seed=1)
+    m.run_until(60.0, lambda m: bool(m.placed))
+    assert m.core.known is not None
+    assert m.core.known.counts["tell_apart"] >= 1
+    assert m.placed and not m.wrong(), (m.placed, m.wrong())
+    assert m.placed[0].error_m <= 0.10
