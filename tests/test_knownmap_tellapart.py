@@ -100,3 +100,12 @@ def test_in_the_ambiguous_wings_a_robot_is_sent_to_tell_them_apart_and_placed_ri
     assert m.core.known.counts["tell_apart"] >= 1
     assert m.placed and not m.wrong(), (m.placed, m.wrong())
     assert m.placed[0].error_m <= 0.10
+
+
+def test_the_way_is_counted_in_steps_around_walls() -> None:
+    open_ = np.ones((5, 7), bool)
+    open_[:4, 3] = False                    # a wall with a gap at the bottom row
+    d = tellapart._wavefront(open_, (0, 0))
+    assert d[0, 2] == 2 and d[4, 3] == 4    # diagonal steps count one
+    assert d[0, 4] == 8                     # around the wall, not through it
+    assert d[1, 3] == -1                    # the wall itself is never reached
