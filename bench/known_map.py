@@ -356,7 +356,11 @@ def main() -> None:
                     "at random free poses of this seed (default: the first exploration's spawns)")
     a = ap.parse_args()
     t0 = time.monotonic()
-    known, frame, made = house_map(a.out)
+    if not (a.changed or a.missions or a.seeds or a.lost_seeds):   # the wings alone
+        known: Any = None           # the house's map is not needed
+        frame, made = np.zeros(3), {"cached": None}
+    else:
+        known, frame, made = house_map(a.out)
     if a.changed:
         first = json.loads((a.out / "demo" / "report.json").read_text())
         row = changed_run(known, frame, float(first["first_team_time_to_threshold_s"]),
@@ -374,7 +378,8 @@ def main() -> None:
                           "wall_s": round(time.monotonic() - t0, 1)}, indent=2))
         return
     seeds = list(range(a.first_seed, a.first_seed + a.seeds))
-    house = placed_runs(known, frame, HOUSE, "small-house-3", seeds, a.robots, a.limit)
+    house = [] if not seeds else \
+        placed_runs(known, frame, HOUSE, "small-house-3", seeds, a.robots, a.limit)
     wings_map = survey_map(WINGS)
     wings = placed_runs(wings_map, np.zeros(3), WINGS, "ambiguous-2",
                         list(range(a.first_seed, a.first_seed + a.wings_seeds)), 1,

@@ -6,7 +6,9 @@ Per seed: one robot at a random free pose in ``--world`` (the map surveyed from 
 ``--by-itself`` the server's own search goes on, and a run it places first has no order); after
 ``--after`` simulated seconds, the order ``place`` with its true pose put off by ``--off-m``
 in a random direction and ``--off-deg`` (as a press and drag on a screen), after one with its
-pose ``--wrong-m`` off (somewhere else in the house), which must be refused. The placed
+pose ``--wrong-m`` off (somewhere else in the house), which must be refused. Among rooms
+alike (the ambiguous wings) the rough pose is refused too while nothing the robot has seen
+tells the rooms apart (``refused_alike``). The placed
 robot's error against the truth is taken when placed and ``--settle`` simulated seconds later.
 
     PYTHONPATH=$PWD .venv/bin/python -m bench.place_by_hand --seeds 5
@@ -64,6 +66,7 @@ def one(seed: int, a: argparse.Namespace) -> dict[str, Any]:
     return {"seed": seed, "wrong_refused": w_status == 409 and not wrongly,
             "wrong_answer": w_line, "wrong_ms": round(w_ms, 1),
             "placed": placed and status == 200, "answer": line, "ms": round(ms, 1),
+            "refused_alike": status == 409 and "tells them apart" in line,
             "error_m": None if err_m is None else round(err_m, 4),
             "error_deg": None if err_deg is None else round(err_deg, 3),
             "later_error_m": None if later[0] is None else round(later[0], 4),
@@ -90,6 +93,7 @@ def main() -> None:
     print(json.dumps({
         "runs": runs, "world": a.world, "placed_by_itself": len(runs) - len(ordered),
         "placed": len(good), "of": len(ordered),
+        "refused_alike": sum(r["refused_alike"] for r in ordered),
         "wrong_refused": sum(r["wrong_refused"] for r in ordered),
         "worst_error_m": max((r["error_m"] for r in good), default=None),
         "worst_error_deg": max((r["error_deg"] for r in good), default=None),

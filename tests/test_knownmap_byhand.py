@@ -188,9 +188,10 @@ def test_a_hand_placement_comes_back_from_the_journal(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_rooms_alike_the_operator_tells_them_apart() -> None:
+def test_rooms_alike_a_hand_placement_is_refused_until_they_are_told_apart() -> None:
     """In the ambiguous wings the robot's map fits several rooms as well: the server does not
-    place it; the operator does, and is told that other places fit as well."""
+    place it, and an operator's placement, even the right one, is refused while nothing it
+    has seen tells those rooms apart (the answer says so); the robot is not placed."""
     world = WORLDS / "ambiguous_wings.world"
     m = mission(world, survey_map(world, spacing_m=1.5),
                 {"r1": free_poses(world, 1, np.random.default_rng(1))[0]}, demo_config(),
@@ -204,9 +205,8 @@ def test_rooms_alike_the_operator_tells_them_apart() -> None:
                                                   h.pose[1] - st.hypotheses[0].pose[1]) > 5]
     assert far and far[0].strength >= 0.8 * st.hypotheses[0].strength   # rooms alike
     status, line = _place(m, _truth(m) + np.array([0.4, -0.2, 0.15]), 2)
-    assert status == 200, line
-    assert "other place(s) fit its map about as well" in line
+    assert status == 409, line
+    assert "fit its map as well" in line and "nothing it has seen tells them apart" in line
     m.run_until(m.sim_time_s + 1.0)
-    assert r.team_id == MAP_TEAM
-    err_m, err_deg = m.error("r1")
-    assert err_m <= 0.10 and err_deg <= 1.0, (err_m, err_deg)
+    assert r.team_id != MAP_TEAM
+    assert m.core.known is not None and m.core.known.counts["by_hand"] == 0

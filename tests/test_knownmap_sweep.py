@@ -79,3 +79,63 @@ def test_a_return_near_a_wall_the_map_shows_is_no_new_wall() -> None:
     assert clear[off, 10] and not open_[off, 10]
     assert open_[far, 10] and not open_[30, 10]
     assert u._open(lay) is open_                        # kept for the same layers
+
+
+def _open_floor() -> object:
+    """A map 3 × 3 m of open floor with a wall along one row (y = 1.5 m)."""
+    from scipy.ndimage import binary_dilation
+
+    from server.rendezvous.mapmatch import Layers
+
+    fine_m, n = 0.05, 60
+    occ = np.zeros((n, n), dtype=bool)
+    occ[30, :] = True
+    free = ~occ
+    clear = free & ~binary_dilation(occ, iterations=2)
+    return Layers(np.zeros(2), 0.2, occ[::4, ::4], free[::4, ::4], np.zeros(2), fine_m,
+                  occ, free, binary_dilation(occ), clear)
+
+
+def _views(poses: list[tuple[float, float, float]], bodies: np.ndarray | None = None
+           ) -> int:
+    """A box (returns around (1.0, 0.5), open floor on the map) seen by keyframes at
+    ``poses`` (x, y, s): how many of its cells end confirmed changed."""
+    from types import SimpleNamespace
+    from typing import Any, cast
+
+    from server.knownmap.changes import Old, Upkeep
+    from server.knownmap.config import KnownMapConfig
+
+    u = Upkeep(KnownMapConfig())
+    lay = cast(Any, _open_floor())
+    box = np.array([[1.0 + dx, 0.5 + dy] for dx in np.arange(-0.1, 0.11, 0.05)
+                    for dy in (-0.1, 0.1)])
+    old = Old([], np.zeros((0, 3)))
+    for x, y, s in poses:
+        T = np.array([x, y, 0.0])
+        kf = SimpleNamespace(hits=box - T[:2], stamp_ns=int(s * 1e9))
+        u._vote(cast(Any, None), cast(Any, kf), T, np.full(BINS, np.nan), old, lay,
+                bodies)
+    return len(u.changed_xy("wall", 0.05))
+
+
+def test_a_change_needs_two_views_apart_in_time_and_place() -> None:
+    """Returns on the map's open floor are a change once seen by keyframes 4 s and 1 m
+    apart; seen longer from one place (a robot standing, watching a person stand) they
+    are not."""
+    from server.knownmap.changes import CHANGE_SPAN_S, VIEWS_APART_M
+
+    assert _views([(0.2, 0.2, 0.0), (0.2, 1.2, CHANGE_SPAN_S + 1)]) > 0
+    assert _views([(0.2, 0.2, 0.0), (0.2, 0.3, CHANGE_SPAN_S + 5)]) == 0     # one place
+    assert _views([(0.2, 0.2, 0.0), (0.2, 0.2 + VIEWS_APART_M + 0.1, 1.0)]) == 0  # 1 s
+    assert _views([(0.2, 0.2, 0.0), (0.2, 0.3, 6.0), (0.2, 1.4, 9.0)]) > 0
+
+
+def test_returns_on_a_robot_of_the_team_are_never_a_change() -> None:
+    """The same returns, where a robot of the team stands (its footprint), get no vote."""
+    views = [(0.2, 0.2, 0.0), (0.2, 1.2, 5.0), (2.5, 0.2, 10.0)]
+    assert _views(views) > 0
+    robot = np.array([[1.0, 0.5, 0.13 + 0.15]])
+    assert _views(views, robot) == 0
+    elsewhere = np.array([[2.5, 2.5, 0.28]])
+    assert _views(views, elsewhere) > 0

@@ -14,6 +14,11 @@
      the robot within ``NEAR_M`` and ``NEAR_DEG`` of the operator's pose refines it (a press
      and a drag on a screen say roughly where, not to the centimetre);
    - without one, the operator's pose goes on as it is;
+   - where other placements elsewhere fit the robot's map about as well (``clear_ratio``
+     of the chosen one's strength: rooms alike), the order is refused, saying so, unless
+     what the robot has seen tells the chosen one apart from them (its map contradicts
+     each of them clearly more: ``tellapart.apart``, the rule a query uses); the robot is
+     meanwhile sent where they differ (``tellapart``), and may be placed by hand after;
    - either way it then passes the merger's checks as any placement does
      (``KnownMapDesk.place``): the maps must not contradict each other and the robot's own
      keyframes must match the map where they overlap. A guess that fails them is refused,
@@ -35,10 +40,12 @@ from schemas import Hypothesis
 from schemas.se2 import compose, inverse, wrap_angle
 from server.command.operator import Refused
 from server.fleet.model import RobotContext
+from server.knownmap import tellapart
 from server.knownmap.desk import KnownMapDesk
 from server.knownmap.ghosts import MAP_TEAM
 from server.knownmap.placing import MapTarget, candidates, placements
 from server.knownmap.search import Guess
+from server.rendezvous.mapmatch import layers
 from server.slam.grid import OccupancyGrid
 
 F64 = NDArray[np.float64]
@@ -81,6 +88,12 @@ def place_by_hand(desk: KnownMapDesk, r: RobotContext, pose: tuple[float, float,
         how = (f"refined by the maps to ({at[0]:.2f}, {at[1]:.2f}, "
                f"{math.degrees(at[2]):.0f}°), {_off(at, want)}")
     alike = _alike(desk, team.team_id, r.pose, compose(T, r.pose), strength)
+    if alike and not _told_apart(desk, team.team_id, T, alike):
+        at = compose(alike[0], r.pose)
+        raise Refused(f"pose: {how}, but {len(alike)} other place(s) fit its map as well, as "
+                      f"at ({at[0]:.2f}, {at[1]:.2f}, {math.degrees(at[2]):.0f}°), and nothing "
+                      "it has seen tells them apart yet (rooms alike): let it see more (it is "
+                      "sent where they differ), then place it again")
     guess = Guess(T, now_ns, now_ns, strength, 0.0, wins=0)
     if not desk.place(team, guess, now_ns, kind="by_hand"):
         if guess.status == "refused":
@@ -89,23 +102,33 @@ def place_by_hand(desk: KnownMapDesk, r: RobotContext, pose: tuple[float, float,
                       "map to check it yet: let it see more, then place it again")
     desk.counts["by_hand"] += 1
     x, y, th = (float(v) for v in r.pose)
-    warn = (f" ({alike} other place(s) fit its map about as well: the maps alone cannot tell "
-            "them apart, so make sure of this one)") if alike else ""
-    return f"{how}; placed at ({x:.2f}, {y:.2f}, {math.degrees(th):.0f}°){warn}"
+    told = (f" ({len(alike)} other place(s) fit its map about as well, but it has seen what "
+            "tells them apart)") if alike else ""
+    return f"{how}; placed at ({x:.2f}, {y:.2f}, {math.degrees(th):.0f}°){told}"
 
 
-def _alike(desk: KnownMapDesk, team_id: str, pose_own: F64, at: F64, strength: float) -> int:
-    """How many of the team's latest query's placements elsewhere (not near ``at``) fit
-    about as well (``clear_ratio`` of ``strength`` or more)."""
+def _alike(desk: KnownMapDesk, team_id: str, pose_own: F64, at: F64, strength: float
+           ) -> list[F64]:
+    """The team's latest query's placements elsewhere (not near ``at``) that fit about as
+    well (``clear_ratio`` of ``strength`` or more)."""
     s = desk.searches.get(team_id)
     if s is None or strength <= 0:
-        return 0
-    n = 0
+        return []
+    out = []
     for T, other, _ in s.shown:
         p = compose(T, pose_own)
         if other >= desk.k.clear_ratio * strength and math.hypot(*(p[:2] - at[:2])) > NEAR_M:
-            n += 1
-    return n
+            out.append(T)
+    return out
+
+
+def _told_apart(desk: KnownMapDesk, team_id: str, T: F64, others: list[F64]) -> bool:
+    """The team's map contradicts each of ``others`` clearly more than ``T``
+    (``tellapart.conflicts``, the rule a query uses)."""
+    mine = layers(desk.fleet.team_grid(team_id), tellapart.CELL_M)
+    args = (mine, tellapart.clear_layer(mine), *desk.open_floor())
+    c = tellapart.conflicts(T, *args)
+    return all(tellapart.apart(c, tellapart.conflicts(U, *args)) for U in others)
 
 
 def nearby(desk: KnownMapDesk, team_id: str, pose_own: F64, want: F64

@@ -13,10 +13,14 @@ compared with them, by two rules:
 2. **Changed**: a cell the map shows open where a new keyframe has a return (a door closed, a
    box brought in), or where an older return lies that the new beams pass well beyond (a
    door opened, a box taken away), gets a vote; a cell with votes from
-   ``known_map.change_votes`` keyframes over ``CHANGE_SPAN_S`` at least, with ``SUPPORT``
+   ``known_map.change_votes`` keyframes over ``CHANGE_SPAN_S`` at least, the first and the
+   confirming one ``VIEWS_APART_M`` apart (two views, not one robot's while it stood), with
+   ``SUPPORT``
    other such cells within ``SUPPORT_M`` (a change is a stretch of wall that stays, not one
    stray return; a new wall a later beam passes through was a robot or a person that moved
-   on, and its votes are dropped), is a change. The older keyframes that contradict it are
+   on, and its votes are dropped), is a change. A return within the footprint of a robot
+   of the team, where it stands when the keyframe is compared, is that robot: no vote.
+   The older keyframes that contradict it are
    cut (``trimmed``): their beams through a new wall, their returns on a wall that is gone,
    are dropped from what the map is drawn from; the rest of what they show stays.
 
@@ -49,6 +53,12 @@ F64 = NDArray[np.float64]
 #: the keyframes that vote a cell changed must span this long [s] (what moves on, a robot or
 #: a person, is seen through meanwhile and its votes dropped)
 CHANGE_SPAN_S = 4.0
+#: ... and the first and the confirming keyframe must stand this far apart [m]: two views
+#: of it, not one robot's view while it stood
+VIEWS_APART_M = 1.0
+#: a new return this near a robot of the team (its footprint: its radius and this margin,
+#: where it stands when the scan is compared) is that robot, never a change [m]
+BODY_MARGIN_M = 0.15
 #: confirmed cells of the same kind a changed cell needs within ``SUPPORT_M``
 SUPPORT, SUPPORT_M = 4, 0.3
 #: a new return is on the map's open floor only this far from every wall the map shows [m]:
@@ -78,8 +88,9 @@ class Upkeep:
 
     k: KnownMapConfig
     seen: dict[str, int] = field(default_factory=dict)        # robot -> keyframes compared
-    #: cell -> (keyframes that saw it changed, the first one's stamp)
-    votes: dict[tuple[str, int, int], tuple[int, int]] = field(default_factory=dict)
+    #: cell -> (keyframes that saw it changed, the first one's stamp, x, y)
+    votes: dict[tuple[str, int, int], tuple[int, int, float, float]] = field(
+        default_factory=dict)
     confirmed: dict[tuple[str, int, int], int] = field(default_factory=dict)  # -> applied?
     pending: list[tuple[str, int, str, int, str]] = field(default_factory=list)
     #: robot -> (its keyframe, ghost, ghost's keyframe) retired because of it
@@ -121,13 +132,14 @@ class Upkeep:
             return
         self.seen[r.robot_id] = n
         old = self._old(fleet, team_id)
+        bodies = _bodies(fleet, team_id, r)
         for k in range(start, n):
             kf, T = r.slam.keyframes[k], r.slam.keyframe_pose(k)
             prof = beams(kf)
             self._supersede(fleet, r.robot_id, k, T, prof, old)
             self.sweep.start(old.owners, self._xy(fleet))
             self.sweep.saw(prof, T)
-            self._vote(fleet, kf, T, prof, old, lay)
+            self._vote(fleet, kf, T, prof, old, lay, bodies)
         self._contradict(fleet, r.robot_id, n - 1, old, lay)
 
     def _old(self, fleet: Fleet, team_id: str) -> Old:
@@ -170,12 +182,18 @@ class Upkeep:
                 self.pending.append((rid, k, gid, i, "superseded"))
 
     def _vote(self, fleet: Fleet, kf: Keyframe, T: F64, prof: F64, old: Old,
-              lay: Layers) -> None:
+              lay: Layers, bodies: F64 | None = None) -> None:
+        """The cells ``kf`` (at ``T``) sees changed get its vote; its returns within
+        ``bodies`` (the team's robots: (x, y, radius)) are robots, not walls."""
         step = lay.fine_m
         hits = transform_points(T, np.asarray(kf.hits, np.float64))
         i, j, ok = _cells(lay, hits)
         new_wall = np.zeros(len(hits), dtype=bool)
         new_wall[ok] = self._open(lay)[i[ok], j[ok]]
+        if bodies is not None and len(bodies) and len(hits):
+            d = np.hypot(hits[:, None, 0] - bodies[None, :, 0],
+                         hits[:, None, 1] - bodies[None, :, 1])
+            new_wall &= ~(d <= bodies[None, :, 2]).any(axis=1)
         found = [("wall", hits[new_wall])]
         # the older keyframes' returns the new beams pass well beyond (each of the three
         # nearest: a beam grazing a wall that is still there has a neighbour short of it)
@@ -194,10 +212,12 @@ class Upkeep:
         cells = {(kind, int(r), int(c)) for kind, xy in found
                  for c, r in np.floor(xy / step).astype(np.int64)}
         self._clear(T, prof, step, cells)
+        x, y = float(T[0]), float(T[1])
         for key in cells:           # keyed by place, not by the view's cells
-            n, first = self.votes.get(key, (0, kf.stamp_ns))
-            self.votes[key] = (n + 1, first)
-            if n + 1 >= self.k.change_votes and kf.stamp_ns - first >= CHANGE_SPAN_S * 1e9:
+            n, first, x0, y0 = self.votes.get(key, (0, kf.stamp_ns, x, y))
+            self.votes[key] = (n + 1, first, x0, y0)
+            if n + 1 >= self.k.change_votes and kf.stamp_ns - first >= CHANGE_SPAN_S * 1e9 \
+                    and np.hypot(x - x0, y - y0) >= VIEWS_APART_M:
                 self.confirmed.setdefault(key, 0)
 
     def _clear(self, T: F64, prof: F64, step: float, cells: set[tuple[str, int, int]]) -> None:
@@ -357,3 +377,13 @@ def _regions(xy: F64, apart_m: float = 0.5) -> list[F64]:
     g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(xy),) * 2)
     _, label = connected_components(g, directed=False)
     return [xy[label == c] for c in range(int(label.max()) + 1)]
+
+
+def _bodies(fleet: Fleet, team_id: str, r: RobotContext) -> F64:
+    """Where the team's robots other than ``r`` stand now, each with its footprint's radius
+    (``control.robot_radius_m`` + ``BODY_MARGIN_M``): (x, y, radius) rows."""
+    radius = fleet.cfg.control.robot_radius_m + BODY_MARGIN_M
+    rows = [(float(o.pose[0]), float(o.pose[1]), radius)
+            for o in (fleet.robots[rid] for rid in fleet.teams[team_id].robot_ids)
+            if o.robot_id != r.robot_id and not o.ghost and o.alive and o.scans]
+    return np.array(rows, dtype=np.float64).reshape(-1, 3)

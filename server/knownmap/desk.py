@@ -33,7 +33,7 @@ from schemas.se2 import compose, inverse
 from server.config import ServerConfig
 from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext, Team
-from server.knownmap import ghosts
+from server.knownmap import ghosts, tellapart
 from server.knownmap.changes import SUPPORT, Upkeep
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM
 from server.knownmap.mapdata import KnownMap
@@ -64,6 +64,7 @@ class MapVersion:
     target: MapTarget | None = None
     layers: Layers | None = None
     older: Layers | None = None     # extend: the older keyframes' alone (``changes``)
+    clear: NDArray[np.bool_] | None = None   # its open floor away from walls (``tellapart``)
 
 
 class KnownMapDesk:
@@ -83,7 +84,9 @@ class KnownMapDesk:
         self.watches: dict[str, LossWatch] = {}
         self.lost: dict[str, int] = {}          # robots lost and not placed again: since
         self.placed_at: dict[str, int] = {}     # when each robot was last placed
-        self.counts = {"queries": 0, "placed": 0, "refused": 0, "lost": 0, "by_hand": 0}
+        self.tell_next: dict[str, int] = {}     # when a searching robot is next sent on
+        self.counts = {"queries": 0, "placed": 0, "refused": 0, "lost": 0, "by_hand": 0,
+                       "tell_apart": 0}
         self.version = 0                        # of the map's own keyframes
         self._view: MapVersion | None = None
         #: extend: the map kept up to date by what placed robots see (``changes``)
@@ -158,7 +161,12 @@ class KnownMapDesk:
         ranked = placements(candidates(target, own, xy, p), p)
         self.counts["queries"] += 1
         anchor = fleet.robots[team.anchor]
-        guess = s.take(ranked, clear_winner(ranked, self.k.clear_ratio), anchor.pose, now_ns)
+        winner = clear_winner(ranked, self.k.clear_ratio)
+        if winner is None and len(ranked) > 1:     # alike: has it seen what tells them apart?
+            mine = layers(own, tellapart.CELL_M)
+            winner = tellapart.told_apart(ranked, self.k.clear_ratio, mine,
+                                          tellapart.clear_layer(mine), *self.open_floor())
+        guess = s.take(ranked, winner, anchor.pose, now_ns)
         if guess is not None and guess.may_retry(len(xy)) and \
                 guess.wins >= self.k.confirmations:
             self.place(team, guess, now_ns)
@@ -253,12 +261,35 @@ class KnownMapDesk:
                                    **{k: float(v) for k, v in counts.items()}})
 
     def inspect_goal(self, r: RobotContext) -> tuple[float, float] | None:
-        """Extend with ``known_map.inspect``: where ``r`` (placed, without an errand) goes
-        next on its pass over the map (``changes.Upkeep.inspect_goal``); None: nowhere."""
-        if self.upkeep is None or not self.k.inspect or r.team_id != MAP_TEAM or \
-                r.robot_id not in self.watches:
+        """Where ``r`` (without an errand) is sent: searching, where its placements differ
+        (``tellapart``); placed, extend with ``known_map.inspect``, its next place on the
+        pass over the map (``changes.Upkeep.inspect_goal``). None: nowhere."""
+        if r.team_id != MAP_TEAM:
+            return self._tell_apart(r)
+        if self.upkeep is None or not self.k.inspect or r.robot_id not in self.watches:
             return None
         return self.upkeep.inspect_goal(self.fleet, MAP_TEAM, r)
+
+    def _tell_apart(self, r: RobotContext) -> tuple[float, float] | None:
+        """A searching robot whose latest query left several placements about as strong:
+        where it sees what tells them apart (``tellapart.errand_goal``), asked at most once
+        a query period."""
+        team = self.fleet.team_of(r)
+        s = self.searches.get(team.team_id)
+        now = r.last_stamp_ns
+        if s is None or len(s.shown) < 2 or now < self.tell_next.get(r.robot_id, 0):
+            return None
+        self.tell_next[r.robot_id] = now + int(self.k.query_period_s * 1e9)
+        best = s.shown[0][1]
+        Ts = [T for T, strength, _ in s.shown if strength >= tellapart.SHARE * best > 0]
+        own = layers(self.fleet.team_grid(team.team_id), tellapart.CELL_M)
+        goal = tellapart.errand_goal(*self.open_floor(), own,
+                                     tellapart.clear_layer(own), Ts, r.pose)
+        if goal is not None:
+            self.counts["tell_apart"] = self.counts.get("tell_apart", 0) + 1
+            log.info("%s sent to (%.1f, %.1f) to tell %d placements apart", r.robot_id,
+                     *goal, len(Ts))
+        return goal
 
     def on_pass(self, team: Team) -> bool:
         """The map's team is on its pass over the map (extend, ``inspect``): not done yet,
@@ -266,13 +297,21 @@ class KnownMapDesk:
         return (team.team_id == MAP_TEAM and self.upkeep is not None and self.k.inspect
                 and not self.upkeep.inspected)
 
+    def open_floor(self) -> tuple[Layers, NDArray[np.bool_]]:
+        """The map's layers and its open floor away from walls (``tellapart``)."""
+        v = self.view()
+        assert v.layers is not None
+        if v.clear is None:
+            v.clear = tellapart.clear_layer(v.layers)
+        return v.layers, v.clear
+
     def inspect_stale(self, r: RobotContext) -> bool:
         """``r``'s place on the pass has little left to see again: it is sent on."""
-        return self.upkeep is not None and self.upkeep.inspect_stale(self.fleet, r)
+        return r.team_id == MAP_TEAM and self.upkeep is not None and \
+            self.upkeep.inspect_stale(self.fleet, r)
 
     def unreachable(self, goal: tuple[float, float], why: str) -> None:
-        assert self.upkeep is not None
-        log.info("inspection goal (%.1f, %.1f) skipped: %s", *goal, why)
+        log.info("goal (%.1f, %.1f) skipped: %s", *goal, why)
 
     def _lose(self, r: RobotContext, w: LossWatch, stamp_ns: int) -> None:
         why = (f"{w.last.conflict} of {w.last.known} returns on mapped ground in open space "
