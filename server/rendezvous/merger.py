@@ -97,11 +97,16 @@ class Merger:
         # other team has not mapped, so fewer of its points have a partner there
         on_maps = kind in ("map", "placed")   # placed: a robot in a known map (server.knownmap)
         inliers = MAP_KIND_MIN_INLIERS if on_maps else 0.5
+        # a short, narrow sensor's keyframe near the other team's often sees the far face of
+        # a wall it saw, or a room it never looked into: such a keyframe cannot pass, however
+        # well the maps fit, and is no test of the fit (tried only where it could pass)
+        seen = inliers if any(robots[r].slam.narrow
+                              for r in (*ta.robot_ids, *tb.robot_ids)) else 0.0
         matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
                    for m in cross_matches(robots[ra].slam, robots[rb].slam, T_ab=p.T_ab,
                                           tried=tried, min_inlier_fraction=inliers,
                                           radius_m=KNOWN_MAP_RADIUS_M if kind == "placed"
-                                          else 5.0)]
+                                          else 5.0, min_seen_fraction=seen)]
         found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
@@ -125,9 +130,12 @@ class Merger:
                                    f"({found} matches), beyond its uncertainty "
                                    f"({math.degrees(bound):.2f}°)")
         far = max((r.sighting.range_m for r in p.records), default=0.0)
-        if far > t.max_sighting_range_m and found == 0 and kind == "tags":
+        if far > t.max_sighting_range_m and found == 0 and kind == "tags" and not (
+                seen and t.narrow_far_sightings):
             # sightings from afar (located by the LIDAR): a small error across the line of
-            # sight turns the maps by a degree; wait until a map match confirms them
+            # sight turns the maps by a degree; wait until a map match confirms them. Not
+            # beside a narrow sensor: its short views overlap the other map too little for a
+            # match to come before the wide robot has mapped its room itself
             raise MergeDeferred()
 
     def commit(self, p: MergeProposal, stamp: int, info: dict[str, Any],
