@@ -176,7 +176,7 @@ class TeamsConfig(ConfigModel):
         "this × how much farther the nearest mapped wall is than its sensor sees, so the "
         "long-range robots take open space and the short-range ones rooms (0: off)")
     sight_spread: bool = Field(
-        False, description="joint coordination in a team of unlike sensors: two robots are "
+        True, description="joint coordination in a team of unlike sensors: two robots are "
         "not sent to targets in sight of each other within the longest sensor's reach while "
         "one of them could go elsewhere (a long-range robot at either maps both)")
 
