@@ -89,9 +89,10 @@ class TeamsConfig(ConfigModel):
     max_sighting_range_m: float = Field(2.0, gt=0.0, description="farther tag sightings are "
                                         "not used (their range is biased, their yaw unreliable)")
     narrow_far_sightings: bool = Field(
-        False, description="teams with a narrow sensor (a depth camera) merge on consistent "
-        "sightings from afar that no map match has confirmed (the narrow robot's short views "
-        "seldom overlap the other team's map early)")
+        True, description="teams with a narrow sensor (a depth camera) merge on consistent "
+        "sightings from afar that no map match has confirmed, when they turn one map's "
+        "square walls onto the other's within 1.5° (the narrow robot's short views seldom "
+        "overlap the other team's map early)")
     max_lidar_sighting_range_m: float = Field(
         8.0, ge=0.0, description="sightings whose range and bearing the agent took from the "
         "LIDAR (located_by: lidar) are used up to this range (0: like any other)")

@@ -115,7 +115,8 @@ def test_far_sightings_without_a_map_match_are_deferred_not_refused() -> None:
 def test_beside_a_narrow_sensor_far_sightings_merge_when_the_option_is_on() -> None:
     """A depth camera's short views seldom overlap the other team's map early: with
     ``teams.narrow_far_sightings`` a team with such a robot merges on far sightings that no
-    map match confirmed; without it, or between two LIDAR robots, the merge waits."""
+    map match confirmed, if they turn the maps' square walls onto each other; without it, or
+    between two LIDAR robots, the merge waits."""
     core, T_true = two_robots(apart_m=30.0)
     far = core.cfg.teams.max_sighting_range_m + 2.0
     P = np.zeros(3)
@@ -126,6 +127,10 @@ def test_beside_a_narrow_sensor_far_sightings_merge_when_the_option_is_on() -> N
         core.merger.verify(proposal(T_true, (rec,)), "tags", {})
     core.robots["r2"].slam.narrow = True
     core.merger.verify(proposal(T_true, (rec,)), "tags", {})   # goes through
+    # ... unless the sightings turn one map's square walls off the other's
+    T_turned = compose(T_true, np.array([0.0, 0.0, math.radians(4.0)]))
+    with pytest.raises(MergeDeferred):
+        core.merger.verify(proposal(T_turned, (rec,)), "tags", {})
     core.cfg.teams.narrow_far_sightings = False
     with pytest.raises(MergeDeferred):
         core.merger.verify(proposal(T_true, (rec,)), "tags", {})

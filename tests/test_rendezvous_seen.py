@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from server.rendezvous.maps import seen_fraction
 from server.slam.icp import PointMap
@@ -36,3 +37,37 @@ def test_a_wall_seen_from_its_other_side_is_not_seen() -> None:
     half = seen_fraction(pts, nrm, target, np.array([-2.0, 2.0, 0.0]), 0.5, 0.6)
     assert 0.4 < half < 0.7
     assert seen_fraction(pts[:0], nrm[:0], target, np.zeros(3), 0.5, 0.6) == 0.0
+
+
+class Walls:
+    """Keyframes that saw walls with these normals' angles [rad], at these headings: all
+    ``wall_grid`` reads of a robot's SLAM."""
+
+    def __init__(self, normals_rad: np.ndarray, headings_rad: list[float]) -> None:
+        class Kf:
+            matchable = type("M", (), {"normals": np.column_stack(
+                [np.cos(normals_rad), np.sin(normals_rad)])})()
+        self.keyframes = [Kf() for _ in headings_rad]
+        self._poses = np.array([[0.0, 0.0, h] for h in headings_rad])
+
+    def keyframe_poses(self) -> np.ndarray:
+        return self._poses
+
+
+def test_far_sightings_turn_is_checked_on_the_two_maps_square_walls() -> None:
+    from server.rendezvous.maps import square_walls_agree, wall_grid
+
+    rng = np.random.default_rng(0)
+    square = rng.integers(0, 4, 200) * (math.pi / 2) + rng.normal(0, 0.01, 200)
+    a = Walls(square + math.radians(0.5), [0.0, math.pi / 2])      # a's walls at 0.5°
+    b = Walls(square, [0.3, 0.3 + math.pi])                         # b's own frame: 17.2°
+    phi, strength = wall_grid([a])                                  # type: ignore[list-item]
+    assert math.degrees(phi) == pytest.approx(0.5, abs=0.1) and strength > 0.95
+    # the sightings turn b onto a: right within 1.5° (mod 90°), wrong by 4° not
+    for turn_deg, ok in ((-16.7, True), (-16.7 + 90.0, True), (-16.7 + 1.0, True),
+                         (-16.7 + 4.0, False), (-16.7 - 2.0, False)):
+        got = square_walls_agree([a], [b], math.radians(turn_deg), 1.5, 0.5)  # type: ignore[list-item]
+        assert got is ok, turn_deg
+    # walls on no square grid (a round building) confirm nothing
+    round_ = Walls(rng.uniform(-math.pi, math.pi, 400), [0.0])
+    assert not square_walls_agree([a], [round_], 0.0, 1.5, 0.5)   # type: ignore[list-item]

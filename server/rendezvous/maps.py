@@ -173,3 +173,33 @@ def seen_fraction(points: F64, normals: F64, target: PointMap, T_map_scan: F64,
     tn = np.vstack([target.normals, np.zeros((1, 2))])[np.where(found, idx, len(target.points))]
     cos = np.einsum("nkd,nd->nk", tn, nr)
     return float(np.count_nonzero((found & (cos >= min_cos)).any(axis=1))) / n
+
+
+def wall_grid(slams: list[RobotSlam], turn_rad: float = 0.0) -> tuple[float, float]:
+    """The direction (modulo 90°) [rad] of the walls the robots' keyframes saw, turned by
+    ``turn_rad``, and how closely they keep to one square grid (the length of the mean of
+    e^{4iθ} over their normals: 1 when every wall is on it, near 0 in a building without
+    one)."""
+    zs = []
+    for slam in slams:
+        if not slam.keyframes:
+            continue
+        for kf, P in zip(slam.keyframes, slam.keyframe_poses(), strict=True):
+            n = kf.matchable.normals
+            zs.append(np.exp(4j * (np.arctan2(n[:, 1], n[:, 0]) + P[2] + turn_rad)))
+    if not zs:
+        return 0.0, 0.0
+    m = np.concatenate(zs).mean()
+    return float(np.angle(m) / 4), float(abs(m))
+
+
+def square_walls_agree(a: list[RobotSlam], b: list[RobotSlam], turn_rad: float,
+                       max_deg: float, min_alignment: float) -> bool:
+    """Whether b's walls, turned by ``turn_rad``, run along a's within ``max_deg`` (modulo
+    90°), both maps' walls keeping to a square grid at least ``min_alignment``."""
+    phi_a, s_a = wall_grid(a)
+    phi_b, s_b = wall_grid(b, turn_rad)
+    if min(s_a, s_b) < min_alignment:
+        return False
+    err = wrap_angle(4 * (phi_b - phi_a)) / 4
+    return abs(math.degrees(err)) <= max_deg
