@@ -88,6 +88,11 @@ class TeamsConfig(ConfigModel):
     pose_sigma_deg: float = Field(0.5, gt=0.0, description="... and in heading")
     max_sighting_range_m: float = Field(2.0, gt=0.0, description="farther tag sightings are "
                                         "not used (their range is biased, their yaw unreliable)")
+    narrow_far_sightings: bool = Field(
+        True, description="teams with a narrow sensor (a depth camera) merge on consistent "
+        "sightings from afar that no map match has confirmed, when they turn one map's "
+        "square walls onto the other's within 1.5° (the narrow robot's short views seldom "
+        "overlap the other team's map early)")
     max_lidar_sighting_range_m: float = Field(
         8.0, ge=0.0, description="sightings whose range and bearing the agent took from the "
         "LIDAR (located_by: lidar) are used up to this range (0: like any other)")
@@ -171,6 +176,10 @@ class TeamsConfig(ConfigModel):
         2.0, ge=0.0, description="joint coordination: a robot's cost of a target grows by "
         "this × how much farther the nearest mapped wall is than its sensor sees, so the "
         "long-range robots take open space and the short-range ones rooms (0: off)")
+    sight_spread: bool = Field(
+        True, description="joint coordination in a team of unlike sensors: two robots are "
+        "not sent to targets in sight of each other within the longest sensor's reach while "
+        "one of them could go elsewhere (a long-range robot at either maps both)")
 
 
 class DetoursConfig(ConfigModel):

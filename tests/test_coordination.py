@@ -18,7 +18,7 @@ from server.exploration import (
     assign_spread,
 )
 from server.exploration.navigator import Navigator
-from server.fleet.coordination import Member, TeamExplorer, walls_beyond_reach
+from server.fleet.coordination import Member, TeamExplorer, in_sight, walls_beyond_reach
 from server.planning import OccupancyGrid
 from tests.test_exploration_skeleton import t_corridor
 
@@ -70,7 +70,7 @@ def team(mode: str) -> tuple[TeamExplorer, list[Member]]:
     b = np.array([4.0, 3.75, 0.0])
     members = [Member("r1", a, a, nav()), Member("r2", b, b, nav())]
     return TeamExplorer(VoronoiExplorer(ExplorerParams(lam=1.0)), "r2", lambda: members,
-                        mode), members
+                        mode, sight_spread=True), members
 
 
 @pytest.mark.parametrize("mode", ["joint", "greedy"])
@@ -118,6 +118,34 @@ def test_open_space_goes_to_the_long_range_robot_and_the_room_to_the_short_range
     assert walls_beyond_reach(grid, targets, [8.0, 12.0], 2.0)[:, 0].tolist() == \
         pytest.approx([2 * 1.95, 0.0], abs=0.1)
     assert not walls_beyond_reach(grid, targets, [10.0, 3.0], 0.0).any()
+
+
+def test_in_a_mixed_team_the_long_range_robot_leaves_a_room_in_its_sight_to_the_other() -> None:
+    """A room (y > 10 m) above a hall, joined by a door at its east end. Both robots stand
+    in the room; two of its targets lie 3 m apart, the third is in the hall behind the wall.
+    By path cost both go to the room's targets; in sight of each other within the LIDAR's
+    10 m, they clash, and the LIDAR robot, whose giving way costs less, takes the hall."""
+    data = np.zeros((200, 200), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    data[100, :170] = 100                               # the wall, a door at x 17-20 m
+    grid = OccupancyGrid(data, 0.1, (0.0, 0.0))
+    targets = np.array([[8.0, 11.0], [5.0, 12.0], [2.0, 8.0]])   # room, room, hall
+    sight = in_sight(grid, targets, 10.0)
+    assert sight[0, 1] and sight[1, 0]                  # 3.2 m apart, nothing between
+    assert not sight[:2, 2].any()                       # the wall hides the hall's target
+    assert not in_sight(grid, targets, 3.0).any()       # beyond a camera's reach
+    cost = np.array([[7.0, 10.0, 17.0],                 # the LIDAR robot, at the door
+                     [9.0, 8.0, 25.0]])                 # the camera robot, in the room
+    assert assign_spread(cost, targets, 2.0) == [0, 1]  # 3 m apart: both in the room
+    assert assign_spread(cost, targets, 2.0, sight) == [2, 1]
+
+    ex, members = team("joint")
+    members[0].sensor_range_m, members[1].sensor_range_m = 10.0, 3.0
+    got = ex._sight_clashes(grid, targets, [10.0, 3.0])
+    assert got is not None and (got == sight).all()
+    assert ex._sight_clashes(grid, targets, [10.0, 10.0]) is None   # like sensors: as before
+    ex.sight_spread = False
+    assert ex._sight_clashes(grid, targets, [10.0, 3.0]) is None
 
 
 def test_the_modes_old_names_still_configure_a_server_and_a_demo(

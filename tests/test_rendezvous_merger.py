@@ -112,6 +112,30 @@ def test_far_sightings_without_a_map_match_are_deferred_not_refused() -> None:
     assert info["map_match_tries"] == 0 and info["wall_cells"] == 0   # maps apart: no check
 
 
+def test_beside_a_narrow_sensor_far_sightings_merge_when_the_option_is_on() -> None:
+    """A depth camera's short views seldom overlap the other team's map early: with
+    ``teams.narrow_far_sightings`` a team with such a robot merges on far sightings that no
+    map match confirmed, if they turn the maps' square walls onto each other; without it, or
+    between two LIDAR robots, the merge waits."""
+    core, T_true = two_robots(apart_m=30.0)
+    far = core.cfg.teams.max_sighting_range_m + 2.0
+    P = np.zeros(3)
+    rec = make_record(0, "r1", "r2", Sighting(far, 0.0, math.pi, 0.05, 0.01, 0.3),
+                      (0, P), (0, P), P, P, (0.05, 0.05, 0.01))
+    core.cfg.teams.narrow_far_sightings = True
+    with pytest.raises(MergeDeferred):                      # two LIDAR robots: it waits
+        core.merger.verify(proposal(T_true, (rec,)), "tags", {})
+    core.robots["r2"].slam.narrow = True
+    core.merger.verify(proposal(T_true, (rec,)), "tags", {})   # goes through
+    # ... unless the sightings turn one map's square walls off the other's
+    T_turned = compose(T_true, np.array([0.0, 0.0, math.radians(4.0)]))
+    with pytest.raises(MergeDeferred):
+        core.merger.verify(proposal(T_turned, (rec,)), "tags", {})
+    core.cfg.teams.narrow_far_sightings = False
+    with pytest.raises(MergeDeferred):
+        core.merger.verify(proposal(T_true, (rec,)), "tags", {})
+
+
 def test_a_merge_is_committed_then_undone_back_into_two_teams() -> None:
     core, T_true = two_robots(refine_on_maps=False)
     r2 = core.robots["r2"]

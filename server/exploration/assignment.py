@@ -58,18 +58,24 @@ def assign_separated(cost: ArrayLike, targets_xy: ArrayLike,
 
 
 def assign_spread(cost: ArrayLike, targets_xy: ArrayLike,
-                  min_separation_m: float = 2.0) -> list[int | None]:
+                  min_separation_m: float = 2.0,
+                  also_near: NDArray[np.bool_] | None = None) -> list[int | None]:
     """Minimum total cost assignment in which no two robots take targets closer than
     ``min_separation_m`` while each could take another: two targets that close open onto
     the same unexplored space, and robots sent there together find little more than one
     robot would. Where two assigned targets clash, the robot whose giving way costs the
-    team less takes its best target elsewhere; a robot with nothing elsewhere shares."""
+    team less takes its best target elsewhere; a robot with nothing elsewhere shares.
+    ``also_near`` (K, K) marks further pairs of targets that clash however far apart."""
     c = np.array(cost, dtype=np.float64)
     xy: NDArray[np.float64] = np.asarray(targets_xy, dtype=np.float64).reshape(-1, 2)
     if c.ndim != 2 or c.shape[1] != len(xy):
         raise ValueError(f"cost {c.shape} does not match {len(xy)} targets")
     near = np.hypot(xy[:, None, 0] - xy[None, :, 0],
                     xy[:, None, 1] - xy[None, :, 1]) < min_separation_m
+    if also_near is not None:
+        if also_near.shape != near.shape:
+            raise ValueError(f"also_near {also_near.shape} does not match {len(xy)} targets")
+        near = near | also_near
     out = assign_optimal(c)
     shared: set[tuple[int, int]] = set()
     for _ in range(c.shape[0] * c.shape[0]):

@@ -77,11 +77,41 @@ def walls_beyond_reach(grid: OccupancyGrid, targets_xy: F64, ranges_m: Sequence[
     return weight * (np.maximum(0.0, d[None, :] - r[:, None]) - np.maximum(0.0, d - r.max()))
 
 
+def in_sight(grid: OccupancyGrid, targets_xy: F64, reach_m: float) -> NDArray[np.bool_]:
+    """(K, K): the pairs of targets within ``reach_m`` of each other with no mapped wall on
+    the straight line between them (a mapped wall's cells block it; targets stand a robot's
+    radius from walls, and a line along a wall grazes it)."""
+    k = len(targets_xy)
+    out = np.zeros((k, k), dtype=bool)
+    if k < 2 or not math.isfinite(reach_m) or reach_m <= 0:
+        return out
+    xy = np.asarray(targets_xy, np.float64)
+    d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    ii, jj = np.nonzero(np.triu(d < reach_m, 1))
+    if not len(ii):
+        return out
+    blocked = grid.occupied
+    res = grid.resolution_m
+    h, w = blocked.shape
+    n = math.ceil(reach_m / res * 2) + 2
+    t = np.linspace(0.0, 1.0, n)
+    px = xy[ii, None, 0] + t[None, :] * (xy[jj, None, 0] - xy[ii, None, 0])
+    py = xy[ii, None, 1] + t[None, :] * (xy[jj, None, 1] - xy[ii, None, 1])
+    cols = np.floor((px - grid.origin_xy[0]) / res).astype(np.int64)
+    rows = np.floor((py - grid.origin_xy[1]) / res).astype(np.int64)
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    hit = np.where(inside, blocked[rows.clip(0, h - 1), cols.clip(0, w - 1)], False)
+    clear = ~hit.any(axis=1)
+    out[ii[clear], jj[clear]] = True
+    return out | out.T
+
+
 class TeamExplorer:
     """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
 
     def __init__(self, base: Explorer, robot_id: str, members: Callable[[], Sequence[Member]],
-                 mode: str = "joint", sensor_weight: float = 2.0) -> None:
+                 mode: str = "joint", sensor_weight: float = 2.0,
+                 sight_spread: bool = True) -> None:
         if mode not in ("joint", "greedy"):
             raise ValueError(f"unknown coordination {mode!r}")
         self.base = base
@@ -89,6 +119,7 @@ class TeamExplorer:
         self.members = members
         self.mode = mode
         self.sensor_weight = sensor_weight
+        self.sight_spread = sight_spread
         self.assignments = 0
 
     @property
@@ -127,7 +158,9 @@ class TeamExplorer:
             near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],
                             tc.targets_xy[:, None, 1] - committed[None, :, 1]).min(axis=1) < r
             cost[:, near] = np.inf
-        assignment = assign_spread(cost, tc.targets_xy, self.params.reserve_radius_m)
+        assignment = assign_spread(cost, tc.targets_xy, self.params.reserve_radius_m,
+                                   self._sight_clashes(grid, tc.targets_xy,
+                                                       [team[i].sensor_range_m for i in free]))
         mine = assignment[free.index(me)]
         if mine is None:
             return self._alone(grid, robot_pose, start_pose, visited, committed)
@@ -146,6 +179,18 @@ class TeamExplorer:
         xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
         return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
                         (), None)
+
+    def _sight_clashes(self, grid: OccupancyGrid, targets_xy: F64,
+                       ranges_m: Sequence[float]) -> NDArray[np.bool_] | None:
+        """In a team of unlike sensors, two targets in sight of each other within the longest
+        sensor's reach clash: a long-range robot at either maps what lies behind the other
+        too, so a second robot sent there (the slow, short-sighted one beside it, or the
+        fast one beside a room the slow one is mapping) adds nothing while other unexplored
+        space waits. In a team of like sensors nothing changes (None)."""
+        r = np.minimum(np.asarray(ranges_m, dtype=np.float64), 1e3)
+        if not self.sight_spread or len(r) < 2 or np.ptp(r) == 0:
+            return None
+        return in_sight(grid, targets_xy, float(r.max()))
 
     def _alone(self, grid: OccupancyGrid, robot_pose: ArrayLike, start_pose: ArrayLike,
                visited: VisitedTargets, committed: F64) -> Decision | Finished:

@@ -344,7 +344,8 @@ class Fleet:
             if len(team.robot_ids) > 1:
                 team_explorer = TeamExplorer(
                     nav.own_explorer, rid, functools.partial(self.members, team.team_id),
-                    self.cfg.teams.coordination, self.cfg.teams.sensor_weight)
+                    self.cfg.teams.coordination, self.cfg.teams.sensor_weight,
+                    self.cfg.teams.sight_spread)
                 nav.use_explorer(team_explorer)  # type: ignore[arg-type]
             else:
                 nav.use_explorer(nav.own_explorer)

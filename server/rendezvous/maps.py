@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +18,9 @@ from numpy.typing import NDArray
 from schemas.se2 import between, compose, wrap_angle
 from server.slam import RobotSlam
 from server.slam.grid import OccupancyGrid
+
+if TYPE_CHECKING:
+    from server.slam.icp import PointMap
 
 F64 = NDArray[np.float64]
 
@@ -89,13 +93,18 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                   min_inlier_fraction: float = 0.5, max_correction_m: float = 0.5,
                   max_correction_rad: float = math.radians(5.0),
                   T_ab: F64 | None = None, tried: list[int] | None = None,
-                  only: list[int] | None = None) -> list[CrossMatch]:
+                  only: list[int] | None = None,
+                  min_seen_fraction: float = 0.0) -> list[CrossMatch]:
     """Scan-to-map matches of b's keyframes (every ``every``-th, or those in ``only``) against
     a's keyframes within ``radius_m``, both placed by the current joint estimate (or b's by
     ``T_ab``): the overlap of the two maps says how they fit together, far more precisely than
     tag sightings.
     Matches that moved the keyframe implausibly far, matched poorly or were degenerate are left
-    out; ``tried[0]`` is increased for every keyframe that had a map to match against."""
+    out; ``tried[0]`` is increased for every keyframe that had a map to match against: with
+    ``min_seen_fraction``, only for one whose points a's map shows, from the same side, in at
+    least that share (``seen_fraction``), and whose match is not degenerate: a keyframe that
+    could not pass even where the fit is perfect, or that sees one wall, along which no fit
+    can be told from a misfit, is no test of it."""
     from server.slam.frontend import icp_params, min_points
     from server.slam.icp import icp
     from server.slam.keyframes import local_point_map
@@ -120,9 +129,13 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                                  a.cfg.local_map.voxel_m)
         if len(target) < a.cfg.matcher.min_points:
             continue
-        if tried is not None:
-            tried[0] += 1
+        if min_seen_fraction > 0 and seen_fraction(
+                scan.points, scan.normals, target, pb[kb], max_correction_m,
+                params.min_normal_cos) < min_seen_fraction:
+            continue
         m = icp(scan.points, scan.normals, target, pb[kb], params)
+        if tried is not None and not (min_seen_fraction > 0 and m.degenerate):
+            tried[0] += 1
         shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
         turn = abs(wrap_angle(m.T_map_scan[2] - pb[kb, 2]))
         if (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
@@ -135,3 +148,58 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                               R.T @ m.information @ R, m.inlier_fraction,
                               wrap_angle(m.T_map_scan[2] - pb[kb, 2])))
     return out
+
+
+def seen_fraction(points: F64, normals: F64, target: PointMap, T_map_scan: F64,
+                  radius_m: float, min_cos: float) -> float:
+    """The share of a scan's points (placed at ``T_map_scan``) that have a point of ``target``
+    within ``radius_m`` whose normal faces the same way (cosine at least ``min_cos``): what of
+    the scan the target's map saw, and from the same side. A short sensor's view of the far
+    face of a wall the other robot saw from its own side, or of a room it never looked into,
+    has little of it, however well the maps fit."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n == 0 or len(target.points) == 0:
+        return 0.0
+    c, s = math.cos(T_map_scan[2]), math.sin(T_map_scan[2])
+    R = np.array([[c, -s], [s, c]])
+    p = np.asarray(points, np.float64) @ R.T + T_map_scan[:2]
+    nr = np.asarray(normals, np.float64) @ R.T
+    k = min(8, len(target.points))
+    _, idx = cKDTree(target.points).query(p, k=k, distance_upper_bound=radius_m)
+    idx = np.asarray(idx).reshape(n, k)
+    found = idx < len(target.points)
+    tn = np.vstack([target.normals, np.zeros((1, 2))])[np.where(found, idx, len(target.points))]
+    cos = np.einsum("nkd,nd->nk", tn, nr)
+    return float(np.count_nonzero((found & (cos >= min_cos)).any(axis=1))) / n
+
+
+def wall_grid(slams: list[RobotSlam], turn_rad: float = 0.0) -> tuple[float, float]:
+    """The direction (modulo 90°) [rad] of the walls the robots' keyframes saw, turned by
+    ``turn_rad``, and how closely they keep to one square grid (the length of the mean of
+    e^{4iθ} over their normals: 1 when every wall is on it, near 0 in a building without
+    one)."""
+    zs = []
+    for slam in slams:
+        if not slam.keyframes:
+            continue
+        for kf, P in zip(slam.keyframes, slam.keyframe_poses(), strict=True):
+            n = kf.matchable.normals
+            zs.append(np.exp(4j * (np.arctan2(n[:, 1], n[:, 0]) + P[2] + turn_rad)))
+    if not zs:
+        return 0.0, 0.0
+    m = np.concatenate(zs).mean()
+    return float(np.angle(m) / 4), float(abs(m))
+
+
+def square_walls_agree(a: list[RobotSlam], b: list[RobotSlam], turn_rad: float,
+                       max_deg: float, min_alignment: float) -> bool:
+    """Whether b's walls, turned by ``turn_rad``, run along a's within ``max_deg`` (modulo
+    90°), both maps' walls keeping to a square grid at least ``min_alignment``."""
+    phi_a, s_a = wall_grid(a)
+    phi_b, s_b = wall_grid(b, turn_rad)
+    if min(s_a, s_b) < min_alignment:
+        return False
+    err = wrap_angle(4 * (phi_b - phi_a)) / 4
+    return abs(math.degrees(err)) <= max_deg

@@ -25,7 +25,7 @@ from server.fleet.model import Fleet, Link, MergeRecord, RobotContext, Team
 from server.fleet.stages import Stages
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal, MergeVerifier, SightingRecord
-from server.rendezvous.maps import cross_matches, map_agreement
+from server.rendezvous.maps import cross_matches, map_agreement, square_walls_agree
 from server.rendezvous.surgery import KNOWN_MAP_RADIUS_M, GraphSurgery
 
 log = logging.getLogger(__name__)
@@ -36,6 +36,11 @@ F64 = NDArray[np.float64]
 #: the share of a keyframe's points that must find a partner in the other team's map for the
 #: keyframe to confirm a map-matched merge (0.5 for merges on tag sightings)
 MAP_KIND_MIN_INLIERS = 0.3
+#: far sightings beside a narrow sensor (``teams.narrow_far_sightings``): the two maps' walls
+#: must keep to a square grid this closely (``server.rendezvous.maps.wall_grid``), and the
+#: sightings' transform turn b's grid onto a's within this [deg]
+FAR_WALLS_ALIGNMENT = 0.5
+FAR_WALLS_AGREE_DEG = 1.5
 
 
 class MergeRefused(Exception):
@@ -97,11 +102,16 @@ class Merger:
         # other team has not mapped, so fewer of its points have a partner there
         on_maps = kind in ("map", "placed")   # placed: a robot in a known map (server.knownmap)
         inliers = MAP_KIND_MIN_INLIERS if on_maps else 0.5
+        # a short, narrow sensor's keyframe near the other team's often sees the far face of
+        # a wall it saw, or a room it never looked into: such a keyframe cannot pass, however
+        # well the maps fit, and is no test of the fit (tried only where it could pass)
+        seen = inliers if any(robots[r].slam.narrow
+                              for r in (*ta.robot_ids, *tb.robot_ids)) else 0.0
         matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
                    for m in cross_matches(robots[ra].slam, robots[rb].slam, T_ab=p.T_ab,
                                           tried=tried, min_inlier_fraction=inliers,
                                           radius_m=KNOWN_MAP_RADIUS_M if kind == "placed"
-                                          else 5.0)]
+                                          else 5.0, min_seen_fraction=seen)]
         found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
@@ -125,9 +135,16 @@ class Merger:
                                    f"({found} matches), beyond its uncertainty "
                                    f"({math.degrees(bound):.2f}°)")
         far = max((r.sighting.range_m for r in p.records), default=0.0)
-        if far > t.max_sighting_range_m and found == 0 and kind == "tags":
+        if far > t.max_sighting_range_m and found == 0 and kind == "tags" and not (
+                seen and t.narrow_far_sightings and square_walls_agree(
+                    [robots[r].slam for r in ta.robot_ids],
+                    [robots[r].slam for r in tb.robot_ids], float(p.T_ab[2]),
+                    FAR_WALLS_AGREE_DEG, FAR_WALLS_ALIGNMENT)):
             # sightings from afar (located by the LIDAR): a small error across the line of
-            # sight turns the maps by a degree; wait until a map match confirms them
+            # sight turns the maps by a degree; wait until a map match confirms them. Not
+            # beside a narrow sensor: its short views overlap the other map too little for a
+            # match to come before the wide robot has mapped its room itself, so there the
+            # sightings' turn is checked on the two maps' square walls instead
             raise MergeDeferred()
 
     def commit(self, p: MergeProposal, stamp: int, info: dict[str, Any],
