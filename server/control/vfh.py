@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from schemas.se2 import wrap_angle
 from server.control.geometry import Twist, clip
+from server.jit import njit_cached
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,8 @@ class Vfh:
     def __init__(self, params: VfhParams | None = None) -> None:
         self.params = params or VfhParams()
         n = self.params.sectors
-        self._centres = -math.pi + (np.arange(n) + 0.5) * (2 * math.pi / n)
+        self._centres = np.asarray(-math.pi + (np.arange(n) + 0.5) * (2 * math.pi / n),
+                                   dtype=np.float64)
 
     def blocked_sectors(self, points_robot_xy: ArrayLike, others_robot_xy: ArrayLike = ()
                         ) -> tuple[NDArray[np.bool_], float]:
@@ -77,8 +79,7 @@ class Vfh:
         gamma = np.arcsin(np.minimum(1.0, r / d))
         # Sector k is blocked by a point when |wrap(centre_k − β)| ≤ γ + half a sector.
         half = math.pi / p.sectors
-        diff = np.abs(wrap_angle(self._centres[None, :] - beta[:, None]))
-        blocked = np.any(diff <= (gamma + half)[:, None], axis=0)
+        _block(self._centres, beta, gamma + half, blocked)
         return blocked, nearest
 
     def evaluate(self, twist: Twist, desired_heading_rad: float, points_robot_xy: ArrayLike,
@@ -139,6 +140,30 @@ class Vfh:
         return float(np.mean(np.hypot(sel[:, 0], sel[:, 1]))) if len(sel) else math.inf
 
 
+@njit_cached
+def _block(centres: NDArray[np.float64], beta: NDArray[np.float64],
+           within: NDArray[np.float64], blocked: NDArray[np.bool_]) -> None:
+    """``blocked[k]`` when |wrap(centres[k] − beta[i])| ≤ within[i] for some i, with the
+    arithmetic of ``wrap_angle`` (to the bit)."""
+    for i in range(beta.shape[0]):
+        for k in range(centres.shape[0]):
+            if blocked[k]:
+                continue
+            w = np.mod(centres[k] - beta[i] + np.pi, 2.0 * np.pi) - np.pi
+            if w == -np.pi:
+                w = np.pi
+            if abs(w) <= within[i]:
+                blocked[k] = True
+
+
 def _as_points(xy: ArrayLike) -> NDArray[np.float64]:
     a = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     return a[np.all(np.isfinite(a), axis=1)]
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) at import, not in a scan's time."""
+    _block(np.zeros(2), np.zeros(1), np.ones(1), np.zeros(2, dtype=bool))
+
+
+_warm_up()

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from schemas.occupancy import OCCUPIED_ABOVE, UNKNOWN
 from schemas.se2 import transform_points, wrap_angle
+from server.jit import njit_cached
 from server.planning import OccupancyGrid
 
 F64 = NDArray[np.float64]
@@ -61,16 +62,11 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
     res = grid.resolution_m
     ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
     iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
-    h, w = grid.data.shape
-    ok = (ix >= 1) & (iy >= 1) & (ix < w - 1) & (iy < h - 1)
-    if not ok.any():
-        return []
     free = np.zeros(len(world), dtype=bool)
-    d = grid.data
-    sel = np.flatnonzero(ok)
-    block = np.stack([d[iy[sel] + dy, ix[sel] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    free[sel] = np.all((block != UNKNOWN) & (block < p.free_below), axis=0)
+    _free_blocks(np.ascontiguousarray(grid.data), ix, iy, int(p.free_below), free)
     cand = world[free]
+    if len(cand) == 0:
+        return []
     cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
     groups: list[tuple[F64, int]] = []
     while len(cand):
@@ -78,6 +74,25 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
         groups.append((cand[near].mean(axis=0), int(near.sum())))
         cand = cand[~near]
     return groups
+
+
+@njit_cached
+def _free_blocks(d: NDArray[np.int8], ix: NDArray[np.int64], iy: NDArray[np.int64],
+                 free_below: int, free: NDArray[np.bool_]) -> None:
+    """``free[i]``: the 3 × 3 cells around (ix[i], iy[i]) lie inside ``d``, none unknown and
+    all below ``free_below``."""
+    h, w = d.shape
+    for i in range(ix.shape[0]):
+        x, y = ix[i], iy[i]
+        if x < 1 or y < 1 or x >= w - 1 or y >= h - 1:
+            continue
+        ok = True
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                v = d[y + dy, x + dx]
+                if v == UNKNOWN or v >= free_below:
+                    ok = False
+        free[i] = ok
 
 
 def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
@@ -142,3 +157,12 @@ def objects_at_range(points_robot: F64, pose: F64, grid: OccupancyGrid | None, r
 def bearing_to(pose: F64, xy: F64) -> float:
     """Bearing [rad] of ``xy`` (map frame) from a robot at ``pose``."""
     return wrap_angle(math.atan2(xy[1] - pose[1], xy[0] - pose[0]) - pose[2])
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) at import, not in a scan's time."""
+    _free_blocks(np.zeros((3, 3), dtype=np.int8), np.ones(1, dtype=np.int64),
+                 np.ones(1, dtype=np.int64), 25, np.zeros(1, dtype=bool))
+
+
+_warm_up()
