@@ -49,24 +49,18 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
     """Compact groups of returns inside known free space within ``max_range_m``, nearest
     first: (centre in the map frame, number of returns). Returns near teammates (known
     positions) do not count."""
-    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    pts = pts[(r >= p.min_range_m) & (r <= max_range_m)]
-    if len(pts) == 0:
+    pts = np.ascontiguousarray(points_robot, dtype=np.float64).reshape(-1, 2)
+    T = np.asarray(pose, dtype=np.float64)
+    c, s = np.cos(T[2]), np.sin(T[2])      # as ``transform_points`` has them
+    mates = np.ascontiguousarray(mates_xy, dtype=np.float64).reshape(-1, 2)
+    cand = np.empty_like(pts)
+    n = _free_returns(pts, float(c), float(s), float(T[0]), float(T[1]), p.min_range_m,
+                      float(max_range_m), mates, p.cluster_m, np.ascontiguousarray(grid.data),
+                      float(grid.origin_xy[0]), float(grid.origin_xy[1]), grid.resolution_m,
+                      int(p.free_below), cand)
+    if n == 0:
         return []
-    world = transform_points(pose, pts)
-    if len(mates_xy):
-        d = np.hypot(world[:, None, 0] - mates_xy[None, :, 0],
-                     world[:, None, 1] - mates_xy[None, :, 1]).min(axis=1)
-        world = world[d > p.cluster_m]
-    res = grid.resolution_m
-    ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
-    iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
-    free = np.zeros(len(world), dtype=bool)
-    _free_blocks(np.ascontiguousarray(grid.data), ix, iy, int(p.free_below), free)
-    cand = world[free]
-    if len(cand) == 0:
-        return []
+    cand = cand[:n]
     cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
     groups: list[tuple[F64, int]] = []
     while len(cand):
@@ -77,13 +71,30 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
 
 
 @njit_cached
-def _free_blocks(d: NDArray[np.int8], ix: NDArray[np.int64], iy: NDArray[np.int64],
-                 free_below: int, free: NDArray[np.bool_]) -> None:
-    """``free[i]``: the 3 × 3 cells around (ix[i], iy[i]) lie inside ``d``, none unknown and
-    all below ``free_below``."""
+def _free_returns(pts: F64, c: float, s: float, tx: float, ty: float, min_r: float,
+                  max_r: float, mates: F64, cluster_m: float, d: NDArray[np.int8], ox: float,
+                  oy: float, res: float, free_below: int, out: F64) -> int:
+    """The returns within [min_r, max_r] of the robot, farther than ``cluster_m`` from every
+    mate, whose 3 × 3 cells lie inside ``d``, none unknown and all below ``free_below``:
+    into ``out`` in the map frame (in order); their count. The arithmetic of the array code
+    it replaced (``transform_points``, floor of the offset over the resolution)."""
     h, w = d.shape
-    for i in range(ix.shape[0]):
-        x, y = ix[i], iy[i]
+    n = 0
+    for i in range(pts.shape[0]):
+        px, py = pts[i, 0], pts[i, 1]
+        r = np.hypot(px, py)
+        if not (r >= min_r and r <= max_r):
+            continue
+        wx = c * px - s * py + tx
+        wy = s * px + c * py + ty
+        if mates.shape[0]:
+            near = np.inf
+            for m in range(mates.shape[0]):
+                near = min(near, np.hypot(wx - mates[m, 0], wy - mates[m, 1]))
+            if not near > cluster_m:
+                continue
+        x = int(np.floor((wx - ox) / res))
+        y = int(np.floor((wy - oy) / res))
         if x < 1 or y < 1 or x >= w - 1 or y >= h - 1:
             continue
         ok = True
@@ -92,7 +103,10 @@ def _free_blocks(d: NDArray[np.int8], ix: NDArray[np.int64], iy: NDArray[np.int6
                 v = d[y + dy, x + dx]
                 if v == UNKNOWN or v >= free_below:
                     ok = False
-        free[i] = ok
+        if ok:
+            out[n, 0], out[n, 1] = wx, wy
+            n += 1
+    return n
 
 
 def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
@@ -161,8 +175,9 @@ def bearing_to(pose: F64, xy: F64) -> float:
 
 def _warm_up() -> None:
     """Compile (or load from numba's cache) at import, not in a scan's time."""
-    _free_blocks(np.zeros((3, 3), dtype=np.int8), np.ones(1, dtype=np.int64),
-                 np.ones(1, dtype=np.int64), 25, np.zeros(1, dtype=bool))
+    moving_objects(np.array([[0.5, 0.0]]), np.zeros(3),
+                   OccupancyGrid(np.zeros((30, 30), dtype=np.int8), 0.05, (-0.75, -0.75)),
+                   np.array([[5.0, 5.0]]), LookParams(), 3.5)
 
 
 _warm_up()
