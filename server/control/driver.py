@@ -77,5 +77,6 @@ class Driver:
 
 def limit(twist: Twist) -> Twist:
     """``twist`` within the limits every command keeps."""
-    return Twist(float(np.clip(twist.v_mps, -MAX_V_MPS, MAX_V_MPS)),
-                 float(np.clip(twist.omega_rps, -MAX_OMEGA_RPS, MAX_OMEGA_RPS)))
+    # min(max()) in this order is np.clip's, NaN included
+    return Twist(min(max(float(twist.v_mps), -MAX_V_MPS), MAX_V_MPS),
+                 min(max(float(twist.omega_rps), -MAX_OMEGA_RPS), MAX_OMEGA_RPS))

@@ -14,13 +14,15 @@ or beside the robot) the robot turns on the spot, ω = clip(k·α, ω_max), unti
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from server.control.geometry import STOP, Twist, clip, world_to_robot
+from server.control.geometry import STOP, Twist, clip
+from server.jit import njit_cached
 
 
 @dataclass(frozen=True)
@@ -49,16 +51,31 @@ def closest_point(path_xy: NDArray[np.float64], p: NDArray[np.float64], first_se
 
     Returns (segment index i, fraction t ∈ [0, 1] along segment i, distance [m]).
     """
-    a = path_xy[first_segment:(None if last_segment is None else last_segment + 1)]
-    b = path_xy[first_segment + 1:(None if last_segment is None else last_segment + 2)]
-    a = a[:len(b)]
-    d = b - a
-    L2 = np.einsum("ij,ij->i", d, d)
-    t = np.clip(np.einsum("ij,ij->i", p - a, d) / np.where(L2 > 0, L2, 1.0), 0.0, 1.0)
-    q = a + t[:, None] * d
-    dist = np.hypot(*(q - p).T)
-    k = int(np.argmin(dist))
-    return first_segment + k, float(t[k]), float(dist[k])
+    path = np.ascontiguousarray(path_xy, dtype=np.float64).reshape(-1, 2)
+    end = len(path) - 1 if last_segment is None else min(last_segment + 1, len(path) - 1)
+    if end <= first_segment:
+        raise ValueError("no segment to search")
+    px, py = (float(v) for v in np.asarray(p, dtype=np.float64).reshape(2))
+    k, t, dist = _closest(path, px, py, first_segment, end)
+    return int(k), float(t), float(dist)
+
+
+@njit_cached
+def _closest(path: NDArray[np.float64], px: float, py: float, first: int, end: int
+             ) -> tuple[int, float, float]:
+    """Segments [first, end) of ``closest_point``: the first nearest, with the arithmetic of
+    the vectorised search it replaces (to the bit)."""
+    best, best_t, best_d = first, 0.0, np.inf
+    for i in range(first, end):
+        ax, ay = path[i, 0], path[i, 1]
+        dx, dy = path[i + 1, 0] - ax, path[i + 1, 1] - ay
+        L2 = dx * dx + dy * dy
+        t = ((px - ax) * dx + (py - ay) * dy) / (L2 if L2 > 0 else 1.0)
+        t = min(max(t, 0.0), 1.0)
+        dist = np.hypot(ax + t * dx - px, ay + t * dy - py)
+        if i == first or dist < best_d:
+            best, best_t, best_d = i, t, dist
+    return best, best_t, best_d
 
 
 class PurePursuit:
@@ -69,6 +86,8 @@ class PurePursuit:
         self.params = params or PursuitParams()
         self._path: NDArray[np.float64] | None = None
         self._cum: NDArray[np.float64] = np.zeros(1)
+        self._cum_list: list[float] = [0.0]
+        self._xy: list[list[float]] = []      # the path's points as floats
         self._segment = 0
         self._rotating = False
 
@@ -85,8 +104,11 @@ class PurePursuit:
             self._path = path.copy()
             seg = np.hypot(*np.diff(path, axis=0).T) if len(path) > 1 else np.zeros(0)
             self._cum = np.concatenate([[0.0], np.cumsum(seg)])
+            self._xy = []
             self._segment = 0
             self._rotating = False
+        if not getattr(self, "_xy", None):   # (also a state saved before the lists were kept)
+            self._cum_list, self._xy = self._cum.tolist(), self._path.tolist()
         return self._path
 
     def reached(self, pose: ArrayLike, path_xy: ArrayLike) -> bool:
@@ -98,29 +120,32 @@ class PurePursuit:
         return self.step(pose, path_xy).twist
 
     def step(self, pose: ArrayLike, path_xy: ArrayLike) -> PursuitStep:
+        # one robot's step in plain floats: the arithmetic of the array code it replaced
+        # (``closest_point``, ``world_to_robot``, ``_point_at``), without its calls' overhead
         p = self.params
         path = self._load(path_xy)
-        pose_a = np.asarray(pose, np.float64).reshape(3)
-        xy = pose_a[:2]
-        goal = path[-1]
-        if np.hypot(*(goal - xy)) < p.goal_tolerance_m:
-            return PursuitStep(STOP, True, (float(goal[0]), float(goal[1])), 0.0,
-                               float(np.hypot(*(goal - xy))))
+        x, y, th = np.asarray(pose, np.float64).reshape(3).tolist()
+        gx, gy = self._xy[-1]
+        to_goal = float(np.hypot(gx - x, gy - y))
+        if to_goal < p.goal_tolerance_m:
+            return PursuitStep(STOP, True, (gx, gy), 0.0, to_goal)
         if len(path) == 1:
-            target, cross = goal, 0.0
+            tx, ty, cross = gx, gy, 0.0
         else:
             # Search forward from the current progress, up to one look-ahead beyond it.
-            s0 = self._cum[self._segment]
-            last = int(np.searchsorted(self._cum, s0 + p.lookahead_m + 1.0, side="right")) - 1
+            cum = self._cum_list
+            s0 = cum[self._segment]
+            last = bisect.bisect_right(cum, s0 + p.lookahead_m + 1.0) - 1
             last = min(max(last, self._segment), len(path) - 2)
-            seg, t, cross = closest_point(path, xy, self._segment, last)
+            seg, t, cross = _closest(path, x, y, self._segment, last + 1)
             self._segment = seg
-            s = self._cum[seg] + t * (self._cum[seg + 1] - self._cum[seg]) + p.lookahead_m
-            target = self._point_at(path, s)
-        local = world_to_robot(pose_a, target)
-        xr, yr = float(local[0]), float(local[1])
+            s = cum[seg] + t * (cum[seg + 1] - cum[seg]) + p.lookahead_m
+            tx, ty = self._point_at_xy(s)
+        dx, dy = tx - x, ty - y
+        c, sn = math.cos(th), math.sin(th)
+        xr, yr = c * dx + sn * dy, -sn * dx + c * dy
         alpha = math.atan2(yr, xr)
-        tgt = (float(target[0]), float(target[1]))
+        tgt = (tx, ty)
         limit = p.resume_below_rad if self._rotating else p.rotate_in_place_above_rad
         self._rotating = abs(alpha) > limit
         if self._rotating:
@@ -134,6 +159,18 @@ class PurePursuit:
             v = p.omega_max_rps / abs(kappa)
         return PursuitStep(Twist(v, omega), False, tgt, alpha, cross)
 
+    def _point_at_xy(self, s: float) -> tuple[float, float]:
+        """``_point_at`` in plain floats."""
+        cum, xy = self._cum_list, self._xy
+        if s >= cum[-1]:
+            return xy[-1][0], xy[-1][1]
+        i = bisect.bisect_right(cum, s) - 1
+        i = min(max(i, 0), len(xy) - 2)
+        span = cum[i + 1] - cum[i]
+        t = (s - cum[i]) / span if span > 0 else 0.0
+        (ax, ay), (bx, by) = xy[i], xy[i + 1]
+        return ax + t * (bx - ax), ay + t * (by - ay)
+
     def _point_at(self, path: NDArray[np.float64], s: float) -> NDArray[np.float64]:
         """The path point at arc length s (clamped to the ends)."""
         cum = self._cum
@@ -144,3 +181,11 @@ class PurePursuit:
         span = cum[i + 1] - cum[i]
         t = (s - cum[i]) / span if span > 0 else 0.0
         return path[i] + t * (path[i + 1] - path[i])
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) at import, not in a scan's time."""
+    closest_point(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([0.5, 0.5]))
+
+
+_warm_up()

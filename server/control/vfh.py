@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from schemas.se2 import wrap_angle
 from server.control.geometry import Twist, clip
+from server.jit import njit_cached
 
 
 @dataclass(frozen=True)
@@ -53,32 +54,30 @@ class Vfh:
     def __init__(self, params: VfhParams | None = None) -> None:
         self.params = params or VfhParams()
         n = self.params.sectors
-        self._centres = -math.pi + (np.arange(n) + 0.5) * (2 * math.pi / n)
+        self._centres = np.asarray(-math.pi + (np.arange(n) + 0.5) * (2 * math.pi / n),
+                                   dtype=np.float64)
 
     def blocked_sectors(self, points_robot_xy: ArrayLike, others_robot_xy: ArrayLike = ()
                         ) -> tuple[NDArray[np.bool_], float]:
         """Binary polar histogram (sectors,) and the distance to the nearest point [m]."""
         p = self.params
-        pts = _as_points(points_robot_xy)
-        others = _as_points(others_robot_xy)
-        xy = np.concatenate([pts, others])
+        pts = np.ascontiguousarray(points_robot_xy, dtype=np.float64).reshape(-1, 2)
+        others = np.ascontiguousarray(others_robot_xy, dtype=np.float64).reshape(-1, 2)
         # Distance from the robot centre to each obstacle's surface; robots are discs.
-        extra = np.concatenate([np.zeros(len(pts)), np.full(len(others), p.other_robot_radius_m)])
-        d = np.hypot(xy[:, 0], xy[:, 1])
-        surface = d - extra
-        nearest = float(np.min(surface)) if len(d) else math.inf
-        radius = p.robot_radius_m + p.safety_m + extra
-        use = (surface < p.window_m) & (d - radius < p.block_distance_m) & (d > 1e-6)
+        n = len(pts) + len(others)
+        used = np.empty((4, n))        # x, y, distance, radius of the points that block
+        count, nearest = _near(pts, others, p.other_robot_radius_m,
+                               p.robot_radius_m + p.safety_m, p.window_m, p.block_distance_m,
+                               used)
         blocked = np.zeros(p.sectors, dtype=bool)
-        if not use.any():
+        if count == 0:
             return blocked, nearest
-        d, r = d[use], radius[use]
-        beta = np.arctan2(xy[use, 1], xy[use, 0])
+        x, y, d, r = used[:, :count]
+        beta = np.arctan2(y, x)
         gamma = np.arcsin(np.minimum(1.0, r / d))
         # Sector k is blocked by a point when |wrap(centre_k − β)| ≤ γ + half a sector.
         half = math.pi / p.sectors
-        diff = np.abs(wrap_angle(self._centres[None, :] - beta[:, None]))
-        blocked = np.any(diff <= (gamma + half)[:, None], axis=0)
+        _block(self._centres, beta, gamma + half, blocked)
         return blocked, nearest
 
     def evaluate(self, twist: Twist, desired_heading_rad: float, points_robot_xy: ArrayLike,
@@ -139,6 +138,56 @@ class Vfh:
         return float(np.mean(np.hypot(sel[:, 0], sel[:, 1]))) if len(sel) else math.inf
 
 
+@njit_cached
+def _near(pts: NDArray[np.float64], others: NDArray[np.float64], other_radius: float,
+          base_radius: float, window: float, block_distance: float,
+          used: NDArray[np.float64]) -> tuple[int, float]:
+    """The finite points (then the other robots, discs of ``other_radius``) that block:
+    their x, y, distance and radius into ``used``'s first columns; their count, and the
+    distance to the nearest surface of any finite one."""
+    count, nearest, any_point = 0, np.inf, False
+    for j in range(pts.shape[0] + others.shape[0]):
+        robot = j >= pts.shape[0]
+        x, y = (others[j - pts.shape[0]] if robot else pts[j])[:2]
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        extra = other_radius if robot else 0.0
+        d = np.hypot(x, y)
+        surface = d - extra
+        nearest = surface if not any_point or surface < nearest else nearest
+        any_point = True
+        radius = base_radius + extra
+        if surface < window and d - radius < block_distance and d > 1e-6:
+            used[0, count], used[1, count], used[2, count], used[3, count] = x, y, d, radius
+            count += 1
+    return count, nearest
+
+
+@njit_cached
+def _block(centres: NDArray[np.float64], beta: NDArray[np.float64],
+           within: NDArray[np.float64], blocked: NDArray[np.bool_]) -> None:
+    """``blocked[k]`` when |wrap(centres[k] − beta[i])| ≤ within[i] for some i, with the
+    arithmetic of ``wrap_angle`` (to the bit)."""
+    for i in range(beta.shape[0]):
+        for k in range(centres.shape[0]):
+            if blocked[k]:
+                continue
+            w = np.mod(centres[k] - beta[i] + np.pi, 2.0 * np.pi) - np.pi
+            if w == -np.pi:
+                w = np.pi
+            if abs(w) <= within[i]:
+                blocked[k] = True
+
+
 def _as_points(xy: ArrayLike) -> NDArray[np.float64]:
     a = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     return a[np.all(np.isfinite(a), axis=1)]
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) at import, not in a scan's time."""
+    Vfh().blocked_sectors(np.array([[0.3, 0.1]]), np.array([[0.5, -0.2]]))
+    _block(np.zeros(2), np.zeros(1), np.ones(1), np.zeros(2, dtype=bool))
+
+
+_warm_up()

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from schemas.occupancy import OCCUPIED_ABOVE, UNKNOWN
 from schemas.se2 import transform_points, wrap_angle
+from server.jit import njit_cached
 from server.planning import OccupancyGrid
 
 F64 = NDArray[np.float64]
@@ -48,29 +49,18 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
     """Compact groups of returns inside known free space within ``max_range_m``, nearest
     first: (centre in the map frame, number of returns). Returns near teammates (known
     positions) do not count."""
-    pts = np.asarray(points_robot, dtype=np.float64).reshape(-1, 2)
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    pts = pts[(r >= p.min_range_m) & (r <= max_range_m)]
-    if len(pts) == 0:
+    pts = np.ascontiguousarray(points_robot, dtype=np.float64).reshape(-1, 2)
+    T = np.asarray(pose, dtype=np.float64)
+    c, s = np.cos(T[2]), np.sin(T[2])      # as ``transform_points`` has them
+    mates = np.ascontiguousarray(mates_xy, dtype=np.float64).reshape(-1, 2)
+    cand = np.empty_like(pts)
+    n = _free_returns(pts, float(c), float(s), float(T[0]), float(T[1]), p.min_range_m,
+                      float(max_range_m), mates, p.cluster_m, np.ascontiguousarray(grid.data),
+                      float(grid.origin_xy[0]), float(grid.origin_xy[1]), grid.resolution_m,
+                      int(p.free_below), cand)
+    if n == 0:
         return []
-    world = transform_points(pose, pts)
-    if len(mates_xy):
-        d = np.hypot(world[:, None, 0] - mates_xy[None, :, 0],
-                     world[:, None, 1] - mates_xy[None, :, 1]).min(axis=1)
-        world = world[d > p.cluster_m]
-    res = grid.resolution_m
-    ix = np.floor((world[:, 0] - grid.origin_xy[0]) / res).astype(np.int64)
-    iy = np.floor((world[:, 1] - grid.origin_xy[1]) / res).astype(np.int64)
-    h, w = grid.data.shape
-    ok = (ix >= 1) & (iy >= 1) & (ix < w - 1) & (iy < h - 1)
-    if not ok.any():
-        return []
-    free = np.zeros(len(world), dtype=bool)
-    d = grid.data
-    sel = np.flatnonzero(ok)
-    block = np.stack([d[iy[sel] + dy, ix[sel] + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    free[sel] = np.all((block != UNKNOWN) & (block < p.free_below), axis=0)
-    cand = world[free]
+    cand = cand[:n]
     cand = cand[np.argsort(np.hypot(*(cand - pose[:2]).T))]
     groups: list[tuple[F64, int]] = []
     while len(cand):
@@ -78,6 +68,45 @@ def moving_objects(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: 
         groups.append((cand[near].mean(axis=0), int(near.sum())))
         cand = cand[~near]
     return groups
+
+
+@njit_cached
+def _free_returns(pts: F64, c: float, s: float, tx: float, ty: float, min_r: float,
+                  max_r: float, mates: F64, cluster_m: float, d: NDArray[np.int8], ox: float,
+                  oy: float, res: float, free_below: int, out: F64) -> int:
+    """The returns within [min_r, max_r] of the robot, farther than ``cluster_m`` from every
+    mate, whose 3 × 3 cells lie inside ``d``, none unknown and all below ``free_below``:
+    into ``out`` in the map frame (in order); their count. The arithmetic of the array code
+    it replaced (``transform_points``, floor of the offset over the resolution)."""
+    h, w = d.shape
+    n = 0
+    for i in range(pts.shape[0]):
+        px, py = pts[i, 0], pts[i, 1]
+        r = np.hypot(px, py)
+        if not (r >= min_r and r <= max_r):
+            continue
+        wx = c * px - s * py + tx
+        wy = s * px + c * py + ty
+        if mates.shape[0]:
+            near = np.inf
+            for m in range(mates.shape[0]):
+                near = min(near, np.hypot(wx - mates[m, 0], wy - mates[m, 1]))
+            if not near > cluster_m:
+                continue
+        x = int(np.floor((wx - ox) / res))
+        y = int(np.floor((wy - oy) / res))
+        if x < 1 or y < 1 or x >= w - 1 or y >= h - 1:
+            continue
+        ok = True
+        for dy in range(-1, 2):
+            for dx in range(-1, 2):
+                v = d[y + dy, x + dx]
+                if v == UNKNOWN or v >= free_below:
+                    ok = False
+        if ok:
+            out[n, 0], out[n, 1] = wx, wy
+            n += 1
+    return n
 
 
 def moving_object(points_robot: F64, pose: F64, grid: OccupancyGrid, mates_xy: F64,
@@ -142,3 +171,13 @@ def objects_at_range(points_robot: F64, pose: F64, grid: OccupancyGrid | None, r
 def bearing_to(pose: F64, xy: F64) -> float:
     """Bearing [rad] of ``xy`` (map frame) from a robot at ``pose``."""
     return wrap_angle(math.atan2(xy[1] - pose[1], xy[0] - pose[0]) - pose[2])
+
+
+def _warm_up() -> None:
+    """Compile (or load from numba's cache) at import, not in a scan's time."""
+    moving_objects(np.array([[0.5, 0.0]]), np.zeros(3),
+                   OccupancyGrid(np.zeros((30, 30), dtype=np.int8), 0.05, (-0.75, -0.75)),
+                   np.array([[5.0, 5.0]]), LookParams(), 3.5)
+
+
+_warm_up()
