@@ -133,11 +133,10 @@ def make_long_log(name: str, passes: int, out: Path) -> tuple[str, float]:
 
 
 def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
-    from server.jit import skip_scipy_blas
-    from server.offline.slam_log import SlamLogConfig, process, read_recording
+    # as ``mrslam slam-log``: its import readies numba without SciPy's BLAS
+    from server.offline.slam_log import Drawing, SlamLogConfig, freed, process, read_recording
     from server.slam.export import write_nav2, write_ply
 
-    skip_scipy_blas()   # as ``mrslam slam-log``
     cfg = SlamLogConfig()
     # as ``mrslam slam-log``: the scans read without their ranges, which are read again from
     # the file as the scans are fed, and each scan freed once fed
@@ -168,16 +167,21 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
     with open(out / "poses.txt", "w") as f:
         for text, (x, y, th) in zip(stamps, poses, strict=True):
             f.write(f"{text} {x:.6f} {y:.6f} {th:.6f}\n")
-    grid = slam.occupancy_grid()
+    held = keyframe_bytes(slam.keyframes)
+    # as ``mrslam slam-log``: the SLAM freed, the map and cloud drawn from what they need
+    drawing = Drawing.of(slam)
+    del slam
+    freed()
+    grid = drawing.grid()
 
     def write() -> None:
         write_nav2(grid, out, "map")
-        write_ply(out / "cloud.ply", slam.point_cloud())
+        write_ply(out / "cloud.ply", drawing.cloud())
 
     exp = export_rise(write)
     return {"rss_after_read_mb": round(after_read, 1), "samples_t_s_rss_mb": samples,
-            "slam_cpu_s": round(cpu, 1), "scans": n_scans, "keyframes": len(slam.keyframes),
-            **keyframe_bytes(slam.keyframes),
+            "slam_cpu_s": round(cpu, 1), "scans": n_scans, "keyframes": len(drawing.keyframes),
+            **held,
             "map_cells": grid.shape, "map_tiles": getattr(grid, "tiles", None),
             "map_mb": round(getattr(grid, "nbytes", 6 * grid.shape[0] * grid.shape[1]) / 2**20,
                             2), **exp, "peak_mb": round(peak_mb(), 1)}

@@ -28,15 +28,17 @@ def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -
     """A fresh grid from all keyframes at ``poses`` (K, 3)."""
     if len(keyframes) == 0:
         return OccupancyGrid(params)
-    scans = [kf.render.points() for kf in keyframes]    # read once (they may be on disk)
+    # each keyframe's points read twice (from disk by default), never all at once: on a long
+    # log they are megabytes, held at the run's highest point
     lo, hi = poses[:, :2].min(axis=0), poses[:, :2].max(axis=0)
-    for (hits, _), T in zip(scans, poses, strict=True):
+    for kf, T in zip(keyframes, poses, strict=True):
+        hits = kf.render.hits
         if len(hits):
             pts = transform_points(T, hits)
             lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
     grid = OccupancyGrid.covering(params, lo, hi)
-    for (hits, misses), T in zip(scans, poses, strict=True):
-        grid.insert_scan(T, hits, misses)
+    for kf, T in zip(keyframes, poses, strict=True):
+        grid.insert_scan(T, *kf.render.points())
     return grid
 
 

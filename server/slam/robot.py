@@ -74,6 +74,7 @@ class RobotSlam:
         self.local_map: PointMap | None = None   # what the next scan is matched against
         self.velocity = IDENTITY.copy()  # the last scan-to-scan motion (x, y, θ), robot frame
         self.reusing = False                # re-use keyframes where the robot passes again
+        self.single_keyframes = False       # keyframes' matching points in single precision
         self._sensors = sensor_choice(c)
         self.sensor: SensorModel = self._sensors.wide   # the latest scan's
         #: teammates sharing this graph, whose maps a narrow sensor matches against (set by
@@ -153,7 +154,8 @@ class RobotSlam:
         prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
         start_trajectory(self.graph, self.trajectory, self._T_map_start, prior)
         self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom,
-                                              self.cfg.keyframes.render_on_disk))
+                                              self.cfg.keyframes.render_on_disk,
+                                              self.single_keyframes))
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         self.anchor = Anchor(0, self._T_map_start.copy())
         self._scan_poses.append(stamp_ns, 0, IDENTITY)
@@ -187,7 +189,8 @@ class RobotSlam:
         extend_trajectory(self.graph, tr, match_factor(tr.key(a), tr.key(k), T_rel, by,
                                                        self.cfg.graph), kind, match.T_map_robot)
         self.keyframes.append(Keyframe.create(k, stamp_ns, placed.scan, odom,
-                                              self.cfg.keyframes.render_on_disk))
+                                              self.cfg.keyframes.render_on_disk,
+                                              self.single_keyframes))
         self.stats.keyframes = len(self.keyframes)
         self.sensor.on_keyframe(self, k, placed, odom)
         self.loops.add_edge(a, k, edge_length_m(T_rel))
