@@ -141,9 +141,8 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
     # as ``mrslam slam-log``: the scans read without their ranges, which are read again from
     # the file as the scans are fed, and each scan freed once fed
     rec = read_recording(log_path(name, out.parent), cfg, stream=True)
-    clog, scans = rec.clog, rec.scans
-    clog.lasers.clear()
-    clog.odometry.clear()
+    scans = rec.scans      # packed (``server.offline.packed``), the records freed
+    freed()
     after_read = rss_mb()
     stamps_s = [s.record.stamp_s for s in scans]
     t_first = stamps_s[0]

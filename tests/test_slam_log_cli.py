@@ -145,6 +145,34 @@ def test_scans_released_as_they_are_fed_give_the_same_poses(fr079_slice: Path) -
     assert all(s is None for s in freed) and all(s is not None for s in kept)
 
 
+def test_packed_scans_give_back_each_scan_as_read(fr079_slice: Path) -> None:
+    """A log read for ``slam-log`` keeps its scans packed (``PackedScans``): each scan comes
+    back with the stamp, line, beam angles, maximum range and odometry it was read with, a
+    scan without odometry as such, and in a fraction of the records' memory."""
+    from server.offline.packed import PackedScans
+    from server.offline.slam_log import BareScan, SlamLogConfig, read_recording
+
+    cfg = SlamLogConfig()
+    whole = read_recording(fr079_slice, cfg)
+    light = read_recording(fr079_slice, cfg, stream=True)
+    packed = light.scans
+    assert isinstance(packed, PackedScans) and len(packed) == len(whole.scans) > 100
+    assert light.clog.lasers == [] and light.clog.odometry == []
+    for a, b in zip(whole.scans, packed, strict=True):
+        ra, rb = a.record, b.record
+        assert (rb.kind, rb.stamp_text, rb.stamp_s, rb.line_no, rb.max_range_m) == (
+            ra.kind, ra.stamp_text, ra.stamp_s, ra.line_no, ra.max_range_m)
+        np.testing.assert_array_equal(rb.angles_rad, ra.angles_rad)
+        assert a.T_odom_laser is not None and b.T_odom_laser is not None
+        np.testing.assert_array_equal(b.T_odom_laser, a.T_odom_laser)
+    assert packed[-1].record.line_no == whole.scans[-1].record.line_no
+    assert [s.record.line_no for s in packed[3:6]] == [
+        s.record.line_no for s in whole.scans[3:6]]
+    bare = PackedScans([BareScan(s.record) for s in whole.scans[:5]])
+    assert all(s.T_odom_laser is None for s in bare)
+    assert packed.nbytes < 100 * len(packed)
+
+
 def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path) -> None:
     """``mrslam slam-log`` reads a CARMEN log without the scans' ranges and reads them again
     from the file as it feeds the scans (``read_recording(stream=True)``): the same poses

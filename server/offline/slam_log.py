@@ -21,6 +21,7 @@ from typing import Protocol, cast
 import numpy as np
 
 import server.offline.lean_numba  # noqa: F401  (first: numba readied without SciPy's BLAS)
+from server.offline.heap import fixed_mmap_threshold
 from server.offline.logs import (
     CarmenError,
     CarmenLog,
@@ -35,6 +36,8 @@ from server.offline.logs.carmen import LaserLines
 from server.offline.logs.records import F64
 from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
+from server.offline.packed import PackedScans
+from server.offline.progress import ScanCounter
 from server.offline.slam_log_config import SlamLogConfig
 from server.runtime.heap import HeapTrimmer, trim
 from server.slam.config import SlamConfig
@@ -45,6 +48,8 @@ from server.slam.mapping import GridMapper, point_cloud
 from server.slam.robot import RobotSlam, SlamInputError
 
 log = logging.getLogger(__name__)
+
+FIELD_BYTES = 3 << 20   # loop closure's likelihood fields kept (the server: 8 MB)
 
 __all__ = ["SlamLogConfig", "laser_offset", "process", "run"]
 
@@ -93,9 +98,11 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     ``ranges_of``: where a scan's ranges come from, if not its record (a log read without
     them: ``LaserLines.ranges``, asked in file order)."""
     slam = RobotSlam("a", cfg)
+    lean(slam)
     accepted: list[str] = []
     rejected = 0
-    plan = plan_stamps([s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
+    plan = plan_stamps(scans.stamps_s.tolist() if isinstance(scans, PackedScans)
+                       else [s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
     _log_stamp_plan(plan, scans, jitter_fraction)
     if front is None and any(s.T_odom_laser is None for s in scans):
         front = ScanOdometry(cfg)
@@ -156,6 +163,17 @@ def freed() -> None:
     trim()
 
 
+def lean(slam: RobotSlam) -> None:
+    """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings): the
+    keyframes' matching points in single precision (half their memory; the relation errors
+    of the real logs stay within 1 %), loop closure's likelihood fields within
+    ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed), and numpy's large
+    arrays given back to the system when freed (``heap.fixed_mmap_threshold``)."""
+    slam.single_keyframes = True
+    slam.loops.field_bytes = FIELD_BYTES
+    fixed_mmap_threshold()
+
+
 def _log_stamp_plan(plan: StampPlan, scans: Sequence[LogScan], fraction: float) -> None:
     dropped = sorted(plan.dropped_ahead + plan.dropped_behind)
     for j in dropped[:5]:
@@ -179,7 +197,7 @@ class Read:
     """A recording read: its records, its scans, and where their odometry came from."""
 
     clog: CarmenLog
-    scans: list[LogScan]
+    scans: Sequence[LogScan]
     laser: str
     source: str
     bag: dict[str, object] | None = None   # ``BagInfo`` of a bag, for the summary
@@ -201,9 +219,9 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
         pose = np.asarray(cfg.laser_pose, dtype=np.float64) if cfg.laser_pose else None
         blog, info = read_bag(log_file, scan_topic, odom_topic, cfg.echo, pose,
                               OdometryLimits(**cfg.odometry_limits.model_dump()), use_odometry)
-        scans: list[LogScan] = [OdometryScan(r, r.laser_pose) if r.laser_pose is not None
-                                else BareScan(r) for r in blog.lasers]
-        return Read(blog, scans, blog.lasers[0].kind, info.source, asdict(info))
+        bag_scans: list[LogScan] = [OdometryScan(r, r.laser_pose) if r.laser_pose is not None
+                                    else BareScan(r) for r in blog.lasers]
+        return Read(blog, bag_scans, blog.lasers[0].kind, info.source, asdict(info))
     if scan_topic or odom_topic or cfg.laser_pose:
         raise CarmenError(f"{log_file}: --scan-topic, --odom-topic and --laser-pose are for ROS "
                           f"bags")
@@ -217,15 +235,24 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
         log.warning("%s: no odometry in the log (no pose in its laser lines, no ODOM lines): "
                     "taking it from scan matching", log_file)
         use_odometry = False
+    kind = lasers[0].kind
     if not use_odometry:
-        return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans", lines=lines)
-    source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
-    scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser), source))
-    return Read(clog, scans, lasers[0].kind, source, lines=lines)
+        source = "scans"
+        scans: list[LogScan] = [BareScan(r) for r in lasers]
+    else:
+        source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
+        scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser),
+                                     source))
+    if not stream:
+        return Read(clog, scans, kind, source, lines=lines)
+    packed = PackedScans(scans)    # the records freed at once, on return (``packed``)
+    clog.lasers.clear()
+    clog.odometry.clear()
+    return Read(clog, packed, kind, source, lines=lines)
 
 
 def _read(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None,
-          odom_topic: str | None) -> tuple[CarmenLog, list[LogScan], str, str]:
+          odom_topic: str | None) -> tuple[CarmenLog, Sequence[LogScan], str, str]:
     """``read_recording`` as a tuple: records, scans, laser and odometry source."""
     r = read_recording(log_file, cfg, scan_topic, odom_topic)
     return r.clog, r.scans, r.laser, r.source
@@ -236,8 +263,6 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     """Run SLAM on ``log_file`` (a CARMEN log or a ROS bag) and write the results into
     ``out``; returns the summary. ``overrides`` replace keys of the config (``echo``,
     ``laser_pose``, ``odometry``...)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from schemas.config_loading import load_config, validate, write_resolved
 
     t0 = time.perf_counter()
@@ -249,22 +274,18 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     scans = rec.scans
     n_scans = len(scans)
     duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
-    rec.clog.lasers.clear()     # ``scans`` holds the records, freed once fed to the SLAM
-    rec.clog.odometry.clear()   # (attached to them already)
+    freed()                     # the records read, now packed (``PackedScans``)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)
     t_read = time.perf_counter()
     front = ScanOdometry(cfg.slam, cfg.scan_odometry.params()) \
         if any(s.T_odom_laser is None for s in scans) else None
-    with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
-                  "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
-        task = bar.add_task("scans", total=n_scans)
+    with ScanCounter(n_scans) as bar:
         slam, stamps, rejected, plan = process(
-            scans, cfg.slam, lambda i: bar.update(task, completed=i),
-            jitter_fraction=cfg.stamp_jitter_fraction, front=front, release=True,
+            scans, cfg.slam, bar.update, jitter_fraction=cfg.stamp_jitter_fraction,
+            front=front, release=True,
             ranges_of=rec.lines.ranges if rec.lines is not None else None)
-        bar.update(task, completed=n_scans)
     if rec.lines is not None:
         rec.lines.close()
     t_slam = time.perf_counter()

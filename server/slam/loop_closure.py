@@ -133,6 +133,7 @@ class LoopCloser:
         self.stats = LoopStats()
         self._graph = _Graph()
         self._fields: OrderedDict[int, LikelihoodField] = OrderedDict()
+        self.field_bytes = FIELD_CACHE_BYTES   # the fields' bound (``slam-log`` lowers it)
         self._pending: list[LoopClosure] = []
 
     def __getstate__(self) -> dict[str, object]:
@@ -174,7 +175,7 @@ class LoopCloser:
             self._fields[sm_index] = f
             held = sum(lv.nbytes for g in self._fields.values() for lv in g.pyramid)
             while len(self._fields) > 1 and (len(self._fields) > FIELD_CACHE
-                                             or held > FIELD_CACHE_BYTES):
+                                             or held > self.field_bytes):
                 _, old = self._fields.popitem(last=False)
                 held -= sum(lv.nbytes for lv in old.pyramid)
         else:
