@@ -164,12 +164,14 @@ def freed() -> None:
 
 
 def lean(slam: RobotSlam) -> None:
-    """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings): the
-    keyframes' matching points in single precision (half their memory; the relation errors
-    of the real logs stay within 1 %), loop closure's likelihood fields within
-    ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed), and numpy's large
-    arrays given back to the system when freed (``heap.fixed_mmap_threshold``)."""
+    """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings):
+    keyframes' matching points and loop closure's submaps in single precision (half their
+    memory; computed from in double precision, results differing from rounding on),
+    loop closure's likelihood fields within ``FIELD_BYTES`` (a field is made again in about
+    1.5 ms when needed), and large arrays given back to the system when freed
+    (``heap.fixed_mmap_threshold``)."""
     slam.single_keyframes = True
+    slam.loops.single_submaps = True
     slam.loops.field_bytes = FIELD_BYTES
     fixed_mmap_threshold()
 

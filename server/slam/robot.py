@@ -55,6 +55,10 @@ class RobotSlam:
     The map frame is the frame of ``T_map_start`` (default: the first pose is the origin).
     """
 
+    # keyframes' matching points in single precision (``slam-log``); a class default, so that
+    # a SLAM pickled before it was added has it too
+    single_keyframes = False
+
     def __init__(self, robot_char: str = "a", config: SlamConfig | None = None,
                  graph: PoseGraph | None = None,
                  T_map_start: ArrayLike = (0.0, 0.0, 0.0), key_block: int = 0) -> None:
@@ -74,7 +78,6 @@ class RobotSlam:
         self.local_map: PointMap | None = None   # what the next scan is matched against
         self.velocity = IDENTITY.copy()  # the last scan-to-scan motion (x, y, θ), robot frame
         self.reusing = False                # re-use keyframes where the robot passes again
-        self.single_keyframes = False       # keyframes' matching points in single precision
         self._sensors = sensor_choice(c)
         self.sensor: SensorModel = self._sensors.wide   # the latest scan's
         #: teammates sharing this graph, whose maps a narrow sensor matches against (set by
