@@ -74,9 +74,13 @@ class PackedScans(Sequence[OdometryScan | _Bare]):
     def __len__(self) -> int:
         return len(self.stamps_s)
 
-    def _record(self, i: int) -> LaserRecord:
+    def stamp_text(self, i: int) -> str:
+        """Scan i's stamp as written in the log."""
         start = int(self._text_end[i - 1]) if i > 0 else 0
-        text = self._text[start:int(self._text_end[i])].decode()
+        return self._text[start:int(self._text_end[i])].decode()
+
+    def _record(self, i: int) -> LaserRecord:
+        text = self.stamp_text(i)
         m = float(self._max[i])
         return LaserRecord(self._kinds[self._kind[i]], text, float(self.stamps_s[i]), NO_RANGES,
                            self._angles[self._angle[i]], None if np.isnan(m) else m, None,
@@ -109,3 +113,33 @@ class PackedScans(Sequence[OdometryScan | _Bare]):
         arrays: list[NDArray[np.generic]] = [self._kind, self._angle, self.stamps_s, self._line,
                                              self._max, self._odom, self._text_end]
         return sum(a.nbytes for a in arrays) + len(self._text)
+
+
+class StampTexts(Sequence[str]):
+    """The stamps (as written) of some of a ``PackedScans``' scans, by index: a long log's
+    29,000 stamps are not held as as many strings."""
+
+    def __init__(self, scans: PackedScans, indices: Sequence[int]) -> None:
+        self._scans = scans
+        self._indices = np.asarray(indices, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self._indices)
+
+    @overload
+    def __getitem__(self, i: int) -> str: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[str]: ...
+
+    def __getitem__(self, i: int | slice) -> str | list[str]:
+        if isinstance(i, slice):
+            return [self._scans.stamp_text(int(j)) for j in self._indices[i]]
+        return self._scans.stamp_text(int(self._indices[i]))
+
+    def __iter__(self) -> Iterator[str]:
+        return (self._scans.stamp_text(int(j)) for j in self._indices)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Sequence) and list(self) == list(other)
+
+    __hash__ = None  # type: ignore[assignment]

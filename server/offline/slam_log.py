@@ -13,6 +13,7 @@ import gc
 import json
 import logging
 import time
+from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -36,7 +37,7 @@ from server.offline.logs.carmen import LaserLines
 from server.offline.logs.records import F64
 from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
-from server.offline.packed import PackedScans
+from server.offline.packed import PackedScans, StampTexts
 from server.offline.progress import ScanCounter
 from server.offline.slam_log_config import SlamLogConfig
 from server.runtime.heap import HeapTrimmer, trim
@@ -44,7 +45,7 @@ from server.slam.config import SlamConfig
 from server.slam.export import write_nav2, write_ply
 from server.slam.grid import GridParams, OccupancyGrid
 from server.slam.keyframes import Keyframe
-from server.slam.mapping import GridMapper, point_cloud
+from server.slam.mapping import GridMapper, point_cloud_parts
 from server.slam.robot import RobotSlam, SlamInputError
 
 log = logging.getLogger(__name__)
@@ -84,7 +85,7 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
             progress: Callable[[int], None] | None = None, *, jitter_fraction: float = 0.5,
             front: ScanOdometry | None = None, release: bool = False,
             ranges_of: Callable[[LaserRecord], F64] | None = None
-            ) -> tuple[RobotSlam, list[str], int, StampPlan]:
+            ) -> tuple[RobotSlam, Sequence[str], int, StampPlan]:
     """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
     it (``plan_stamps``); a scan a little early is fed just after the one before it. Scans
     without odometry get it from ``front`` (made here if not given). Returns the SLAM, the
@@ -100,6 +101,8 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     slam = RobotSlam("a", cfg)
     lean(slam)
     accepted: list[str] = []
+    packed = isinstance(scans, PackedScans)
+    taken = array("q")        # with packed scans, the indices of those accepted
     rejected = 0
     plan = plan_stamps(scans.stamps_s.tolist() if isinstance(scans, PackedScans)
                        else [s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
@@ -125,10 +128,15 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
             rejected += 1
             log.warning("line %d: scan skipped: %s", rec.line_no, e)
             continue
-        accepted.append(rec.stamp_text)
+        if packed:
+            taken.append(i)
+        else:
+            accepted.append(rec.stamp_text)
         heap.maybe()
         if progress is not None and n % 25 == 0:
             progress(i)
+    if packed:
+        return slam, StampTexts(cast("PackedScans", scans), taken), rejected, plan
     return slam, accepted, rejected, plan
 
 
@@ -152,8 +160,10 @@ class Drawing:
     def grid(self) -> OccupancyGrid:
         return GridMapper(self.grid_params).update(self.keyframes, self.poses)
 
-    def cloud(self, voxel_m: float = 0.05) -> F64:
-        return point_cloud(self.keyframes, self.poses, voxel_m)
+    def cloud(self, voxel_m: float = 0.05) -> list[F64]:
+        """``point_cloud``'s points in the parts they are gathered in (``write_ply`` writes
+        them one after the other)."""
+        return point_cloud_parts(self.keyframes, self.poses, voxel_m)
 
 
 def freed() -> None:
