@@ -240,3 +240,37 @@ def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
         a, b = jit.njit_cached(add_one), jit.njit_cached(add_one)
     assert type(a._cache).__name__ == "NullCache" and a(2.0) == 3.0 == b(2.0)  # type: ignore[attr-defined]
     assert len(jit._uncached) == 2 and caplog.text.count("can write its cache nowhere") == 1
+
+
+def test_progress_line_only_on_a_terminal_and_cleared_when_done() -> None:
+    """``slam-log``'s progress (``ScanCounter``): one line rewritten on a terminal and cleared
+    at the end; nothing at all where standard error is a file or a pipe."""
+    import io
+
+    from server.offline.progress import ScanCounter
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty, pipe = Tty(), io.StringIO()
+    with ScanCounter(10, tty, every_s=0.0) as bar:
+        bar.update(5)
+    assert "slam-log  5/10 scans  0:00" in tty.getvalue()
+    assert tty.getvalue().endswith("\r") and tty.getvalue().count("\r") == 3
+    with ScanCounter(10, pipe, every_s=0.0) as bar:
+        bar.update(5)
+    assert pipe.getvalue() == ""
+
+
+def test_a_cloud_written_in_parts_is_the_cloud_written_whole(tmp_path: Path) -> None:
+    """``write_ply`` of the parts a cloud is gathered in writes the same file as of the
+    points joined."""
+    from server.slam.export import read_ply_xy, write_ply
+
+    rng = np.random.default_rng(0)
+    parts = [rng.normal(size=(n, 2)) for n in (5, 0, 12)]
+    write_ply(tmp_path / "parts.ply", parts)
+    write_ply(tmp_path / "whole.ply", np.concatenate(parts))
+    assert (tmp_path / "parts.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    assert len(read_ply_xy(tmp_path / "parts.ply")) == 17
