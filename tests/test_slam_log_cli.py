@@ -145,6 +145,34 @@ def test_scans_released_as_they_are_fed_give_the_same_poses(fr079_slice: Path) -
     assert all(s is None for s in freed) and all(s is not None for s in kept)
 
 
+def test_packed_scans_give_back_each_scan_as_read(fr079_slice: Path) -> None:
+    """A log read for ``slam-log`` keeps its scans packed (``PackedScans``): each scan comes
+    back with the stamp, line, beam angles, maximum range and odometry it was read with, a
+    scan without odometry as such, and in a fraction of the records' memory."""
+    from server.offline.packed import PackedScans
+    from server.offline.slam_log import BareScan, SlamLogConfig, read_recording
+
+    cfg = SlamLogConfig()
+    whole = read_recording(fr079_slice, cfg)
+    light = read_recording(fr079_slice, cfg, stream=True)
+    packed = light.scans
+    assert isinstance(packed, PackedScans) and len(packed) == len(whole.scans) > 100
+    assert light.clog.lasers == [] and light.clog.odometry == []
+    for a, b in zip(whole.scans, packed, strict=True):
+        ra, rb = a.record, b.record
+        assert (rb.kind, rb.stamp_text, rb.stamp_s, rb.line_no, rb.max_range_m) == (
+            ra.kind, ra.stamp_text, ra.stamp_s, ra.line_no, ra.max_range_m)
+        np.testing.assert_array_equal(rb.angles_rad, ra.angles_rad)
+        assert a.T_odom_laser is not None and b.T_odom_laser is not None
+        np.testing.assert_array_equal(b.T_odom_laser, a.T_odom_laser)
+    assert packed[-1].record.line_no == whole.scans[-1].record.line_no
+    assert [s.record.line_no for s in packed[3:6]] == [
+        s.record.line_no for s in whole.scans[3:6]]
+    bare = PackedScans([BareScan(s.record) for s in whole.scans[:5]])
+    assert all(s.T_odom_laser is None for s in bare)
+    assert packed.nbytes < 100 * len(packed)
+
+
 def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path) -> None:
     """``mrslam slam-log`` reads a CARMEN log without the scans' ranges and reads them again
     from the file as it feeds the scans (``read_recording(stream=True)``): the same poses
@@ -167,15 +195,18 @@ def test_scans_whose_ranges_are_read_again_give_the_same_poses(fr079_slice: Path
 
 @pytest.mark.e2e
 def test_numba_readied_without_scipys_blas_runs_the_kernels() -> None:
-    """``skip_scipy_blas`` (slam-log) readies numba without mapping SciPy's BLAS; the
-    compiled kernels give the same answers, and SciPy's BLAS still imports afterwards."""
+    """``skip_scipy_blas`` readies numba without mapping SciPy's BLAS, done by importing
+    ``server.offline.slam_log`` before it loads the kernels; the compiled kernels give the
+    same answers, and SciPy's BLAS still imports afterwards."""
     import subprocess
     import sys
 
     code = (
         "import sys, numpy as np\n"
+        "import server.offline.slam_log\n"   # loads the kernels (server.slam) after the skip
+        "assert 'numba.np.arraymath' in sys.modules\n"
+        "assert 'scipy.linalg.cython_blas' not in sys.modules\n"
         "from server.jit import skip_scipy_blas\n"
-        "assert skip_scipy_blas()\n"
         "from server.slam.icp_kernel import build_grid\n"
         "x0, y0, nx, ny, start, order = build_grid(np.array([0.0, 1.0]), np.array([0.0, 1.0]),"
         " 0.5)\n"
@@ -209,3 +240,37 @@ def test_kernels_compile_without_numbas_cache_where_it_cannot_be_written(
         a, b = jit.njit_cached(add_one), jit.njit_cached(add_one)
     assert type(a._cache).__name__ == "NullCache" and a(2.0) == 3.0 == b(2.0)  # type: ignore[attr-defined]
     assert len(jit._uncached) == 2 and caplog.text.count("can write its cache nowhere") == 1
+
+
+def test_progress_line_only_on_a_terminal_and_cleared_when_done() -> None:
+    """``slam-log``'s progress (``ScanCounter``): one line rewritten on a terminal and cleared
+    at the end; nothing at all where standard error is a file or a pipe."""
+    import io
+
+    from server.offline.progress import ScanCounter
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty, pipe = Tty(), io.StringIO()
+    with ScanCounter(10, tty, every_s=0.0) as bar:
+        bar.update(5)
+    assert "slam-log  5/10 scans  0:00" in tty.getvalue()
+    assert tty.getvalue().endswith("\r") and tty.getvalue().count("\r") == 3
+    with ScanCounter(10, pipe, every_s=0.0) as bar:
+        bar.update(5)
+    assert pipe.getvalue() == ""
+
+
+def test_a_cloud_written_in_parts_is_the_cloud_written_whole(tmp_path: Path) -> None:
+    """``write_ply`` of the parts a cloud is gathered in writes the same file as of the
+    points joined."""
+    from server.slam.export import read_ply_xy, write_ply
+
+    rng = np.random.default_rng(0)
+    parts = [rng.normal(size=(n, 2)) for n in (5, 0, 12)]
+    write_ply(tmp_path / "parts.ply", parts)
+    write_ply(tmp_path / "whole.ply", np.concatenate(parts))
+    assert (tmp_path / "parts.ply").read_bytes() == (tmp_path / "whole.ply").read_bytes()
+    assert len(read_ply_xy(tmp_path / "parts.ply")) == 17

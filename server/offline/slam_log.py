@@ -9,9 +9,11 @@ optimisation), ``map.png``/``map.yaml`` (nav2), ``cloud.ply``, ``summary.json`` 
 
 from __future__ import annotations
 
+import gc
 import json
 import logging
 import time
+from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -19,6 +21,8 @@ from typing import Protocol, cast
 
 import numpy as np
 
+import server.offline.lean_numba  # noqa: F401  (first: numba readied without SciPy's BLAS)
+from server.offline.heap import fixed_mmap_threshold
 from server.offline.logs import (
     CarmenError,
     CarmenLog,
@@ -33,13 +37,20 @@ from server.offline.logs.carmen import LaserLines
 from server.offline.logs.records import F64
 from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
+from server.offline.packed import PackedScans, StampTexts
+from server.offline.progress import ScanCounter
 from server.offline.slam_log_config import SlamLogConfig
-from server.runtime.heap import HeapTrimmer
+from server.runtime.heap import HeapTrimmer, trim
 from server.slam.config import SlamConfig
 from server.slam.export import write_nav2, write_ply
+from server.slam.grid import GridParams, OccupancyGrid
+from server.slam.keyframes import Keyframe
+from server.slam.mapping import GridMapper, point_cloud_parts
 from server.slam.robot import RobotSlam, SlamInputError
 
 log = logging.getLogger(__name__)
+
+FIELD_BYTES = 3 << 20   # loop closure's likelihood fields kept (the server: 8 MB)
 
 __all__ = ["SlamLogConfig", "laser_offset", "process", "run"]
 
@@ -74,7 +85,7 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
             progress: Callable[[int], None] | None = None, *, jitter_fraction: float = 0.5,
             front: ScanOdometry | None = None, release: bool = False,
             ranges_of: Callable[[LaserRecord], F64] | None = None
-            ) -> tuple[RobotSlam, list[str], int, StampPlan]:
+            ) -> tuple[RobotSlam, Sequence[str], int, StampPlan]:
     """Feed the scans to one ``RobotSlam`` in file order, without the stamps that jump out of
     it (``plan_stamps``); a scan a little early is fed just after the one before it. Scans
     without odometry get it from ``front`` (made here if not given). Returns the SLAM, the
@@ -88,9 +99,13 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     ``ranges_of``: where a scan's ranges come from, if not its record (a log read without
     them: ``LaserLines.ranges``, asked in file order)."""
     slam = RobotSlam("a", cfg)
+    lean(slam)
     accepted: list[str] = []
+    packed = isinstance(scans, PackedScans)
+    taken = array("q")        # with packed scans, the indices of those accepted
     rejected = 0
-    plan = plan_stamps([s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
+    plan = plan_stamps(scans.stamps_s.tolist() if isinstance(scans, PackedScans)
+                       else [s.record.stamp_s for s in scans], jitter_fraction=jitter_fraction)
     _log_stamp_plan(plan, scans, jitter_fraction)
     if front is None and any(s.T_odom_laser is None for s in scans):
         front = ScanOdometry(cfg)
@@ -113,11 +128,62 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
             rejected += 1
             log.warning("line %d: scan skipped: %s", rec.line_no, e)
             continue
-        accepted.append(rec.stamp_text)
+        if packed:
+            taken.append(i)
+        else:
+            accepted.append(rec.stamp_text)
         heap.maybe()
         if progress is not None and n % 25 == 0:
             progress(i)
+    if packed:
+        return slam, StampTexts(cast("PackedScans", scans), taken), rejected, plan
     return slam, accepted, rejected, plan
+
+
+@dataclass
+class Drawing:
+    """What the exported map and point cloud are drawn from once the SLAM is done: the
+    keyframes without their matching points, their final poses and the grid's settings. The
+    rest of the SLAM (the graph, loop closure's submaps and fields, the matching points) can
+    then be freed before drawing: on a long log it is tens of megabytes at the run's highest
+    point. The same map and cloud as ``RobotSlam.occupancy_grid`` and ``point_cloud``."""
+
+    keyframes: list[Keyframe]
+    poses: F64
+    grid_params: GridParams
+
+    @classmethod
+    def of(cls, slam: RobotSlam) -> Drawing:
+        return cls([kf.for_drawing() for kf in slam.keyframes], slam.keyframe_poses(),
+                   GridParams(**slam.cfg.grid.model_dump()))
+
+    def grid(self) -> OccupancyGrid:
+        return GridMapper(self.grid_params).update(self.keyframes, self.poses)
+
+    def cloud(self, voxel_m: float = 0.05) -> list[F64]:
+        """``point_cloud``'s points in the parts they are gathered in (``write_ply`` writes
+        them one after the other)."""
+        return point_cloud_parts(self.keyframes, self.poses, voxel_m)
+
+
+def freed() -> None:
+    """Collect what was just dropped (``del`` of a SLAM whose ``Drawing`` was taken; its
+    objects hold reference cycles) and return the freed heap to the system."""
+    gc.collect()
+    trim()
+
+
+def lean(slam: RobotSlam) -> None:
+    """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings):
+    loop closure's submaps in single precision (half their memory; fields and ICP computed
+    from them in double precision, results differing from rounding on), its likelihood fields
+    within ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed), and large
+    arrays given back to the system when freed (``heap.fixed_mmap_threshold``). The
+    keyframes' matching points stay in double precision: in single precision (5.7 MB less on
+    a 91-minute log) fr079's rotation error rose from 0.427° to 0.446°."""
+    slam.loops.single_submaps = True
+    slam.loops.field_bytes = FIELD_BYTES
+    fixed_mmap_threshold()
 
 
 def _log_stamp_plan(plan: StampPlan, scans: Sequence[LogScan], fraction: float) -> None:
@@ -143,7 +209,7 @@ class Read:
     """A recording read: its records, its scans, and where their odometry came from."""
 
     clog: CarmenLog
-    scans: list[LogScan]
+    scans: Sequence[LogScan]
     laser: str
     source: str
     bag: dict[str, object] | None = None   # ``BagInfo`` of a bag, for the summary
@@ -165,9 +231,9 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
         pose = np.asarray(cfg.laser_pose, dtype=np.float64) if cfg.laser_pose else None
         blog, info = read_bag(log_file, scan_topic, odom_topic, cfg.echo, pose,
                               OdometryLimits(**cfg.odometry_limits.model_dump()), use_odometry)
-        scans: list[LogScan] = [OdometryScan(r, r.laser_pose) if r.laser_pose is not None
-                                else BareScan(r) for r in blog.lasers]
-        return Read(blog, scans, blog.lasers[0].kind, info.source, asdict(info))
+        bag_scans: list[LogScan] = [OdometryScan(r, r.laser_pose) if r.laser_pose is not None
+                                    else BareScan(r) for r in blog.lasers]
+        return Read(blog, bag_scans, blog.lasers[0].kind, info.source, asdict(info))
     if scan_topic or odom_topic or cfg.laser_pose:
         raise CarmenError(f"{log_file}: --scan-topic, --odom-topic and --laser-pose are for ROS "
                           f"bags")
@@ -181,15 +247,24 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
         log.warning("%s: no odometry in the log (no pose in its laser lines, no ODOM lines): "
                     "taking it from scan matching", log_file)
         use_odometry = False
+    kind = lasers[0].kind
     if not use_odometry:
-        return Read(clog, [BareScan(r) for r in lasers], lasers[0].kind, "scans", lines=lines)
-    source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
-    scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser), source))
-    return Read(clog, scans, lasers[0].kind, source, lines=lines)
+        source = "scans"
+        scans: list[LogScan] = [BareScan(r) for r in lasers]
+    else:
+        source = choose_odometry_source(lasers, clog.odometry, cfg.odometry)
+        scans = list(attach_odometry(lasers, clog.odometry, laser_offset(clog, cfg.laser),
+                                     source))
+    if not stream:
+        return Read(clog, scans, kind, source, lines=lines)
+    packed = PackedScans(scans)    # the records freed at once, on return (``packed``)
+    clog.lasers.clear()
+    clog.odometry.clear()
+    return Read(clog, packed, kind, source, lines=lines)
 
 
 def _read(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None,
-          odom_topic: str | None) -> tuple[CarmenLog, list[LogScan], str, str]:
+          odom_topic: str | None) -> tuple[CarmenLog, Sequence[LogScan], str, str]:
     """``read_recording`` as a tuple: records, scans, laser and odometry source."""
     r = read_recording(log_file, cfg, scan_topic, odom_topic)
     return r.clog, r.scans, r.laser, r.source
@@ -200,12 +275,8 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     """Run SLAM on ``log_file`` (a CARMEN log or a ROS bag) and write the results into
     ``out``; returns the summary. ``overrides`` replace keys of the config (``echo``,
     ``laser_pose``, ``odometry``...)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from schemas.config_loading import load_config, validate, write_resolved
-    from server.jit import skip_scipy_blas
 
-    skip_scipy_blas()   # 14 MB that no kernel uses
     t0 = time.perf_counter()
     cfg = load_config(SlamLogConfig, config)
     given = {k: v for k, v in overrides.items() if v is not None}
@@ -215,22 +286,18 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     scans = rec.scans
     n_scans = len(scans)
     duration = scans[-1].record.stamp_s - scans[0].record.stamp_s if scans else 0.0
-    rec.clog.lasers.clear()     # ``scans`` holds the records, freed once fed to the SLAM
-    rec.clog.odometry.clear()   # (attached to them already)
+    freed()                     # the records read, now packed (``PackedScans``)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_resolved(cfg, out)
     t_read = time.perf_counter()
     front = ScanOdometry(cfg.slam, cfg.scan_odometry.params()) \
         if any(s.T_odom_laser is None for s in scans) else None
-    with Progress(TextColumn("[bold]slam-log"), BarColumn(), TextColumn("{task.completed}/"
-                  "{task.total} scans"), TimeElapsedColumn(), transient=True) as bar:
-        task = bar.add_task("scans", total=n_scans)
+    with ScanCounter(n_scans) as bar:
         slam, stamps, rejected, plan = process(
-            scans, cfg.slam, lambda i: bar.update(task, completed=i),
-            jitter_fraction=cfg.stamp_jitter_fraction, front=front, release=True,
+            scans, cfg.slam, bar.update, jitter_fraction=cfg.stamp_jitter_fraction,
+            front=front, release=True,
             ranges_of=rec.lines.ranges if rec.lines is not None else None)
-        bar.update(task, completed=n_scans)
     if rec.lines is not None:
         rec.lines.close()
     t_slam = time.perf_counter()
@@ -238,9 +305,14 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     with open(out / "poses.txt", "w") as f:
         for text, (x, y, th) in zip(stamps, poses, strict=True):
             f.write(f"{text} {x:.6f} {y:.6f} {th:.6f}\n")
+    del poses
+    counts, loop_search = slam.stats, asdict(slam.loop_stats)
+    drawing = Drawing.of(slam)
+    del slam
+    freed()
     if cfg.write_maps:
-        write_nav2(slam.occupancy_grid(), out, "map")
-        write_ply(out / "cloud.ply", slam.point_cloud())
+        write_nav2(drawing.grid(), out, "map")
+        write_ply(out / "cloud.ply", drawing.cloud())
     stats = rec.clog.stats
     summary: dict[str, object] = {
         "log": str(log_file),
@@ -254,11 +326,11 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
         "stamps_dropped_ahead": len(plan.dropped_ahead),
         "stamps_dropped_behind": len(plan.dropped_behind),
         "clock_steps": [{"scan": i, "shift_s": d} for i, d in plan.steps],
-        "keyframes": slam.stats.keyframes,
-        "loop_closures": slam.stats.loop_closures,
-        "loop_closures_removed": slam.stats.loop_closures_removed,
-        "matches": slam.stats.matches,
-        "loop_search": asdict(slam.loop_stats),
+        "keyframes": counts.keyframes,
+        "loop_closures": counts.loop_closures,
+        "loop_closures_removed": counts.loop_closures_removed,
+        "matches": counts.matches,
+        "loop_search": loop_search,
         "scan_odometry": asdict(front.stats) if front is not None else None,
         "bag": rec.bag,
         "lines": stats.lines,
@@ -273,6 +345,6 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(f"{Path(log_file).name}: {len(stamps)} of {n_scans} scans posed, "
-          f"{slam.stats.keyframes} keyframes, {slam.stats.loop_closures} loop closures, "
+          f"{counts.keyframes} keyframes, {counts.loop_closures} loop closures, "
           f"{summary['wall_time_s']:.1f} s → {out}")
     return summary

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +29,20 @@ def write_nav2(grid: OccupancyGrid, out_dir: Path, name: str = "map") -> Path:
                                 grid.origin_pose[:2])
 
 
-def write_ply(path: Path, points_xy: NDArray[np.float64]) -> None:
-    """Binary little-endian PLY of (N, 2) points at z = 0 (float32 x, y, z)."""
-    pts = np.zeros((len(points_xy), 3), dtype="<f4")
-    pts[:, :2] = points_xy
+def write_ply(path: Path, points_xy: NDArray[np.float64] | Sequence[NDArray[np.float64]]
+              ) -> None:
+    """Binary little-endian PLY of (N, 2) points at z = 0 (float32 x, y, z); the points may
+    come in parts (``mapping.point_cloud_parts``), written one after the other."""
+    parts = [points_xy] if isinstance(points_xy, np.ndarray) else list(points_xy)
     header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(pts)}\n"
+              f"element vertex {sum(len(p) for p in parts)}\n"
               "property float x\nproperty float y\nproperty float z\nend_header\n")
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
-        pts.tofile(f)
+        for part in parts:
+            pts = np.zeros((len(part), 3), dtype="<f4")
+            pts[:, :2] = part
+            pts.tofile(f)
 
 
 def read_ply_xy(path: Path) -> NDArray[np.float64]:

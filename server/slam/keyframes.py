@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,18 +35,25 @@ class Keyframe:
 
     @classmethod
     def create(cls, index: int, stamp_ns: int, scan: ScanPoints, T_odom_robot: F64,
-               spill: bool = True) -> Keyframe:
+               spill: bool = True, single: bool = False) -> Keyframe:
         """A keyframe of ``scan``, whose arrays become read-only: a keyframe never changes
         (and a snapshot stores read-only arrays once, not again each time). The points
         without a normal are not kept: only the map drew from them, and it draws from
-        ``render``."""
+        ``render``. ``single``: the matching points, normals and ranges in single precision
+        (half the memory; ``gather`` computes in double precision from them)."""
         ok = np.isfinite(scan.normals[:, 0])
         empty = _frozen(np.zeros((0, 2)))
-        matchable = ScanPoints(_frozen(scan.points[ok]), _frozen(scan.normals[ok]),
-                               _frozen(scan.ranges_m[ok]), empty, empty, scan.fov_rad,
+        keep = _frozen32 if single else _frozen
+        matchable = ScanPoints(keep(scan.points[ok]), keep(scan.normals[ok]),
+                               keep(scan.ranges_m[ok]), empty, empty, scan.fov_rad,
                                scan.heading_rad)
         return cls(index, stamp_ns, _frozen(T_odom_robot), matchable,
                    RenderScan.of(scan.hits, scan.misses, spill))
+
+    def for_drawing(self) -> Keyframe:
+        """This keyframe without its matching points: what drawing the map and the point
+        cloud read (``render``), once nothing will be matched against it any more."""
+        return Keyframe(self.index, self.stamp_ns, self.T_odom_robot, _NO_POINTS, self.render)
 
     @property
     def hits(self) -> F32:
@@ -65,6 +73,18 @@ def _frozen(a: F64) -> F64:
     return b
 
 
+def _frozen32(a: F64) -> F64:
+    """A read-only single-precision copy (typed as the double arrays it stands for: every
+    reader computes from it in double precision)."""
+    b = np.array(a, dtype=np.float32)
+    b.flags.writeable = False
+    return cast("F64", b)
+
+
+_EMPTY = _frozen(np.zeros((0, 2)))
+_NO_POINTS = ScanPoints(_EMPTY, _EMPTY, _frozen(np.zeros(0)), _EMPTY, _EMPTY, 0.0, 0.0)
+
+
 def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64) -> tuple[F64, F64]:
     """Matching points and normals of keyframes placed by ``T_frame_kf`` (K, 3), concatenated
     (only points with a normal)."""
@@ -77,10 +97,10 @@ def gather(keyframes: Sequence[Keyframe], T_frame_kf: F64) -> tuple[F64, F64]:
     T = np.asarray(T_frame_kf, dtype=np.float64).reshape(-1, 3)
     c = np.repeat(np.cos(T[:, 2]), counts)
     s = np.repeat(np.sin(T[:, 2]), counts)
-    pts = np.empty_like(P)
+    pts = np.empty(P.shape)        # double precision, whatever the keyframes hold
     pts[:, 0] = c * P[:, 0] - s * P[:, 1] + np.repeat(T[:, 0], counts)
     pts[:, 1] = s * P[:, 0] + c * P[:, 1] + np.repeat(T[:, 1], counts)
-    nrm = np.empty_like(N)
+    nrm = np.empty(N.shape)
     nrm[:, 0] = c * N[:, 0] - s * N[:, 1]
     nrm[:, 1] = s * N[:, 0] + c * N[:, 1]
     return pts, nrm

@@ -126,6 +126,10 @@ class _Graph:
 
 
 class LoopCloser:
+    # class defaults, so that a closer pickled before they were added has them too
+    field_bytes = FIELD_CACHE_BYTES   # the fields' bound (``slam-log`` lowers it)
+    single_submaps = False            # submaps' points in single precision (``slam-log``)
+
     def __init__(self, cfg: LoopClosureConfig, icp_params: IcpParams) -> None:
         self.cfg = cfg
         self.icp_params = icp_params
@@ -161,7 +165,8 @@ class LoopCloser:
         if len(pts) < 20:
             pts = np.zeros((1, 2)) if len(pts) == 0 else pts
             nrm = np.zeros((len(pts), 2)) if len(nrm) == 0 else nrm
-        pts, nrm = np.array(pts), np.array(nrm)
+        kind = np.float32 if self.single_submaps else np.float64
+        pts, nrm = np.array(pts, dtype=kind), np.array(nrm, dtype=kind)
         pts.flags.writeable = nrm.flags.writeable = False
         self.submaps.append(Submap(anchor, members, pts, nrm))
 
@@ -169,12 +174,13 @@ class LoopCloser:
         f = self._fields.get(sm_index)
         if f is None:
             sm = self.submaps[sm_index]
-            f = LikelihoodField(sm.points, self.cfg.resolution_m, sigma_m=self.cfg.resolution_m,
-                                margin_m=4 * self.cfg.resolution_m, levels=7)
+            res = self.cfg.resolution_m
+            f = LikelihoodField(np.asarray(sm.points, dtype=np.float64), res, sigma_m=res,
+                                margin_m=4 * res, levels=7)
             self._fields[sm_index] = f
             held = sum(lv.nbytes for g in self._fields.values() for lv in g.pyramid)
             while len(self._fields) > 1 and (len(self._fields) > FIELD_CACHE
-                                             or held > FIELD_CACHE_BYTES):
+                                             or held > self.field_bytes):
                 _, old = self._fields.popitem(last=False)
                 held -= sum(lv.nbytes for lv in old.pyramid)
         else:

@@ -28,15 +28,17 @@ def render_grid(params: GridParams, keyframes: Sequence[Keyframe], poses: F64) -
     """A fresh grid from all keyframes at ``poses`` (K, 3)."""
     if len(keyframes) == 0:
         return OccupancyGrid(params)
-    scans = [kf.render.points() for kf in keyframes]    # read once (they may be on disk)
+    # each keyframe's points read twice (from disk by default), never all at once: on a long
+    # log they are megabytes, held at the run's highest point
     lo, hi = poses[:, :2].min(axis=0), poses[:, :2].max(axis=0)
-    for (hits, _), T in zip(scans, poses, strict=True):
+    for kf, T in zip(keyframes, poses, strict=True):
+        hits = kf.render.hits
         if len(hits):
             pts = transform_points(T, hits)
             lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
     grid = OccupancyGrid.covering(params, lo, hi)
-    for (hits, misses), T in zip(scans, poses, strict=True):
-        grid.insert_scan(T, hits, misses)
+    for kf, T in zip(keyframes, poses, strict=True):
+        grid.insert_scan(T, *kf.render.points())
     return grid
 
 
@@ -100,9 +102,17 @@ def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05
     """All keyframe points in the map frame, one per ``voxel_m`` cell: the first point of
     each cell in keyframe order (``voxel_thin`` of them all), gathered ``chunk`` keyframes at
     a time so that a long run's returns are never all in memory at once."""
+    parts = point_cloud_parts(keyframes, poses, voxel_m, chunk)
+    return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros((0, 2))
+
+
+def point_cloud_parts(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05,
+                      chunk: int = 64) -> list[F64]:
+    """``point_cloud`` in the parts it is gathered in (``chunk`` keyframes each), not joined:
+    a writer can write them one after the other (``export.write_ply``)."""
     if voxel_m <= 0 or len(keyframes) <= chunk:
         (thin,) = voxel_thin(hits_in_map(keyframes, poses), voxel_m)
-        return thin
+        return [thin]
     seen = np.zeros(0, dtype=np.int64)    # the cells kept so far, sorted
     parts = []
     for s in range(0, len(keyframes), chunk):
@@ -115,4 +125,4 @@ def point_cloud(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float = 0.05
         new = ~np.isin(key[first], seen, assume_unique=True)
         parts.append(pts[first[new]])
         seen = np.union1d(seen, key[first[new]])
-    return np.concatenate(parts) if parts else np.zeros((0, 2))
+    return parts

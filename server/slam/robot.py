@@ -55,6 +55,10 @@ class RobotSlam:
     The map frame is the frame of ``T_map_start`` (default: the first pose is the origin).
     """
 
+    # keyframes' matching points in single precision (``slam-log``); a class default, so that
+    # a SLAM pickled before it was added has it too
+    single_keyframes = False
+
     def __init__(self, robot_char: str = "a", config: SlamConfig | None = None,
                  graph: PoseGraph | None = None,
                  T_map_start: ArrayLike = (0.0, 0.0, 0.0), key_block: int = 0) -> None:
@@ -153,7 +157,8 @@ class RobotSlam:
         prior = np.array([g.prior_sigma_m, g.prior_sigma_m, math.radians(g.prior_sigma_deg)])
         start_trajectory(self.graph, self.trajectory, self._T_map_start, prior)
         self.keyframes.append(Keyframe.create(0, stamp_ns, scan, odom,
-                                              self.cfg.keyframes.render_on_disk))
+                                              self.cfg.keyframes.render_on_disk,
+                                              self.single_keyframes))
         self._last_odom, self._last_stamp_ns = odom, stamp_ns
         self.anchor = Anchor(0, self._T_map_start.copy())
         self._scan_poses.append(stamp_ns, 0, IDENTITY)
@@ -187,7 +192,8 @@ class RobotSlam:
         extend_trajectory(self.graph, tr, match_factor(tr.key(a), tr.key(k), T_rel, by,
                                                        self.cfg.graph), kind, match.T_map_robot)
         self.keyframes.append(Keyframe.create(k, stamp_ns, placed.scan, odom,
-                                              self.cfg.keyframes.render_on_disk))
+                                              self.cfg.keyframes.render_on_disk,
+                                              self.single_keyframes))
         self.stats.keyframes = len(self.keyframes)
         self.sensor.on_keyframe(self, k, placed, odom)
         self.loops.add_edge(a, k, edge_length_m(T_rel))
