@@ -7,6 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from server.jit import njit_cached
+from server.planning.grid_kernel import fill
 
 
 @njit_cached
@@ -34,18 +35,7 @@ def clusters(mask: NDArray[np.bool_], min_cells: int
             p0 = (r0 + 1) * W2 + c0 + 1
             if not left[p0]:
                 continue
-            left[p0] = 0
-            stack[0] = p0
-            top, n = 1, 0
-            while n < top:
-                p = stack[n]
-                n += 1
-                for k in range(8):
-                    q = p + steps[k]
-                    if left[q]:
-                        left[q] = 0
-                        stack[top] = q
-                        top += 1
+            n = fill(left, steps, stack, p0)
             if n >= min_cells:
                 for i in range(n):
                     label[stack[i]] = kept

@@ -10,6 +10,27 @@ from server.jit import njit_cached
 
 
 @njit_cached
+def fill(left: NDArray[np.uint8], steps: NDArray[np.int64], stack: NDArray[np.int64],
+         p0: int) -> int:
+    """Flood-fill the 8-connected component of flat cell ``p0`` in ``left`` (cells not yet
+    reached, with a border of zeros; ``steps`` the 8 neighbours' offsets): clears its cells in
+    ``left`` and leaves them in ``stack[0:n]`` in the order reached; returns ``n``."""
+    left[p0] = 0
+    stack[0] = p0
+    top, n = 1, 0
+    while n < top:
+        p = stack[n]
+        n += 1
+        for k in range(8):
+            q = p + steps[k]
+            if left[q]:
+                left[q] = 0
+                stack[top] = q
+                top += 1
+    return n
+
+
+@njit_cached
 def small_pockets(mask: NDArray[np.bool_], max_cells: int, out: NDArray[np.bool_]) -> None:
     """Set in ``out`` the cells of the 8-connected components of ``mask`` with at most
     ``max_cells`` cells that touch no border of the array."""
@@ -26,18 +47,7 @@ def small_pockets(mask: NDArray[np.bool_], max_cells: int, out: NDArray[np.bool_
             p0 = (r0 + 1) * W2 + c0 + 1
             if not left[p0]:
                 continue
-            left[p0] = 0
-            stack[0] = p0
-            top, n = 1, 0          # the component's cells are stack[0:n] when done
-            while n < top:
-                p = stack[n]
-                n += 1
-                for k in range(8):
-                    q = p + steps[k]
-                    if left[q]:
-                        left[q] = 0
-                        stack[top] = q
-                        top += 1
+            n = fill(left, steps, stack, p0)
             if n > max_cells:
                 continue
             border = False
