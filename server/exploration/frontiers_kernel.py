@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from server.jit import njit_cached
-from server.planning.grid_kernel import fill
+from server.planning.grid_kernel import bordered, fill
 
 
 @njit_cached
@@ -19,14 +19,7 @@ def clusters(mask: NDArray[np.bool_], min_cells: int
     of components kept."""
     H, W = mask.shape
     W2 = W + 2
-    left = np.zeros((H + 2) * W2, np.uint8)     # mask cells not yet reached, with a border
-    count = 0
-    for r in range(H):
-        for c in range(W):
-            if mask[r, c]:
-                left[(r + 1) * W2 + c + 1] = 1
-                count += 1
-    steps = np.array([-W2 - 1, -W2, -W2 + 1, -1, 1, W2 - 1, W2, W2 + 1], np.int64)
+    left, steps, count = bordered(mask)
     stack = np.empty(count, np.int64)
     label = np.full((H + 2) * W2, -1, np.int64)
     kept = 0

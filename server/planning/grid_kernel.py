@@ -10,6 +10,24 @@ from server.jit import njit_cached
 
 
 @njit_cached
+def bordered(mask: NDArray[np.bool_]) -> tuple[NDArray[np.uint8], NDArray[np.int64], int]:
+    """``mask`` flattened with a border of zeros (the cells ``fill`` is to reach, row r and
+    column c at ``(r + 1) * (W + 2) + c + 1``), the 8 neighbours' offsets in it, and the number
+    of cells set."""
+    H, W = mask.shape
+    W2 = W + 2
+    left = np.zeros((H + 2) * W2, np.uint8)
+    count = 0
+    for r in range(H):
+        for c in range(W):
+            if mask[r, c]:
+                left[(r + 1) * W2 + c + 1] = 1
+                count += 1
+    steps = np.array([-W2 - 1, -W2, -W2 + 1, -1, 1, W2 - 1, W2, W2 + 1], np.int64)
+    return left, steps, count
+
+
+@njit_cached
 def fill(left: NDArray[np.uint8], steps: NDArray[np.int64], stack: NDArray[np.int64],
          p0: int) -> int:
     """Flood-fill the 8-connected component of flat cell ``p0`` in ``left`` (cells not yet
@@ -36,11 +54,7 @@ def small_pockets(mask: NDArray[np.bool_], max_cells: int, out: NDArray[np.bool_
     ``max_cells`` cells that touch no border of the array."""
     H, W = mask.shape
     W2 = W + 2
-    left = np.zeros((H + 2) * W2, np.uint8)     # mask cells not yet reached, with a border
-    for r in range(H):
-        for c in range(W):
-            left[(r + 1) * W2 + c + 1] = mask[r, c]
-    steps = np.array([-W2 - 1, -W2, -W2 + 1, -1, 1, W2 - 1, W2, W2 + 1], np.int64)
+    left, steps, _ = bordered(mask)
     stack = np.empty(H * W, np.int64)
     for r0 in range(H):
         for c0 in range(W):
