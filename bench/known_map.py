@@ -197,6 +197,7 @@ def mission_chain(known: KnownMap, frame: np.ndarray, missions: int, mode: str,
                      "keyframes_after": len(left), "map_known_m2": _known_m2(mapped),
                      "state_mb": round(len(pickle.dumps(m.core, protocol=5)) / 1e6, 2),
                      "upkeep": m.core.known.summary().get("upkeep"),
+                     "robots_lost": m.core.known.counts["lost"],
                      "wall_s": round(time.monotonic() - t0, 1)})
         print(json.dumps(rows[-1]), file=sys.stderr)
         known = left
@@ -259,6 +260,8 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
             "map_known_m2": dict(zip(["start", "all_shown", "end"] if len(known_m2) == 3
                                      else ["start", "end"], known_m2, strict=True)),
             "shown_then_lost": len(still),
+            # a placed robot taken for lost here is a false alarm: nobody moved it
+            "robots_lost": m.core.known.counts["lost"],
             "sim_s": round(m.sim_time_s, 1), "wall_s": round(time.monotonic() - t0, 1)}
 
 
@@ -270,13 +273,15 @@ def changed_summary(runs: list[dict[str, Any]], first_s: float) -> dict[str, Any
             "runs": [{"spawn_seed": r["spawn_seed"], "up_to_date_s": r["up_to_date_s"],
                       "vs_first": r["vs_first"], "placed": r["placed"],
                       "shown_at_s": [c["shown_at_s"] for c in r["changes"]],
-                      "false_changes": r["false_changes"], "wall_s": r["wall_s"]}
+                      "false_changes": r["false_changes"], "robots_lost": r["robots_lost"],
+                      "wall_s": r["wall_s"]}
                      for r in runs],
             "all_shown": sum(r["all_shown"] for r in runs), "of": len(runs),
             "vs_first_median": round(float(np.median(ratios)), 3) if ratios else None,
             "vs_first_max": max(ratios) if len(ratios) == len(runs) else None,
             "met": sum(r["vs_first"] is not None and r["vs_first"] <= 0.30 for r in runs),
-            "false_changes": sum(r["false_changes"] for r in runs)}
+            "false_changes": sum(r["false_changes"] for r in runs),
+            "robots_lost": sum(r["robots_lost"] for r in runs)}
 
 
 def _known_m2(grid: Any) -> float:
