@@ -39,6 +39,7 @@ from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
 from server.offline.packed import PackedScans, StampTexts
 from server.offline.progress import ScanCounter
+from server.offline.resident import PageReleaser, release_file_pages
 from server.offline.slam_log_config import SlamLogConfig
 from server.runtime.heap import HeapTrimmer, trim
 from server.slam.config import SlamConfig
@@ -110,6 +111,8 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     if front is None and any(s.T_odom_laser is None for s in scans):
         front = ScanOdometry(cfg)
     heap = HeapTrimmer(every_s=5.0)
+    pages = PageReleaser(every_s=30.0)
+    release_file_pages()      # the libraries' pages run once at import (``resident``)
     for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
         s = scans[i]
         if release:
@@ -133,6 +136,7 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
         else:
             accepted.append(rec.stamp_text)
         heap.maybe()
+        pages.maybe()
         if progress is not None and n % 25 == 0:
             progress(i)
     if packed:
@@ -168,9 +172,11 @@ class Drawing:
 
 def freed() -> None:
     """Collect what was just dropped (``del`` of a SLAM whose ``Drawing`` was taken; its
-    objects hold reference cycles) and return the freed heap to the system."""
+    objects hold reference cycles) and return the freed heap to the system, and the
+    libraries' pages not run since (``resident``)."""
     gc.collect()
     trim()
+    release_file_pages()
 
 
 def lean(slam: RobotSlam) -> None:
@@ -278,6 +284,7 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     from schemas.config_loading import load_config, validate, write_resolved
 
     t0 = time.perf_counter()
+    release_file_pages()        # the imports' pages: reading the log runs none of them
     cfg = load_config(SlamLogConfig, config)
     given = {k: v for k, v in overrides.items() if v is not None}
     if given:
