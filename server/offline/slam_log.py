@@ -22,7 +22,6 @@ from typing import Protocol, cast
 import numpy as np
 
 import server.offline.lean_numba  # noqa: F401  (first: numba readied without SciPy's BLAS)
-from server.offline.heap import fixed_mmap_threshold
 from server.offline.logs import (
     CarmenError,
     CarmenLog,
@@ -183,13 +182,13 @@ def lean(slam: RobotSlam) -> None:
     """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings):
     loop closure's submaps in single precision (half their memory; fields and ICP computed
     from them in double precision, results differing from rounding on), its likelihood fields
-    within ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed), and large
-    arrays given back to the system when freed (``heap.fixed_mmap_threshold``). The
+    within ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed). The
     keyframes' matching points stay in double precision: in single precision (5.7 MB less on
-    a 91-minute log) fr079's rotation error rose from 0.427° to 0.446°."""
+    a 91-minute log) fr079's rotation error rose from 0.427° to 0.446°. glibc's mmap
+    threshold is left to glibc: fixed at 128 KiB it kept 1.5 MB off a 91-minute log's peak
+    but took 18 s more system time (12 million page faults against 3 million)."""
     slam.loops.single_submaps = True
     slam.loops.field_bytes = FIELD_BYTES
-    fixed_mmap_threshold()
 
 
 def _log_stamp_plan(plan: StampPlan, scans: Sequence[LogScan], fraction: float) -> None:
