@@ -122,3 +122,70 @@ def test_slam_log_process_releases_llvm_and_still_runs_the_kernels() -> None:
     res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
                          text=True, timeout=300, check=False)
     assert res.returncode == 0 and res.stdout.startswith("ok"), res.stderr[-2000:]
+
+
+KERNEL = '''
+from server.jit import njit_cached
+
+
+@njit_cached
+def twice(x):
+    return 2.0 * x
+
+
+twice(1.0)
+'''
+
+
+def test_kernels_cached_wants_a_fresh_index_per_kernel(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import os
+
+    from server.offline.lean_numba import kernels_cached
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    src = tmp_path / "kern.py"
+    src.write_text("@njit_cached\ndef a(): pass\n@njit_cached\ndef b(): pass\n")
+    (tmp_path / "plain.py").write_text("x = 1\n")
+    tag = f"py{sys.version_info.major}{sys.version_info.minor}"
+    assert kernels_cached(tmp_path) is False                   # no cache at all
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    (cache / f"kern.a-1.{tag}.nbi").write_text("")
+    assert kernels_cached(tmp_path) is False                   # one kernel of two
+    (cache / f"kern.b-3.{tag}.nbi").write_text("")
+    assert kernels_cached(tmp_path) is True
+    t = src.stat().st_mtime + 10
+    os.utime(src, (t, t))                                      # the source changed since
+    assert kernels_cached(tmp_path) is False
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    assert kernels_cached(tmp_path) is False
+
+
+@pytest.mark.e2e
+def test_kernels_compiled_apart_are_loaded_from_the_cache(tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch
+                                                          ) -> None:
+    """A module whose kernel is not cached is compiled in a child process; the import here
+    then loads it from numba's cache (a hit, no compiling). numba reads ``NUMBA_CACHE_DIR``
+    once, at its start: the child inherits this process's."""
+    import importlib
+
+    from server.offline.lean_numba import compile_apart, kernels_cached
+
+    pkg = tmp_path / "apartpkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "kern.py").write_text(KERNEL)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert kernels_cached(pkg) is False
+    assert compile_apart("apartpkg.kern", pkg, timeout_s=300)
+    assert kernels_cached(pkg) is True
+    mod = importlib.import_module("apartpkg.kern")
+    stats = mod.twice.stats
+    assert sum(stats.cache_hits.values()) == 1 and not stats.cache_misses
+    assert mod.twice(2.5) == 5.0
+    # cached: no child at all (one importing this module would fail)
+    assert compile_apart("apartpkg.nothing_to_import", pkg)
+    (pkg / "kern.py").write_text(KERNEL + "\n")                 # changed: stale, a child runs
+    assert not compile_apart("apartpkg.nothing_to_import", pkg)
