@@ -6,7 +6,10 @@ server's core on a long simulated mission; prints JSON (one line per part, then 
   resident memory (VmRSS) every ``--every-s`` of data time. Printed: the samples, the peak
   (``ru_maxrss``: the whole run, reading the log included), the steady RSS before the export
   and the highest RSS during it (``VmHWM`` reset just before), the export's rise over steady,
-  the relation errors (Kümmerle et al. 2009) and the SLAM's CPU time. Goals: peak ≤ 250 MB,
+  the relation errors (Kümmerle et al. 2009) and the SLAM's CPU time. Also the highest
+  ``RssAnon`` seen during the SLAM (``rss_anon_high_mb``: the process's own pages, sampled
+  every 25 scans) and ``RssFile`` at its end (pages of mapped files: the libraries' code that
+  is run; ``slam-log`` gives back the rest, ``server.offline.resident``). Goals: peak ≤ 250 MB,
   export rise ≤ 20 %. ``--long LOG N`` adds a long log made of a real one (``make_long_log``:
   N passes, forward and backward in time, as ROBOTLASER1 lines; not kept as data).
 - ``mission``: a child process runs ``--robots`` robots of ``--scenario`` (default the large
@@ -151,10 +154,12 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
     t_first = stamps_s[0]
     n_scans = len(scans)
     samples: list[list[float]] = []
+    anon: list[float] = [rss_mb("RssAnon")]   # the process's own pages (no file's), sampled
     next_t = [0.0]
 
     def progress(i: int) -> None:
         t = stamps_s[i] - t_first
+        anon[0] = max(anon[0], rss_mb("RssAnon"))
         if t >= next_t[0]:
             samples.append([round(t, 1), round(rss_mb(), 1)])
             next_t[0] = t + every_s
@@ -181,7 +186,9 @@ def child_log(name: str, out: Path, every_s: float) -> dict[str, Any]:
         write_ply(out / "cloud.ply", drawing.cloud())
 
     exp = export_rise(write)
+    anon[0] = max(anon[0], rss_mb("RssAnon"))
     return {"rss_after_read_mb": round(after_read, 1), "samples_t_s_rss_mb": samples,
+            "rss_anon_high_mb": round(anon[0], 1), "rss_file_end_mb": round(rss_mb("RssFile"), 1),
             "slam_cpu_s": round(cpu, 1), "scans": n_scans, "keyframes": len(drawing.keyframes),
             **held,
             "map_cells": grid.shape, "map_tiles": getattr(grid, "tiles", None),

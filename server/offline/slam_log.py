@@ -22,7 +22,6 @@ from typing import Protocol, cast
 import numpy as np
 
 import server.offline.lean_numba  # noqa: F401  (first: numba readied without SciPy's BLAS)
-from server.offline.heap import fixed_mmap_threshold
 from server.offline.logs import (
     CarmenError,
     CarmenLog,
@@ -39,6 +38,7 @@ from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
 from server.offline.packed import PackedScans, StampTexts
 from server.offline.progress import ScanCounter
+from server.offline.resident import PageReleaser, release_file_pages
 from server.offline.slam_log_config import SlamLogConfig
 from server.runtime.heap import HeapTrimmer, trim
 from server.slam.config import SlamConfig
@@ -110,6 +110,8 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
     if front is None and any(s.T_odom_laser is None for s in scans):
         front = ScanOdometry(cfg)
     heap = HeapTrimmer(every_s=5.0)
+    pages = PageReleaser(every_s=30.0)
+    release_file_pages()      # the libraries' pages run once at import (``resident``)
     for n, (i, stamp_s) in enumerate(zip(plan.keep, plan.stamps_s, strict=True)):
         s = scans[i]
         if release:
@@ -133,6 +135,7 @@ def process(scans: Sequence[LogScan], cfg: SlamConfig,
         else:
             accepted.append(rec.stamp_text)
         heap.maybe()
+        pages.maybe()
         if progress is not None and n % 25 == 0:
             progress(i)
     if packed:
@@ -168,22 +171,24 @@ class Drawing:
 
 def freed() -> None:
     """Collect what was just dropped (``del`` of a SLAM whose ``Drawing`` was taken; its
-    objects hold reference cycles) and return the freed heap to the system."""
+    objects hold reference cycles) and return the freed heap to the system, and the
+    libraries' pages not run since (``resident``)."""
     gc.collect()
     trim()
+    release_file_pages()
 
 
 def lean(slam: RobotSlam) -> None:
     """What keeps a long log's peak low in ``slam-log`` (the server keeps its settings):
     loop closure's submaps in single precision (half their memory; fields and ICP computed
     from them in double precision, results differing from rounding on), its likelihood fields
-    within ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed), and large
-    arrays given back to the system when freed (``heap.fixed_mmap_threshold``). The
+    within ``FIELD_BYTES`` (a field is made again in about 1.5 ms when needed). The
     keyframes' matching points stay in double precision: in single precision (5.7 MB less on
-    a 91-minute log) fr079's rotation error rose from 0.427° to 0.446°."""
+    a 91-minute log) fr079's rotation error rose from 0.427° to 0.446°. glibc's mmap
+    threshold is left to glibc: fixed at 128 KiB it kept 1.5 MB off a 91-minute log's peak
+    but took 18 s more system time (12 million page faults against 3 million)."""
     slam.loops.single_submaps = True
     slam.loops.field_bytes = FIELD_BYTES
-    fixed_mmap_threshold()
 
 
 def _log_stamp_plan(plan: StampPlan, scans: Sequence[LogScan], fraction: float) -> None:
@@ -278,6 +283,7 @@ def run(log_file: Path, out: Path, config: Path | None = None, scan_topic: str |
     from schemas.config_loading import load_config, validate, write_resolved
 
     t0 = time.perf_counter()
+    release_file_pages()        # the imports' pages: reading the log runs none of them
     cfg = load_config(SlamLogConfig, config)
     given = {k: v for k, v in overrides.items() if v is not None}
     if given:
