@@ -66,6 +66,13 @@ GUIDED_MAX_TURN_DEG = 3.0
 #: ... and must pair this share of its points with the map's
 GUIDED_MIN_INLIERS = 0.7
 MATCHED = (MatchKind.ICP, MatchKind.DEGENERATE)
+#: the pose averaged over the latest matches may lie this far [m] and turn this much [deg]
+#: from the newest match: the average takes out a narrow match's noise (centimetres, a
+#: degree). Further off, the matches kept no longer agree with where the robot is: the
+#: average moved a robot 1 m along a wall in one step while its match and its odometry
+#: agreed within 3 cm; they are dropped, and the newest match stands
+SMOOTHED_MAX_SHIFT_M = 0.1
+SMOOTHED_MAX_TURN_DEG = 3.0
 
 
 class NarrowSensor:
@@ -178,8 +185,18 @@ class NarrowSensor:
 
     def _smoothed(self, slam: SlamView, match: FrontendMatch, T_odom_robot: F64
                   ) -> FrontendMatch:
-        return self.recent.smoothed(match, T_odom_robot, slam.trajectory.key(slam.anchor.index),
-                                    slam.anchor.T_map_kf, slam.graph.pose, self.cfg.graph)
+        """The match averaged with the latest ones; the match alone (and the others dropped)
+        where the average lands further from it than ``SMOOTHED_MAX_*``."""
+        key = slam.trajectory.key(slam.anchor.index)
+        sm = self.recent.smoothed(match, T_odom_robot, key, slam.anchor.T_map_kf,
+                                  slam.graph.pose, self.cfg.graph)
+        d, a = pose_distance(between(match.T_map_robot, sm.T_map_robot))
+        if d <= SMOOTHED_MAX_SHIFT_M and a <= math.radians(SMOOTHED_MAX_TURN_DEG):
+            return sm
+        self.recent.clear()
+        slam.stats.smoothing_resets += 1
+        return self.recent.smoothed(match, T_odom_robot, key, slam.anchor.T_map_kf,
+                                    slam.graph.pose, self.cfg.graph)
 
     # -- 4, 5: keyframes -----------------------------------------------------------------
     def sees_new(self, scan: ScanPoints, T_map_robot: F64, local_map: PointMap) -> bool:
