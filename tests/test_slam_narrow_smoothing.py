@@ -52,3 +52,25 @@ def test_matches_far_from_the_newest_are_dropped(kind: MatchKind) -> None:
     got = sensor._smoothed(slam, m, np.zeros(3))   # type: ignore[arg-type]
     assert 0.0 < got.T_map_robot[0] <= SMOOTHED_MAX_SHIFT_M
     assert slam.stats.smoothing_resets == 0
+
+
+def test_views_taken_standing_still_keep_the_odometrys_pose() -> None:
+    """While the camera turns for a whole scan and the odometry does not move, a view's match
+    does not move the pose (the whole scan will place it); once the robot drives, it does."""
+    from server.slam.scan import ScanPoints
+
+    sensor, slam = sensor_with([])
+    view = ScanPoints(np.array([[1.0, 0.0], [1.0, 0.2]]), np.array([[-1.0, 0.0], [-1.0, 0.0]]),
+                      np.array([1.0, 1.02]), np.zeros((0, 2)), np.zeros((0, 2)), 0.3, 0.0)
+    pred = np.array([2.0, 1.0, 0.5])
+    off = FrontendMatch(pred + np.array([0.05, 0.0, 0.0]), MatchKind.ICP, INFO, 1.0)
+    odom = np.zeros(3)
+    placed = [sensor.place(slam, view, off, odom, pred, pred, np.zeros(3))   # type: ignore
+              for _ in range(3)]
+    assert placed[0].match.T_map_robot[0] == pytest.approx(2.05)    # the first view: matched
+    for p in placed[1:]:
+        assert p.match.T_map_robot == pytest.approx(pred)
+        assert p.match.kind == MatchKind.ODOMETRY and not p.whole
+    moved = np.array([0.2, 0.0, 0.0])                               # it drives on
+    p = sensor.place(slam, view, off, moved, pred, pred, moved)      # type: ignore[arg-type]
+    assert p.match.kind == MatchKind.ICP and p.match.T_map_robot[0] > 2.04

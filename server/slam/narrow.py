@@ -7,7 +7,8 @@ pose only across it. ``NarrowSensor`` is the pipeline's ``SensorModel`` for such
    lie closer together and its depth is noisier.
 2. **Match**: stricter pairing of normals (``matcher.narrow_min_normal_cos``) and a prior on
    the odometry from a smaller base (``narrow_prior_sigma_*``).
-3. **Place**: the pose averaged over the latest matches (``server.slam.smoothing``); or, when
+3. **Place**: the pose averaged over the latest matches (``server.slam.smoothing``), the
+   odometry's while the robot stands still for a whole scan; or, when
    the views the camera took while the robot stood still make a whole 360° scan
    (``server.slam.sweep``), that scan, matched against the whole scans before it, and it
    becomes a keyframe.
@@ -107,6 +108,11 @@ class NarrowSensor:
         """The narrow scan at its smoothed pose; or the whole scan it completes, at the pose
         of its own match where that was found (else of the narrow scan's)."""
         whole = self.sweep.add(scan, T_odom_robot) if self.sweep.cfg.enabled else None
+        if whole is None and len(self.sweep.views) >= 2:
+            # standing still for a whole scan: the odometry has not moved, and a view of one
+            # side, matched, can only slide the pose along what it sees (10 cm in 2 s in one
+            # run); the whole scan at the end of the turn places it
+            return Placement(scan, FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0))
         if whole is None or len(whole) < self.cfg.matcher.min_points:
             return Placement(scan, self._smoothed(slam, match, T_odom_robot))
         found = self._match_whole(slam, whole, T_odom_robot, T_pred, T_last, T_step_odom)
