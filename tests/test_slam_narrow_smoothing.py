@@ -74,3 +74,19 @@ def test_views_taken_standing_still_keep_the_odometrys_pose() -> None:
     moved = np.array([0.2, 0.0, 0.0])                               # it drives on
     p = sensor.place(slam, view, off, moved, pred, pred, moved)      # type: ignore[arg-type]
     assert p.match.kind == MatchKind.ICP and p.match.T_map_robot[0] > 2.04
+
+
+def test_a_narrow_robot_beside_a_wide_teammate_closes_no_loops_of_its_own() -> None:
+    from server.slam import RobotSlam
+
+    cam, lidar = RobotSlam("a"), RobotSlam("b")
+    cam.narrow = True
+    assert not cam._beside_a_wide_teammate()          # alone: its own loops are all it has
+    cam.guides = [lidar]
+    assert not cam._beside_a_wide_teammate()          # not in one graph yet
+    lidar.graph = cam.graph
+    assert cam._beside_a_wide_teammate()
+    lidar.narrow = True                               # a narrow teammate drifts as it does
+    assert not cam._beside_a_wide_teammate()
+    cam.narrow, lidar.narrow = False, False           # a LIDAR robot closes its loops
+    assert not cam._beside_a_wide_teammate()
