@@ -39,8 +39,10 @@ F64 = NDArray[np.float64]
 #: its door
 KNOWN_MAP_RADIUS_M = 8.0
 #: a narrow robot's whole scans this close [m] to a wide teammate's new keyframe are matched
-#: against its map (``GraphSurgery._tie_wholes``): about a depth camera's reach
-WHOLE_TIE_RADIUS_M = 3.0
+#: against its map (``GraphSurgery._tie_wholes``): what a LIDAR maps from there
+WHOLE_TIE_RADIUS_M = 6.0
+#: ... when that map shows this share of the whole scan's points (``seen_fraction``)
+WHOLE_TIE_SEEN = 0.5
 #: ... each at most this many times until one match holds it
 WHOLE_TIE_TRIES = 3
 
@@ -169,12 +171,13 @@ class GraphSurgery:
             team.links = [ln for ln in team.links if not ln.retired]
 
     def _tie_wholes(self, r: RobotContext, mates: list[str], links: list[Link]) -> int:
-        """A wide robot's new keyframe ``k`` maps a place its narrow teammates' whole scans
-        may have seen before: each such whole scan within ``WHOLE_TIE_RADIUS_M`` of it, not
-        yet tied to a wide teammate's map, is matched against that map now (at most
-        ``WHOLE_TIE_TRIES`` times). The narrow robot's keyframes from before the merge, or from
-        rooms its teammate had not yet seen, are then held to the team's reference map, not
-        only to its own drifting chain; its start too, which places its whole map."""
+        """A wide robot's new keyframe maps a place its narrow teammates' whole scans may
+        have seen before: each such whole scan within ``WHOLE_TIE_RADIUS_M`` of it, not yet
+        tied to a wide teammate's map, is matched against that map now, where the map shows
+        at least ``WHOLE_TIE_SEEN`` of it (at most ``WHOLE_TIE_TRIES`` such times). The
+        narrow robot's keyframes from before the merge, or from rooms its teammate had not
+        yet seen, are then held to the team's reference map, not only to its own drifting
+        chain; its start too, which places its whole map."""
         P = r.slam.keyframe_pose(len(r.slam.keyframes) - 1)
         kept = 0
         for m in mates:
@@ -188,11 +191,15 @@ class GraphSurgery:
                     and self._whole(self.fleet.robots[m], int(i))]
             if not todo:
                 continue
-            before = len(links)
-            kept += self.refine_on_maps([r.robot_id], [m], links, only=todo)
-            tied = {ln.record.factor.keys()[1] for ln in links[before:]}
             for i in todo:
-                tries[i] = -1 if mate.trajectory.key(i) in tied else tries.get(i, 0) + 1
+                tried = [0]
+                got = self.refine_on_maps([r.robot_id], [m], links, only=[i], tried=tried,
+                                          min_seen_fraction=WHOLE_TIE_SEEN)
+                kept += got
+                if got:
+                    tries[i] = -1
+                elif tried[0]:      # the map showed what it saw, and it did not match
+                    tries[i] = tries.get(i, 0) + 1
         return kept
 
     @staticmethod
@@ -205,7 +212,8 @@ class GraphSurgery:
                                                r.slam.cfg.matcher)
 
     def refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link],
-                       only: list[int] | None = None) -> int:
+                       only: list[int] | None = None, tried: list[int] | None = None,
+                       min_seen_fraction: float = 0.0) -> int:
         """Match each joining robot's keyframes (or the ones in ``only``) against the other
         side's map where they overlap, and add the matches as robust between-factors (``links``
         gets them); those still inconsistent after optimisation are taken out. Returns how
@@ -221,7 +229,8 @@ class GraphSurgery:
             for rb in side_b:
                 a, b = self.fleet.robots[ra].slam, self.fleet.robots[rb].slam
                 graph = a.graph
-                for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra)):
+                for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra),
+                                       tried=tried, min_seen_fraction=min_seen_fraction):
                     f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
                                             m.T_ka_kb, m.information, loop.sigma_scale ** 2,
                                             floor, "huber", loop.huber_k)
