@@ -32,6 +32,7 @@ class RendezvousCounters:
     meetings: int = 0           # planned to settle a transform the maps left open
     meetings_refuted: int = 0   # ... whose robots did not meet
     calls_paused: int = 0       # tag calls not passed on: the two teams' maps keep refusing a merge
+    one_place_proposals: int = 0   # sightings from one place turned by the square walls
 
     def as_dict(self) -> dict[str, int]:
         """The counters by their names in the run's outputs."""

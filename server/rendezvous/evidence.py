@@ -97,6 +97,33 @@ class VerifierParams:
     # meeting point is 0.3 m off 17 m away, where the robots started
     max_rotation_sigma_rad: float = math.radians(1.0)
     max_pair_hypotheses: int = 300
+    # sightings from one place (``one_place``) whose tags' yaws give the turn to this [rad]
+    # (σ) pick the one turn of a square building's walls that fits (a quarter turn apart)
+    max_rough_turn_rad: float = math.radians(12.0)
+
+
+@dataclass(frozen=True)
+class OnePlace:
+    """Sightings of one robot standing in one place (``MergeVerifier.one_place``): its
+    position in both teams' frames, and the turn between them only as roughly as the tags'
+    yaws give it."""
+
+    team_a: str
+    team_b: str
+    records: tuple[SightingRecord, ...]
+    x_a: F64              # the seen robot's positions in team a's frame (N, 2)
+    x_b: F64              # ... in team b's
+    weights: F64
+    rough_turn_rad: float
+    rough_sigma_rad: float
+
+    def proposal(self, turn_rad: float, sigma_rad: float) -> MergeProposal:
+        """The merge these sightings make with the turn known otherwise."""
+        T = rigid_fit(self.x_b, self.x_a, self.weights, theta=turn_rad)
+        s_t = math.sqrt(1.0 / float(self.weights.sum()))
+        first = min(self.records, key=lambda r: r.stamp_ns)
+        return MergeProposal(self.team_a, self.team_b, self.records, T,
+                             np.diag([s_t ** 2, s_t ** 2, sigma_rad ** 2]), first.T_ab.copy())
 
 
 @dataclass
@@ -186,6 +213,41 @@ class MergeVerifier:
         C = np.diag([s_t ** 2, s_t ** 2, s_r ** 2])
         first = min(members, key=lambda r: r.stamp_ns)
         return MergeProposal(key[0], key[1], tuple(members), T, C, first.T_ab.copy())
+
+    def one_place(self, team_a: str, team_b: str) -> OnePlace | None:
+        """The largest set of the pair's sightings that agree on where the seen robot stood,
+        whatever the turn between the two frames, when they cannot fix that turn (one place,
+        no tag yaw good enough: ``_propose`` then waits); with the turn their tags' yaws give,
+        roughly. None when the agreeing sightings are too few or the rough turn is not even
+        good to ``max_rough_turn_rad``."""
+        key = self._key(team_a, team_b)
+        ev = self.pairs.get(key)
+        if ev is None or len(ev.records) < self.p.min_sightings + 1:
+            return None
+        recs = ev.records
+        xX = np.array([_in_x(r) for r in recs])
+        xY = np.array([_in_y(r) for r in recs])
+        sig = np.array([r.sigma_p_m for r in recs])
+        gate = self.p.gate_sigmas * sig + self.p.gate_floor_m
+        best: NDArray[np.bool_] | None = None
+        for i in range(len(recs)):   # a place in both frames at once: the turn plays no part
+            inl = (np.hypot(*(xX - xX[i]).T) <= gate + gate[i]) & \
+                (np.hypot(*(xY - xY[i]).T) <= gate + gate[i])
+            if best is None or inl.sum() > best.sum():
+                best = inl
+        assert best is not None
+        members = [r for r, ok in zip(recs, best, strict=True) if ok]
+        if len(members) < self.p.min_sightings + 1:
+            return None
+        yaws = np.array([r.T_ab[2] for r in members])
+        turn = float(np.angle(np.mean(np.exp(1j * yaws))))
+        spread = float(np.median(np.abs(np.angle(np.exp(1j * (yaws - turn))))))
+        sigma = max(spread, float(np.median([math.sqrt(r.cov_ab[2, 2]) for r in members])))
+        if sigma > self.p.max_rough_turn_rad:
+            return None
+        idx = np.flatnonzero(best)
+        return OnePlace(key[0], key[1], tuple(members), xX[idx], xY[idx],
+                        1.0 / sig[idx] ** 2, turn, sigma)
 
     def _inliers(self, T: F64, recs: list[SightingRecord], xX: F64, xY: F64, sig: F64,
                  informative: NDArray[np.bool_]) -> NDArray[np.bool_]:

@@ -203,3 +203,16 @@ def square_walls_agree(a: list[RobotSlam], b: list[RobotSlam], turn_rad: float,
         return False
     err = wrap_angle(4 * (phi_b - phi_a)) / 4
     return abs(math.degrees(err)) <= max_deg
+
+
+def square_turn(a: list[RobotSlam], b: list[RobotSlam], rough_rad: float, max_dev_rad: float,
+                min_alignment: float) -> float | None:
+    """The turn from b's frame to a's that puts b's walls on a's square grid, nearest to
+    ``rough_rad`` (None: farther than ``max_dev_rad``, which must stay under 45° for the
+    answer to be the one, or either map's walls keep to no square grid)."""
+    phi_a, s_a = wall_grid(a)
+    phi_b, s_b = wall_grid(b, rough_rad)
+    if min(s_a, s_b) < min_alignment:
+        return None
+    err = wrap_angle(4 * (phi_b - phi_a)) / 4
+    return wrap_angle(rough_rad - err) if abs(err) <= max_dev_rad else None

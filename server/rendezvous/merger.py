@@ -25,7 +25,12 @@ from server.fleet.model import Fleet, Link, MergeRecord, RobotContext, Team
 from server.fleet.stages import Stages
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal, MergeVerifier, SightingRecord
-from server.rendezvous.maps import cross_matches, map_agreement, square_walls_agree
+from server.rendezvous.maps import (
+    cross_matches,
+    map_agreement,
+    square_turn,
+    square_walls_agree,
+)
 from server.rendezvous.surgery import KNOWN_MAP_RADIUS_M, GraphSurgery
 
 log = logging.getLogger(__name__)
@@ -41,6 +46,9 @@ MAP_KIND_MIN_INLIERS = 0.3
 #: sightings' transform turn b's grid onto a's within this [deg]
 FAR_WALLS_ALIGNMENT = 0.5
 FAR_WALLS_AGREE_DEG = 1.5
+#: a pair of teams' sightings from one place are tried with the square walls' turn at most
+#: this often [ns] (``Merger._one_place``)
+ONE_PLACE_PERIOD_NS = 1_000_000_000
 
 
 class MergeRefused(Exception):
@@ -59,13 +67,46 @@ class Merger:
         self.cfg, self.fleet, self.stages, self.surgery = cfg, fleet, stages, surgery
         self.events, self.counters = events, counters
         self.verifier: MergeVerifier = stages.verifier()
+        self._one_place_at: dict[tuple[str, str], int] = {}
 
     # -- proposals -------------------------------------------------------------------------
     def consider(self, team_a: str, team_b: str, rec: SightingRecord) -> None:
         """A sighting between two teams: merge when the verifier proposes it."""
         proposal = self.verifier.add(team_a, team_b, rec)
+        if proposal is None:
+            proposal = self._one_place(team_a, team_b, rec.stamp_ns)
         if proposal is not None:
             self.try_merge(proposal, rec.stamp_ns)
+
+    def _one_place(self, team_a: str, team_b: str, stamp_ns: int) -> MergeProposal | None:
+        """Beside a narrow sensor (``teams.narrow_far_sightings``): sightings of a robot that
+        stands in one place (a camera robot stops for its sweeps) agree on where it is but
+        cannot turn one frame onto the other, and the tags' yaws give the turn only to
+        degrees. The square walls of both maps give it to a fraction of one, modulo a
+        quarter turn, and the tags pick the quarter. Without this, the merge waited until
+        the robot had moved, 30 s in one run, while the LIDAR robot mapped its room itself.
+        At most once a second per pair of teams; the proposal is verified as any other."""
+        t = self.cfg.teams
+        ta, tb = self.fleet.teams[team_a], self.fleet.teams[team_b]
+        robots = self.fleet.robots
+        ids = (*ta.robot_ids, *tb.robot_ids)
+        key = (min(team_a, team_b), max(team_a, team_b))
+        if not t.narrow_far_sightings or not any(robots[r].slam.narrow for r in ids) or \
+                stamp_ns - self._one_place_at.get(key, -1 << 62) < ONE_PLACE_PERIOD_NS:
+            return None
+        self._one_place_at[key] = stamp_ns
+        place = self.verifier.one_place(team_a, team_b)
+        if place is None:
+            return None
+        teams = self.fleet.teams
+        turn = square_turn([robots[r].slam for r in teams[place.team_a].robot_ids],
+                           [robots[r].slam for r in teams[place.team_b].robot_ids],
+                           place.rough_turn_rad, 3.0 * place.rough_sigma_rad,
+                           FAR_WALLS_ALIGNMENT)
+        if turn is None:
+            return None
+        self.counters.one_place_proposals += 1
+        return place.proposal(turn, math.radians(FAR_WALLS_AGREE_DEG))
 
     def try_merge(self, p: MergeProposal, stamp: int, extra_links: tuple[Link, ...] = (),
                   kind: str = "tags") -> MergeRecord | None:

@@ -28,6 +28,7 @@ from server.rendezvous.evidence import SightingRecord
 from server.rendezvous.maps import cross_matches
 from server.slam import RobotSlam
 from server.slam.backend import FactorRecord, PoseGraph
+from server.slam.frontend import is_narrow
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,13 @@ F64 = NDArray[np.float64]
 #: matched against it (5 m between teams): the map may have seen the robot's room only from
 #: its door
 KNOWN_MAP_RADIUS_M = 8.0
+#: a narrow robot's whole scans this close [m] to a wide teammate's new keyframe are matched
+#: against its map (``GraphSurgery._tie_wholes``): what a LIDAR maps from there
+WHOLE_TIE_RADIUS_M = 6.0
+#: ... when that map shows this share of the whole scan's points (``seen_fraction``)
+WHOLE_TIE_SEEN = 0.5
+#: ... each at most this many times until one match holds it
+WHOLE_TIE_TRIES = 3
 
 
 def join_graph(members: Sequence[RobotSlam], anchor: RobotSlam,
@@ -87,6 +95,8 @@ class GraphSurgery:
 
     def __init__(self, cfg: ServerConfig, fleet: Fleet, counters: RendezvousCounters) -> None:
         self.cfg, self.fleet, self.counters = cfg, fleet, counters
+        #: per narrow robot, its whole scans' tries at a wide teammate's map (-1: tied)
+        self._whole_tries: dict[str, dict[int, int]] = {}
 
     # -- links -----------------------------------------------------------------------------
     def sighting_link(self, rec: SightingRecord) -> Link:
@@ -141,22 +151,69 @@ class GraphSurgery:
 
     # -- map matches -----------------------------------------------------------------------
     def match_teammates(self, r: RobotContext) -> None:
-        """Every ``team_match_every`` new keyframes of a robot in a team of several: match the
-        newest against its teammates' maps where they overlap. Without this, each robot's map
+        """Every ``team_match_every`` new keyframes of a robot in a team of several (every whole
+        scan of a narrow sensor's, ``_whole``): match the newest against its teammates' maps
+        where they overlap. Without this, each robot's map
         would drift on its own after the merge, and the joint map would come apart where two
         robots went past the same walls at different times."""
         every = self.cfg.teams.team_match_every
         team = self.fleet.team_of(r)
         k = len(r.slam.keyframes) - 1
-        if every <= 0 or len(team.robot_ids) < 2 or k % every:
+        if every <= 0 or len(team.robot_ids) < 2:
+            return
+        if (not self._whole(r, k)) if r.slam.narrow else k % every:
             return
         mates = [o for o in team.robot_ids if o != r.robot_id]
-        if self.refine_on_maps(mates, [r.robot_id], team.links, only=[k]) and \
-                self.retire_sightings(team.links):
+        kept = self.refine_on_maps(mates, [r.robot_id], team.links, only=[k])
+        if not r.slam.narrow:
+            kept += self._tie_wholes(r, mates, team.links)
+        if kept and self.retire_sightings(team.links):
             team.links = [ln for ln in team.links if not ln.retired]
 
+    def _tie_wholes(self, r: RobotContext, mates: list[str], links: list[Link]) -> int:
+        """A wide robot's new keyframe maps a place its narrow teammates' whole scans may
+        have seen before: each such whole scan within ``WHOLE_TIE_RADIUS_M`` of it, not yet
+        tied to a wide teammate's map, is matched against that map now, where the map shows
+        at least ``WHOLE_TIE_SEEN`` of it (at most ``WHOLE_TIE_TRIES`` such times). The
+        narrow robot's keyframes from before the merge, or from rooms its teammate had not
+        yet seen, are then held to the team's reference map, not only to its own drifting
+        chain; its start too, which places its whole map."""
+        P = r.slam.keyframe_pose(len(r.slam.keyframes) - 1)
+        kept = 0
+        for m in mates:
+            mate = self.fleet.robots[m].slam
+            if not mate.narrow or not mate.keyframes:
+                continue
+            tries = self._whole_tries.setdefault(m, {})
+            poses = mate.keyframe_poses()
+            near = np.flatnonzero(np.hypot(*(poses[:, :2] - P[:2]).T) <= WHOLE_TIE_RADIUS_M)
+            todo = [int(i) for i in near if 0 <= tries.get(int(i), 0) < WHOLE_TIE_TRIES
+                    and self._whole(self.fleet.robots[m], int(i))]
+            if not todo:
+                continue
+            for i in todo:
+                tried = [0]
+                got = self.refine_on_maps([r.robot_id], [m], links, only=[i], tried=tried,
+                                          min_seen_fraction=WHOLE_TIE_SEEN)
+                kept += got
+                if got:
+                    tries[i] = -1
+                elif tried[0]:      # the map showed what it saw, and it did not match
+                    tries[i] = tries.get(i, 0) + 1
+        return kept
+
+    @staticmethod
+    def _whole(r: RobotContext, k: int) -> bool:
+        """Whether keyframe ``k`` of a narrow sensor's robot is a whole scan (its turning
+        camera's views taken standing still, ``server.slam.sweep``): 360° and exact, each
+        one is matched against its teammates' maps, and only these. A narrow view's match
+        (18 points of one wall, in one run) moved the camera robot 0.5 m."""
+        return r.slam.narrow and not is_narrow(r.slam.keyframes[k].matchable,
+                                               r.slam.cfg.matcher)
+
     def refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link],
-                       only: list[int] | None = None) -> int:
+                       only: list[int] | None = None, tried: list[int] | None = None,
+                       min_seen_fraction: float = 0.0) -> int:
         """Match each joining robot's keyframes (or the ones in ``only``) against the other
         side's map where they overlap, and add the matches as robust between-factors (``links``
         gets them); those still inconsistent after optimisation are taken out. Returns how
@@ -172,7 +229,8 @@ class GraphSurgery:
             for rb in side_b:
                 a, b = self.fleet.robots[ra].slam, self.fleet.robots[rb].slam
                 graph = a.graph
-                for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra)):
+                for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra),
+                                       tried=tried, min_seen_fraction=min_seen_fraction):
                     f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
                                             m.T_ka_kb, m.information, loop.sigma_scale ** 2,
                                             floor, "huber", loop.huber_k)

@@ -7,7 +7,8 @@ pose only across it. ``NarrowSensor`` is the pipeline's ``SensorModel`` for such
    lie closer together and its depth is noisier.
 2. **Match**: stricter pairing of normals (``matcher.narrow_min_normal_cos``) and a prior on
    the odometry from a smaller base (``narrow_prior_sigma_*``).
-3. **Place**: the pose averaged over the latest matches (``server.slam.smoothing``); or, when
+3. **Place**: the pose averaged over the latest matches (``server.slam.smoothing``), the
+   odometry's while the robot stands still for a whole scan; or, when
    the views the camera took while the robot stood still make a whole 360° scan
    (``server.slam.sweep``), that scan, matched against the whole scans before it, and it
    becomes a keyframe.
@@ -66,6 +67,13 @@ GUIDED_MAX_TURN_DEG = 3.0
 #: ... and must pair this share of its points with the map's
 GUIDED_MIN_INLIERS = 0.7
 MATCHED = (MatchKind.ICP, MatchKind.DEGENERATE)
+#: the pose averaged over the latest matches may lie this far [m] and turn this much [deg]
+#: from the newest match: the average takes out a narrow match's noise (centimetres, a
+#: degree). Further off, the matches kept no longer agree with where the robot is: the
+#: average moved a robot 1 m along a wall in one step while its match and its odometry
+#: agreed within 3 cm; they are dropped, and the newest match stands
+SMOOTHED_MAX_SHIFT_M = 0.1
+SMOOTHED_MAX_TURN_DEG = 3.0
 
 
 class NarrowSensor:
@@ -100,6 +108,11 @@ class NarrowSensor:
         """The narrow scan at its smoothed pose; or the whole scan it completes, at the pose
         of its own match where that was found (else of the narrow scan's)."""
         whole = self.sweep.add(scan, T_odom_robot) if self.sweep.cfg.enabled else None
+        if whole is None and len(self.sweep.views) >= 2:
+            # standing still for a whole scan: the odometry has not moved, and a view of one
+            # side, matched, can only slide the pose along what it sees (10 cm in 2 s in one
+            # run); the whole scan at the end of the turn places it
+            return Placement(scan, FrontendMatch(T_pred, MatchKind.ODOMETRY, np.zeros((3, 3)), 0.0))
         if whole is None or len(whole) < self.cfg.matcher.min_points:
             return Placement(scan, self._smoothed(slam, match, T_odom_robot))
         found = self._match_whole(slam, whole, T_odom_robot, T_pred, T_last, T_step_odom)
@@ -178,8 +191,18 @@ class NarrowSensor:
 
     def _smoothed(self, slam: SlamView, match: FrontendMatch, T_odom_robot: F64
                   ) -> FrontendMatch:
-        return self.recent.smoothed(match, T_odom_robot, slam.trajectory.key(slam.anchor.index),
-                                    slam.anchor.T_map_kf, slam.graph.pose, self.cfg.graph)
+        """The match averaged with the latest ones; the match alone (and the others dropped)
+        where the average lands further from it than ``SMOOTHED_MAX_*``."""
+        key = slam.trajectory.key(slam.anchor.index)
+        sm = self.recent.smoothed(match, T_odom_robot, key, slam.anchor.T_map_kf,
+                                  slam.graph.pose, self.cfg.graph)
+        d, a = pose_distance(between(match.T_map_robot, sm.T_map_robot))
+        if d <= SMOOTHED_MAX_SHIFT_M and a <= math.radians(SMOOTHED_MAX_TURN_DEG):
+            return sm
+        self.recent.clear()
+        slam.stats.smoothing_resets += 1
+        return self.recent.smoothed(match, T_odom_robot, key, slam.anchor.T_map_kf,
+                                    slam.graph.pose, self.cfg.graph)
 
     # -- 4, 5: keyframes -----------------------------------------------------------------
     def sees_new(self, scan: ScanPoints, T_map_robot: F64, local_map: PointMap) -> bool:

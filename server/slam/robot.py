@@ -121,7 +121,8 @@ class RobotSlam:
                 self.stats.reused += 1
             else:
                 k = self._add_keyframe(stamp_ns, odom, placed)         # 5. optimise
-                if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0:
+                if self.cfg.loop.enabled and k % self.cfg.loop.every_keyframes == 0 \
+                        and not self._beside_a_wide_teammate():
                     self._close_loops(k)                               # 6. loop closure
             self._refresh_local_map()                                  # 7. maps follow poses
         self._scan_poses.append(stamp_ns, self.anchor.index, self.anchor.T_kf_robot)
@@ -199,6 +200,13 @@ class RobotSlam:
         self.loops.add_edge(a, k, edge_length_m(T_rel))
         self.anchor = Anchor(k, self.keyframe_pose(k))
         return k
+
+    def _beside_a_wide_teammate(self) -> bool:
+        """A narrow sensor's robot in one graph with a wide one: the teammate's map holds it
+        (``server.rendezvous.surgery``), and a loop closed on its own drifting keyframes
+        could only pull it off that map (0.34 m at once, on a keyframe of a turning stop)."""
+        return self.sensor.narrow and any(not g.narrow and g.graph is self.graph
+                                          for g in self.guides)
 
     def _close_loops(self, k: int) -> None:
         poses = self.keyframe_poses()

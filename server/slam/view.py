@@ -43,6 +43,7 @@ class SlamStats:
     sweeps: int = 0   # whole scans of a turning camera matched (``sweep``)
     sweep_shift_m: float = 0.0   # how far the latest one's match moved the pose from the guess
     guided_sweeps: int = 0   # of those, matched against a wide teammate's map (``narrow``)
+    smoothing_resets: int = 0   # narrow matches whose average strayed from them (``narrow``)
 
 
 @dataclass(frozen=True)
