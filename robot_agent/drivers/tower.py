@@ -445,6 +445,7 @@ class TowerSource:
             try:
                 self._session(on_sweep)
             except (TowerError, OSError, RuntimeError) as e:
+                self.connected.clear()             # cleared before the error is counted
                 self.counters[f"tower_{type(e).__name__}"] += 1
                 if str(e) != self.last_error:      # each new problem once, not every retry
                     log.warning("tower: %s; retrying every %g s", e, self.reconnect_s)
