@@ -29,6 +29,7 @@ F64 = NDArray[np.float64]
 KEY_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
 #: keyframes per robot: a key's index is ``block << KEY_INDEX_BITS | k`` (gtsam has 56 bits)
 KEY_INDEX_BITS = 32
+_SYMBOL_INDEX_BITS = 56   # gtsam.Symbol: the character above 56 bits of index
 
 
 def robot_key_space(n: int) -> tuple[str, int]:
@@ -69,10 +70,20 @@ class RobotTrajectory:
     def key(self, k: int) -> int:
         if not 0 <= k < 1 << KEY_INDEX_BITS:
             raise GraphError(f"keyframe index {k} is outside a robot's key range")
-        return int(gtsam.symbol(self.robot_char, self.block << KEY_INDEX_BITS | k))
+        return self._base() | k
 
     def all_keys(self) -> list[int]:
-        return [self.key(k) for k in range(self.n_keys)]
+        base = self._base()
+        return [base | k for k in range(self.n_keys)]
+
+    def _base(self) -> int:
+        """``gtsam.symbol(robot_char, block << KEY_INDEX_BITS)``, computed as GTSAM does
+        (the character in the top 8 bits, the index below) without a call into it; GTSAM's
+        own answer (or error) where the character or block does not fit."""
+        c, j = ord(self.robot_char), self.block << KEY_INDEX_BITS
+        if c > 127 or j < 0 or j >> _SYMBOL_INDEX_BITS:
+            return int(gtsam.symbol(self.robot_char, j))
+        return c << _SYMBOL_INDEX_BITS | j
 
     def prior_pose(self) -> F64:
         """Where the prior pins the first key (the origin of the robot's own map frame)."""
