@@ -1,5 +1,6 @@
-"""The compiled scan update of the occupancy grid (``server.slam.grid_kernel``) gives the
-same grid, bit for bit, as the numpy steps it replaced (written out here as the reference)."""
+"""The compiled scan update of the occupancy grid (``server.slam.grid_kernel``) and loop
+closure's compiled path lengths (``server.slam.loop_kernel``) give the same grid and the same
+distances, bit for bit, as the numpy steps they replaced (written out here as references)."""
 
 from __future__ import annotations
 
@@ -103,3 +104,31 @@ def test_compiled_update_is_the_numpy_one_bit_for_bit() -> None:
     q = compiled.quantised()
     assert np.array_equal(q, reference.quantised())
     assert (q != UNKNOWN_Q).sum() > 1000 and (q > 0).any() and ((q < 0) & (q != UNKNOWN_Q)).any()
+
+
+def test_compiled_path_lengths_are_the_numpy_relaxation_bit_for_bit() -> None:
+    """``loop_kernel.relax`` against the numpy loop it replaced, on a chain with shortcuts."""
+    from server.slam.loop_closure import _Graph
+
+    rng = np.random.default_rng(5)
+    g = _Graph()
+    for k in range(1, 300):
+        g.add_edge(k - 1, k, float(rng.uniform(0.05, 0.6)))
+    for _ in range(40):
+        a, b = sorted(rng.integers(0, 300, 2).tolist())
+        g.add_edge(a, b, float(rng.uniform(0.0, 1.0)))
+    for source in (0, 17, 150, 299):
+        d = np.abs(g.arc - g.arc[source])
+        for _ in range(len(g.shortcuts) + 1):
+            changed = False
+            for a, b, w in g.shortcuts:
+                for u, v in ((a, b), (b, a)):
+                    via = d[u] + w
+                    if via < d[v] - 1e-9:
+                        np.minimum(d, via + np.abs(g.arc - g.arc[v]), out=d)
+                        changed = True
+            if not changed:
+                break
+        got = g.distances_from(source, 310)
+        assert np.array_equal(got[:300], d) and np.isinf(got[300:]).all()
+        assert (got[:300] < np.abs(g.arc - g.arc[source]) - 1e-6).any() or source == 0
