@@ -8,6 +8,7 @@ import copy
 import math
 
 import numpy as np
+import pytest
 
 from server.slam.grid import _MARK_Q, _TILE_BITS, TILE, UNKNOWN_Q, GridParams, OccupancyGrid
 
@@ -132,3 +133,13 @@ def test_compiled_path_lengths_are_the_numpy_relaxation_bit_for_bit() -> None:
         got = g.distances_from(source, 310)
         assert np.array_equal(got[:300], d) and np.isinf(got[300:]).all()
         assert (got[:300] < np.abs(g.arc - g.arc[source]) - 1e-6).any() or source == 0
+
+
+def test_a_cell_outside_the_tiles_is_refused_not_written() -> None:
+    g = OccupancyGrid(GridParams())
+    g.insert_scan(np.zeros(3), np.array([[1.0, 0.0]]))
+    before = g.quantised().copy()
+    far = np.array([10_000], dtype=np.int64)
+    with pytest.raises(IndexError, match="outside the grid"):
+        g._slots_lattice(far, far)
+    assert np.array_equal(g.quantised(), before)

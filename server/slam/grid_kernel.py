@@ -52,16 +52,19 @@ def lattice_slots(gx: I64, gy: I64, index: I32, t0x: int, t0y: int, bits: int
                   ) -> tuple[I64, I64, int]:
     """Flat pool positions of lattice cells (``OccupancyGrid._slots_lattice``), their tiles
     (row-major in ``index``), and how many fall in a tile not allocated yet (their position
-    is then -1)."""
+    is then -1). IndexError for a cell outside ``index``'s tiles (never written)."""
     n = len(gx)
-    iw = index.shape[1]
+    ih, iw = index.shape
     flat = index.reshape(-1)
     mask = (1 << bits) - 1
     out = np.empty(n, dtype=np.int64)
     tiles = np.empty(n, dtype=np.int64)
     missing = 0
     for i in range(n):
-        tile = ((gy[i] >> bits) - t0y) * iw + ((gx[i] >> bits) - t0x)
+        tx, ty = (gx[i] >> bits) - t0x, (gy[i] >> bits) - t0y
+        if tx < 0 or tx >= iw or ty < 0 or ty >= ih:
+            raise IndexError("a cell outside the grid's tiles")
+        tile = ty * iw + tx
         tiles[i] = tile
         slot = flat[tile]
         if slot < 0:
