@@ -33,6 +33,7 @@ from server.offline.logs import (
     select_stream,
 )
 from server.offline.logs.carmen import LaserLines
+from server.offline.logs.kept import KeptText
 from server.offline.logs.records import F64
 from server.offline.logs.scan_odometry import ScanOdometry
 from server.offline.logs.stamps import StampPlan, plan_stamps
@@ -242,8 +243,9 @@ def read_recording(log_file: Path, cfg: SlamLogConfig, scan_topic: str | None = 
     if scan_topic or odom_topic or cfg.laser_pose:
         raise CarmenError(f"{log_file}: --scan-topic, --odom-topic and --laser-pose are for ROS "
                           f"bags")
-    clog = read_log(log_file, keep_ranges=not stream)
-    lines = LaserLines(log_file) if stream else None
+    kept = KeptText() if stream else None
+    clog = read_log(log_file, keep_ranges=not stream, kept=kept)
+    lines = LaserLines(log_file, kept) if stream else None
     if clog.stats.skipped_total:
         log.warning("%s: %d unreadable lines skipped (%s), e.g. %s", log_file,
                     clog.stats.skipped_total, dict(clog.stats.skipped), clog.stats.examples[0])

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from schemas.occupancy import FREE_BELOW, OCCUPIED, OCCUPIED_ABOVE, UNKNOWN
 from server.jit import njit_cached
+from server.slam.grid_kernel import lattice_slots, ray_cells, update_cells
 
 F64 = NDArray[np.float64]
 Points = NDArray[np.floating[Any]]   # (N, 2), single or double precision
@@ -193,23 +194,17 @@ class OccupancyGrid:
 
     def _slots_lattice(self, gx: NDArray[np.int64], gy: NDArray[np.int64]
                        ) -> NDArray[np.int64]:
-        """``_slots`` of lattice cells (shifts and masks: TILE is a power of two)."""
-        iw = self._index.shape[1]
+        """``_slots`` of lattice cells (shifts and masks: TILE is a power of two), allocating
+        the tiles they fall in that have none yet (in the order of their index)."""
+        gx = np.ascontiguousarray(gx, dtype=np.int64)
+        gy = np.ascontiguousarray(gy, dtype=np.int64)
         t0x, t0y = self._index_t0.tolist()
-        tile = (gy >> _TILE_BITS) - t0y
-        tile *= iw
-        tile += (gx >> _TILE_BITS) - t0x
-        index = self._index.reshape(-1)
-        slot = index[tile]
-        missing = slot < 0
-        if missing.any():
-            new = np.unique(tile[missing])
+        out, tile, missing = lattice_slots(gx, gy, self._index, t0x, t0y, _TILE_BITS)
+        if missing:
+            new = np.unique(tile[out < 0])
             self._allocate(len(new))
-            index[new] = np.arange(self._tiles - len(new), self._tiles)
-            slot = index[tile]
-        out = slot.astype(np.int64) << (2 * _TILE_BITS)
-        out += (gy & (TILE - 1)) << _TILE_BITS
-        out += gx & (TILE - 1)
+            self._index.reshape(-1)[new] = np.arange(self._tiles - len(new), self._tiles)
+            out, _, _ = lattice_slots(gx, gy, self._index, t0x, t0y, _TILE_BITS)
         return out
 
     def _allocate(self, n: int) -> None:
@@ -257,38 +252,16 @@ class OccupancyGrid:
         step = 0.7 * res
         lengths = length * scale
         n_samp = np.ceil(lengths / step).astype(np.int64)
-        total = int(n_samp.sum())
-        if total:
-            ray_id = np.repeat(np.arange(len(rays)), n_samp)
-            first = np.cumsum(n_samp) - n_samp
-            k = np.arange(total) - np.repeat(first, n_samp)
-            frac = (k * step) / np.maximum(lengths[ray_id], 1e-9)
-            px = T[0] + frac * (rays[ray_id, 0] - T[0])
-            py = T[1] + frac * (rays[ray_id, 1] - T[1])
-            gx = np.floor((px - self._anchor[0]) / res).astype(np.int64)
-            gy = np.floor((py - self._anchor[1]) / res).astype(np.int64)
-            free = self._slots_lattice(gx, gy)
-        else:
-            free = np.zeros(0, dtype=np.int64)
+        gx, gy = ray_cells(float(T[0]), float(T[1]), np.ascontiguousarray(rays), lengths,
+                           n_samp, step, float(self._anchor[0]), float(self._anchor[1]), res)
+        free = self._slots_lattice(gx, gy)
         hit_cells = self._lattice(ends)
-        hit = self._slots_lattice(hit_cells[:, 0], hit_cells[:, 1])
-        pool = self._pool.reshape(-1)
-        # a cell is updated once per scan however many rays cross it (assignment through
-        # repeated indices writes the same value), and endpoints are not freed: they are
-        # marked in place for the moment it takes to drop them from the free cells
-        kept = pool[hit]
-        pool[hit] = _MARK_Q
-        free = free[pool[free] != _MARK_Q]
-        pool[hit] = kept
-        # within the clamps a step stays far inside int16; an unknown cell starts at 0
-        v = pool[free]
-        v[v == UNKNOWN_Q] = 0
-        v += self._l_miss
-        pool[free] = np.maximum(v, self._l_min)
-        v = pool[hit]
-        v[v == UNKNOWN_Q] = 0
-        v += self._l_hit
-        pool[hit] = np.minimum(v, self._l_max)
+        hit = self._slots_lattice(np.ascontiguousarray(hit_cells[:, 0]),
+                                  np.ascontiguousarray(hit_cells[:, 1]))
+        # a cell is updated once per scan however many rays cross it, and endpoints are not
+        # freed (``grid_kernel.update_cells``)
+        update_cells(self._pool.reshape(-1), free, hit, self._l_miss, self._l_min,
+                     self._l_hit, self._l_max, int(UNKNOWN_Q), int(_MARK_Q))
 
     # -- reading ---------------------------------------------------------------------------
 
@@ -390,6 +363,7 @@ def _lookup(q: I16, table: NDArray[np.int8], out: NDArray[np.int8]) -> None:
 def _warm_up() -> None:
     """Compile (or load from numba's cache) at import, not in a scan's time."""
     OccupancyGrid.nav2_of(np.array([[UNKNOWN_Q, 0]], dtype=np.int16))
+    OccupancyGrid(GridParams()).insert_scan(np.zeros(3), np.array([[1.0, 0.0]]))
 
 
 _warm_up()

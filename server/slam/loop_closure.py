@@ -28,6 +28,7 @@ from server.slam.config import LoopClosureConfig
 from server.slam.correlative import LikelihoodField, search
 from server.slam.icp import IcpParams, MatchResult, PointMap, icp
 from server.slam.keyframes import Keyframe, points_in_frame, voxel_thin
+from server.slam.loop_kernel import relax
 
 log = logging.getLogger(__name__)
 
@@ -108,18 +109,11 @@ class _Graph:
         dist = np.full(n, np.inf)
         if source >= m:
             return dist
-        d = np.abs(self.arc - self.arc[source])
         edges = [(a, b, w) for a, b, w in self.shortcuts if a < m and b < m]
-        for _ in range(len(edges) + 1):
-            changed = False
-            for a, b, w in edges:
-                for u, v in ((a, b), (b, a)):
-                    via = d[u] + w
-                    if via < d[v] - 1e-9:
-                        np.minimum(d, via + np.abs(self.arc - self.arc[v]), out=d)
-                        changed = True
-            if not changed:
-                break
+        ea = np.array([e[0] for e in edges], dtype=np.int64)
+        eb = np.array([e[1] for e in edges], dtype=np.int64)
+        ew = np.array([e[2] for e in edges], dtype=np.float64)
+        d = relax(self.arc, source, ea, eb, ew)     # compiled (``loop_kernel``)
         k = min(n, m)
         dist[:k] = d[:k]
         return dist
@@ -200,6 +194,7 @@ class LoopCloser:
         if not self.submaps:
             return []
         dist = self._graph.distances_from(k, len(poses))
+        near = np.hypot(poses[:, 0] - poses[k, 0], poses[:, 1] - poses[k, 1])
         out: list[tuple[float, int, float, float]] = []
         for si, sm in enumerate(self.submaps):
             d_graph = float(dist[sm.anchor])
@@ -209,7 +204,7 @@ class LoopCloser:
                 d_graph = 1e9
             radius = min(r_max, c.radius_base_m + c.radius_per_m * d_graph)
             angle = min(a_max, c.angle_base_deg + c.angle_per_m_deg * d_graph)
-            gap = float(np.min(np.hypot(*(poses[sm.members, :2] - poses[k, :2]).T)))
+            gap = float(np.min(near[sm.members]))
             if gap <= radius + 1.0:
                 out.append((gap - radius, si, radius, math.radians(angle)))
         out.sort()

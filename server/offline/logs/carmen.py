@@ -32,6 +32,7 @@ from typing import IO
 
 import numpy as np
 
+from server.offline.logs.kept import Keeping, KeptText
 from server.offline.logs.records import (
     F64,
     CarmenError,
@@ -74,17 +75,24 @@ def beam_angles(start: float, resolution: float, n_beams: int) -> F64:
     return angles
 
 
-def open_text(path: Path) -> IO[str]:
-    """Open a possibly compressed log as text; undecodable bytes become U+FFFD (then fail)."""
+def open_text(path: Path, kept: KeptText | None = None) -> IO[str]:
+    """Open a possibly compressed log as text; undecodable bytes become U+FFFD (then fail).
+    ``kept``: a compressed log's decompressed bytes are kept there as they are read (if they
+    fit), or read from there if it holds them whole already."""
     suffix = path.suffix.lower()
     raw: IO[bytes]
     # the streams are returned to the caller, who closes them
-    if suffix == ".gz":
+    again = kept.reader() if kept is not None else None
+    if again is not None:
+        raw = again
+    elif suffix == ".gz":
         raw = gzip.open(path, "rb")  # type: ignore[assignment]  # noqa: SIM115
     elif suffix == ".bz2":
         raw = bz2.open(path, "rb")  # noqa: SIM115
     else:
         raw = open(path, "rb")  # noqa: SIM115
+    if kept is not None and again is None and suffix in (".gz", ".bz2"):
+        raw = io.BufferedReader(Keeping(raw, kept))
     return io.TextIOWrapper(raw, encoding="ascii", errors="replace")
 
 
@@ -190,10 +198,12 @@ def parse_line(line: str, line_no: int) -> LaserRecord | OdometryRecord | str | 
     return kind
 
 
-def iter_lines(path: Path, stats: ReadStats) -> Generator[tuple[int, str], None, None]:
-    """Numbered lines of a log; a damaged compressed stream ends the iteration, noted in stats."""
+def iter_lines(path: Path, stats: ReadStats, kept: KeptText | None = None
+               ) -> Generator[tuple[int, str], None, None]:
+    """Numbered lines of a log; a damaged compressed stream ends the iteration, noted in stats.
+    ``kept``: as ``open_text``."""
     try:
-        with open_text(path) as f:
+        with open_text(path, kept) as f:
             yield from enumerate(f, start=1)
     except (EOFError, OSError, ValueError) as e:  # truncated/corrupt .gz/.bz2 stream
         if stats.lines == 0 and isinstance(e, OSError) and not isinstance(e, EOFError):
@@ -207,12 +217,14 @@ NO_RANGES: F64 = np.zeros(0)
 NO_RANGES.flags.writeable = False
 
 
-def read_log(path: str | Path, keep_ranges: bool = True) -> CarmenLog:
+def read_log(path: str | Path, keep_ranges: bool = True, kept: KeptText | None = None
+             ) -> CarmenLog:
     """Read a CARMEN log; corrupt lines are skipped and counted in ``stats``.
 
     ``keep_ranges=False``: every line is read and checked as usual, but the scans keep no
     ranges (``NO_RANGES``); ``LaserLines`` reads them again, scan by scan, when they are used.
-    A long log's scans then take a few hundred bytes each instead of a few kilobytes."""
+    A long log's scans then take a few hundred bytes each instead of a few kilobytes.
+    ``kept``: where a compressed log's text is kept for that second pass (``KeptText``)."""
     p = Path(path)
     if not p.exists():
         raise CarmenError(f"{p}: no such file")
@@ -224,7 +236,7 @@ def read_log(path: str | Path, keep_ranges: bool = True) -> CarmenLog:
     odometry: list[OdometryRecord] = []
     params: dict[str, str] = {}
     try:
-        for line_no, line in iter_lines(p, stats):
+        for line_no, line in iter_lines(p, stats, kept):
             stats.lines += 1
             try:
                 rec = parse_line(line, line_no)
@@ -258,11 +270,13 @@ class LaserLines:
     """The ranges of a log's scans read again from the file, in file order: the second pass
     of a log read with ``read_log(keep_ranges=False)``. Each call reads forward to the scan's
     line; asking for an earlier line than the last is an error, as is a line that no longer
-    holds that scan (the file changed between the passes)."""
+    holds that scan (the file changed between the passes). ``kept``: the first pass's text,
+    read from there if it holds it whole (``KeptText``), else from the file."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, kept: KeptText | None = None) -> None:
         self.path = Path(path)
-        self._lines = iter_lines(self.path, ReadStats())
+        self._kept = kept
+        self._lines = iter_lines(self.path, ReadStats(), kept)
         self._at = 0
 
     def ranges(self, rec: LaserRecord) -> F64:
@@ -285,3 +299,5 @@ class LaserLines:
 
     def close(self) -> None:
         self._lines.close()
+        if self._kept is not None:
+            self._kept.drop()
