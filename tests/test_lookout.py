@@ -203,6 +203,22 @@ def test_an_unsure_call_follows_the_nearest_mover_or_turns_to_find_the_reader() 
     assert look.step(3.0, pose, walls_seen(pose), g, np.zeros((0, 2))) is None
 
 
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_the_search_for_a_reader_turns_toward_the_rough_place_first(side: float) -> None:
+    """The call's place is rough, but it says on which side the reader is: the robot turns
+    that way (the shorter way round to it), and keeps that way until it reads the tag."""
+    g = free_room()
+    pose = np.array([-3.5, 0.0, 0.0])
+    p = LookParams(approach_range_m=10.0, max_range_m=2.0, omega_rps=1.0, cooldown_s=10.0)
+    look = Lookout(p)
+    look.hear(0.0, np.array([-1.0, side * 4.0]), 1.0, sure=False)   # 58° to one side
+    tw = look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    assert tw is not None and tw.v_mps == 0.0 and look.spin_until_s is not None
+    assert math.copysign(1.0, tw.omega_rps) == side
+    tw = look.step(2.0, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    assert tw is not None and math.copysign(1.0, tw.omega_rps) == side   # still that way
+
+
 def test_a_call_from_close_by_cuts_an_approach_short_and_holds_to_meet() -> None:
     p = LookParams(approach_range_m=10.0, approach_confirm=2, max_range_m=2.0, hold_s=1.0,
                    meet_hold_s=3.0)

@@ -79,3 +79,32 @@ def test_a_match_too_far_from_the_prediction_or_without_a_teammate_is_refused() 
     near = np.array([truth[0] + 0.1, truth[1], truth[2]])
     assert sensor._match_guided(slam, whole, near, near) is None   # type: ignore[arg-type]
     assert slam.stats.guided_sweeps == 0
+
+
+def test_a_match_weak_along_one_direction_keeps_the_prediction_along_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where the match's information along its weakest direction is under
+    ``GUIDED_WEAK_RATIO`` of the other's, it corrects the pose across that direction only
+    and its σ along it over ``GUIDED_WEAK_SIGMA_M`` (the room's match, noise-free, is a full
+    one: the limits are moved so that its weakest direction counts as weak)."""
+    import server.slam.narrow as narrow
+    from server.slam.frontend import match_scan
+    from server.slam.icp import translation_degeneracy
+
+    truth = (1.0, -0.5, 0.3)
+    sensor, slam, whole = setup(truth)
+    drifted = np.array([truth[0] + 0.15, truth[1] - 0.05, truth[2] + 0.01])
+    full = match_scan(whole, slam.local_map, drifted, drifted, np.zeros(3), False,
+                      sensor.cfg.matcher, sensor.icp_wide, None)
+    v = translation_degeneracy(full.information, 1.01)
+    assert v is not None
+    monkeypatch.setattr(narrow, "GUIDED_WEAK_RATIO", 1.01)
+    monkeypatch.setattr(narrow, "GUIDED_WEAK_SIGMA_M", 1e-6)
+    m = sensor._match_guided(slam, whole, drifted, drifted)   # type: ignore[arg-type]
+    assert m is not None
+    across = np.array([-v[1], v[0]])
+    # along the weak direction, where the prediction was; across it, where the robot is
+    assert float(v @ (m.T_map_robot[:2] - drifted[:2])) == pytest.approx(0.0, abs=1e-9)
+    assert float(across @ (m.T_map_robot[:2] - np.array(truth[:2]))) == \
+        pytest.approx(0.0, abs=0.02)
+    assert abs(float(across @ (drifted[:2] - np.array(truth[:2])))) > 0.03   # it did move

@@ -44,6 +44,7 @@ class Lookout:
         #: ... and, when the reader's distance is known, that distance and its tolerance
         self.call_range: tuple[float, float] | None = None
         self.spin_until_s: float | None = None   # turning on the spot to find a reader
+        self.spin_sign = 1.0                      # ... which way (toward the call first)
         self.calls = 0
         self.caller = ""                     # the robot of the latest call
         #: the detours it starts, to be priced before they go on (``server.lookout.offers``)
@@ -127,8 +128,12 @@ class Lookout:
                  "look" if target is None else "go and look")
         self.offers.make("call", self.caller, xy if target is None else target, now_s)
         if target is None:
+            # the place is rough, but its side is not: turning toward it first finds the
+            # reader in a fraction of the turn (a camera robot turned 250° the other way,
+            # 3 s, in one run)
+            self.spin_sign = 1.0 if bearing_to(pose, xy) >= 0.0 else -1.0
             self.spin_until_s = now_s + 2 * math.pi / self.p.omega_rps
-            return Twist(0.0, self.p.omega_rps)
+            return Twist(0.0, self.spin_sign * self.p.omega_rps)
         if math.hypot(*(target - pose[:2])) <= self.p.approach_stop_m + 0.3:
             self._look_toward(now_s, pose, target, meet=True)
             return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
@@ -170,7 +175,7 @@ class Lookout:
                 return self._answer_now(now_s, pose, points_robot, grid, mates_xy,
                                         max(p.max_range_m, p.approach_range_m))
             if now_s < self.spin_until_s:
-                return Twist(0.0, p.omega_rps)
+                return Twist(0.0, self.spin_sign * p.omega_rps)
             self.reset()
             self.next_s = now_s + p.cooldown_s
             return None

@@ -33,6 +33,7 @@ class RendezvousCounters:
     meetings_refuted: int = 0   # ... whose robots did not meet
     calls_paused: int = 0       # tag calls not passed on: the two teams' maps keep refusing a merge
     one_place_proposals: int = 0   # sightings from one place turned by the square walls
+    short_path_proposals: int = 0  # ... and from a short path, turned so
 
     def as_dict(self) -> dict[str, int]:
         """The counters by their names in the run's outputs."""

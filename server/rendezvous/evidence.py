@@ -100,6 +100,11 @@ class VerifierParams:
     # sightings from one place (``one_place``) whose tags' yaws give the turn to this [rad]
     # (σ) pick the one turn of a square building's walls that fits (a quarter turn apart)
     max_rough_turn_rad: float = math.radians(12.0)
+    # sightings of a robot that moved a little (``short_path``): pairs this far apart make
+    # hypotheses, and the turn their places fit must be good to this [rad] (σ) to pick the
+    # quarter turn of the square walls: 3σ stays well short of the 45° to the next one
+    min_path_baseline_m: float = 0.1
+    max_path_turn_rad: float = math.radians(8.0)
 
 
 @dataclass(frozen=True)
@@ -169,30 +174,12 @@ class MergeVerifier:
         xY = np.array([_in_y(r) for r in recs])
         sig = np.array([r.sigma_p_m for r in recs])
         informative = np.array([r.sighting.sigma_yaw_rad <= p.informative_yaw_rad for r in recs])
-        hyps: list[F64] = [r.T_ab for r, ok in zip(recs, informative, strict=True) if ok]
-        n = len(recs)
-        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)
-                 if np.hypot(*(xY[i] - xY[j])) >= p.min_baseline_m]
-        step = max(1, len(pairs) // p.max_pair_hypotheses)
-        for i, j in pairs[::step]:
-            hyps.append(rigid_fit(xY[[i, j]], xX[[i, j]], 1.0 / sig[[i, j]] ** 2))
-        best: NDArray[np.bool_] | None = None
-        best_cost = math.inf
-        for T in hyps:
-            inl = self._inliers(T, recs, xX, xY, sig, informative)
-            cost = float(np.sum(_residuals(T, xX, xY)[inl] / sig[inl]))
-            if best is None or inl.sum() > best.sum() or (inl.sum() == best.sum()
-                                                          and cost < best_cost):
-                best, best_cost = inl, cost
+        best = self._consensus(recs, xX, xY, sig, informative, p.min_baseline_m)
         if best is None:
             return None
         members = [r for r, ok in zip(recs, best, strict=True) if ok]
         idx = np.flatnonzero(best)
-        mutual = len({r.observer for r in members}) > 1
-        need = max(2, p.min_sightings - (1 if mutual else 0))
-        if not informative[idx].any():
-            need += 1  # two sightings define a position-only hypothesis: two more confirm it
-        if len(members) < need:
+        if len(members) < self._needed(members, informative[idx]):
             return None
         spread = float(np.max(np.hypot(*(xY[idx] - xY[idx].mean(axis=0)).T)))
         has_yaw = bool(informative[idx].any())
@@ -213,6 +200,73 @@ class MergeVerifier:
         C = np.diag([s_t ** 2, s_t ** 2, s_r ** 2])
         first = min(members, key=lambda r: r.stamp_ns)
         return MergeProposal(key[0], key[1], tuple(members), T, C, first.T_ab.copy())
+
+    def _consensus(self, recs: list[SightingRecord], xX: F64, xY: F64, sig: F64,
+                   informative: NDArray[np.bool_], baseline_m: float
+                   ) -> NDArray[np.bool_] | None:
+        """RANSAC: the largest set of sightings that agree with one transform. Hypotheses:
+        single informative sightings and pairs at least ``baseline_m`` apart."""
+        p = self.p
+        hyps: list[F64] = [r.T_ab for r, ok in zip(recs, informative, strict=True) if ok]
+        n = len(recs)
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)
+                 if np.hypot(*(xY[i] - xY[j])) >= baseline_m]
+        step = max(1, len(pairs) // p.max_pair_hypotheses)
+        for i, j in pairs[::step]:
+            hyps.append(rigid_fit(xY[[i, j]], xX[[i, j]], 1.0 / sig[[i, j]] ** 2))
+        best: NDArray[np.bool_] | None = None
+        best_cost = math.inf
+        for T in hyps:
+            inl = self._inliers(T, recs, xX, xY, sig, informative)
+            cost = float(np.sum(_residuals(T, xX, xY)[inl] / sig[inl]))
+            if best is None or inl.sum() > best.sum() or (inl.sum() == best.sum()
+                                                          and cost < best_cost):
+                best, best_cost = inl, cost
+        return best
+
+    def _needed(self, members: list[SightingRecord], informative: NDArray[np.bool_]) -> int:
+        """Sightings a consistent set needs to be proposed."""
+        mutual = len({r.observer for r in members}) > 1
+        need = max(2, self.p.min_sightings - (1 if mutual else 0))
+        if not informative.any():
+            need += 1  # two sightings define a position-only hypothesis: two more confirm it
+        return need
+
+    def short_path(self, team_a: str, team_b: str) -> OnePlace | None:
+        """The largest set of the pair's sightings that agree, when the places they put the
+        seen robot at lie too close together to fix the turn to ``max_rotation_sigma_rad``
+        (``_propose`` then waits for the robot to drive on), with the turn they give roughly:
+        the least-squares fit's, its σ from the places' spread about their weighted mean
+        (1/√Σ wᵢ·dᵢ²). None when they are too few or the turn is not good to
+        ``max_path_turn_rad``."""
+        key = self._key(team_a, team_b)
+        ev = self.pairs.get(key)
+        p = self.p
+        if ev is None or len(ev.records) < p.min_sightings + 1:
+            return None
+        recs = ev.records
+        xX = np.array([_in_x(r) for r in recs])
+        xY = np.array([_in_y(r) for r in recs])
+        sig = np.array([r.sigma_p_m for r in recs])
+        informative = np.array([r.sighting.sigma_yaw_rad <= p.informative_yaw_rad for r in recs])
+        best = self._consensus(recs, xX, xY, sig, informative, p.min_path_baseline_m)
+        if best is None:
+            return None
+        idx = np.flatnonzero(best)
+        members = [recs[i] for i in idx]
+        if len(members) < max(p.min_sightings + 1, self._needed(members, informative[idx])):
+            return None
+        w = 1.0 / sig[idx] ** 2
+        lever = xY[idx] - (w @ xY[idx]) / w.sum()
+        info = float(np.sum(w * np.sum(lever ** 2, axis=1)))
+        if info <= 0.0:
+            return None
+        sigma = 1.0 / math.sqrt(info)
+        if sigma > p.max_path_turn_rad:
+            return None
+        T = rigid_fit(xY[idx], xX[idx], w)
+        return OnePlace(key[0], key[1], tuple(members), xX[idx], xY[idx], w, float(T[2]),
+                        sigma)
 
     def one_place(self, team_a: str, team_b: str) -> OnePlace | None:
         """The largest set of the pair's sightings that agree on where the seen robot stood,

@@ -41,7 +41,7 @@ from server.slam.frontend import (
     odometry_prior,
 )
 from server.slam.heading_ties import HeadingTies
-from server.slam.icp import PointMap
+from server.slam.icp import PointMap, translation_degeneracy
 from server.slam.keyframes import Keyframe, gather, local_point_map, voxel_mean
 from server.slam.loop_closure import edge_length_m
 from server.slam.measurements import match_factor
@@ -66,6 +66,15 @@ GUIDED_MAX_SHIFT_M = 0.25
 GUIDED_MAX_TURN_DEG = 3.0
 #: ... and must pair this share of its points with the map's
 GUIDED_MIN_INLIERS = 0.7
+#: where its information along one direction is under this share of the other's (the
+#: translation's, ``translation_degeneracy``) and gives that direction a σ over
+#: ``GUIDED_WEAK_SIGMA_M``, the match keeps the prediction along that direction: a whole
+#: scan 3 m deep that sees one wall's length and little across it slid the robot 0.19 m
+#: along the wall at a ratio of 0.022 and 1.4 cm (the matcher's own limit is
+#: ``matcher.degenerate_eigen_ratio``, 0.02); a scan whose weak direction is held by a
+#: pillar or a door frame, to millimetres, keeps its match
+GUIDED_WEAK_RATIO = 0.1
+GUIDED_WEAK_SIGMA_M = 0.01
 MATCHED = (MatchKind.ICP, MatchKind.DEGENERATE)
 #: the pose averaged over the latest matches may lie this far [m] and turn this much [deg]
 #: from the newest match: the average takes out a narrow match's noise (centimetres, a
@@ -177,9 +186,17 @@ class NarrowSensor:
         assert slam.local_map is not None   # the teammate's walls, its own elsewhere
         m = match_scan(whole, slam.local_map, T_pred, T_last, IDENTITY, False, mc,
                        self.icp_wide, None)
+        if m.kind != MatchKind.ICP or m.inlier_fraction < GUIDED_MIN_INLIERS:
+            return None
+        weak = translation_degeneracy(m.information, GUIDED_WEAK_RATIO)
+        if weak is not None and _information_along(m.information, weak) < \
+                GUIDED_WEAK_SIGMA_M ** -2:
+            # it says where the robot is across its walls, not along them
+            T = m.T_map_robot.copy()
+            T[:2] += weak * float(weak @ (T_pred[:2] - T[:2]))
+            m = dataclasses.replace(m, T_map_robot=T)
         d, a = pose_distance(between(T_pred, m.T_map_robot))
-        if m.kind != MatchKind.ICP or m.inlier_fraction < GUIDED_MIN_INLIERS or \
-                d > GUIDED_MAX_SHIFT_M or a > math.radians(GUIDED_MAX_TURN_DEG):
+        if d > GUIDED_MAX_SHIFT_M or a > math.radians(GUIDED_MAX_TURN_DEG):
             return None
         slam.stats.sweep_shift_m = d
         slam.stats.guided_sweeps += 1
@@ -261,6 +278,14 @@ class NarrowSensor:
 
     def skip_stop(self) -> None:
         self.sweep.skip()
+
+
+def _information_along(information: F64, v: F64) -> float:
+    """A match's translation information along the unit direction ``v`` (its heading also
+    estimated: the Schur complement, as in ``translation_degeneracy``)."""
+    H = information
+    Htt = H[:2, :2] - np.outer(H[:2, 2], H[2, :2]) / H[2, 2] if H[2, 2] > 0 else H[:2, :2]
+    return float(v @ Htt @ v)
 
 
 def _guide_points(slam: SlamView, T_map_robot: F64, radius_m: float) -> tuple[F64, F64] | None:
