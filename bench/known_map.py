@@ -35,11 +35,14 @@ found again; prints JSON.
    retired keyframes alone had shown is unknown until the robots see it again).
 
     PYTHONPATH=. python bench/known_map.py --changed [--changed-time 72] [--changed-seed N]
+        [--changed-trace]
 
    With ``--changed-seeds default,1,2,3`` several runs (``default``: the first exploration's
    spawns, a number: random free spawns of that seed), each stopped once every change is
    shown, and a summary: each run's time against the first exploration's, the median, the
-   worst and how many met the goal.
+   worst and how many met the goal. ``--changed-trace`` (one run) adds when each change
+   first got a vote and was confirmed, and each robot's pose, speed, turn rate and errand
+   once a simulated second (``votes``, ``timeline``): what a slow run spent its time on.
 """
 
 from __future__ import annotations
@@ -205,7 +208,8 @@ def mission_chain(known: KnownMap, frame: np.ndarray, missions: int, mode: str,
 
 
 def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: float,
-                go_on: bool = True, seed: int | None = None) -> dict[str, Any]:
+                go_on: bool = True, seed: int | None = None,
+                trace: bool = False) -> dict[str, Any]:
     """The map brought up to date in the changed house (see the module docstring, 6)."""
     from sim.config import DEFAULT_SCENARIOS, load_scenario
     from sim.floorplan import SMALL_HOUSE_BOXES, SMALL_HOUSE_CLOSED
@@ -222,11 +226,15 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
     at = [_to_map(frame, np.array([x, y, 0.0]))[:2] for _, x, y, _ in changes]
     shown: dict[int, float] = {}
     known_m2 = [_known_m2(m.core.fleet.team_grid(MAP_TEAM))]
+    timeline: list[dict[str, Any]] = []
+    votes: dict[int, dict[str, float]] = {}
     t0 = time.monotonic()
     while m.sim_time_s < limit_s:
         m.step()
         if m.steps % 10:
             continue
+        if trace:
+            _trace(m, frame, changes, at, votes, timeline)
         grid = m.core.fleet.team_grid(MAP_TEAM)
         for k, ((_, _, _, r), xy) in enumerate(zip(changes, at, strict=True)):
             if k not in shown and _occupied_near(grid, xy, r):
@@ -262,7 +270,48 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
             "shown_then_lost": len(still),
             # a placed robot taken for lost here is a false alarm: nobody moved it
             "robots_lost": m.core.known.counts["lost"],
-            "sim_s": round(m.sim_time_s, 1), "wall_s": round(time.monotonic() - t0, 1)}
+            "sim_s": round(m.sim_time_s, 1), "wall_s": round(time.monotonic() - t0, 1),
+            **({"votes": {f"{changes[k][0]} ({changes[k][1]}, {changes[k][2]})": v
+                          for k, v in sorted(votes.items())},
+                "timeline": timeline} if trace else {})}
+
+
+def _trace(m: Any, frame: np.ndarray, changes: list[tuple[str, float, float, float]],
+           at: list[np.ndarray], votes: dict[int, dict[str, float]],
+           timeline: list[dict[str, Any]]) -> None:
+    """``--changed-trace``: when each change first got a vote and was confirmed (votes for
+    cells within its size + 0.1 m), and once a simulated second each robot's true pose, its
+    state, speed, turn rate and errand (kind, goal in the world, way left along its path)."""
+    from server.core import _left_m
+
+    t = round(m.sim_time_s, 1)
+    up = m.core.known.upkeep
+    older = m.core.known.view().older
+    if up is not None and older is not None:
+        step = older.fine_m
+        for k, ((_, _, _, r), xy) in enumerate(zip(changes, at, strict=True)):
+            for key in up.votes:
+                c = ((key[2] + 0.5) * step, (key[1] + 0.5) * step)
+                if math.hypot(c[0] - xy[0], c[1] - xy[1]) <= r + 0.1:
+                    votes.setdefault(k, {}).setdefault("first_vote_s", t)
+                    if key in up.confirmed:
+                        votes[k].setdefault("confirmed_s", t)
+    if timeline and int(t) == int(timeline[-1]["t"]):
+        return
+    row: dict[str, Any] = {"t": t}
+    for rid, sr in m.sim.robots.items():
+        r = m.core.robots.get(rid)
+        placed = r is not None and r.team_id == MAP_TEAM
+        e = m.core.orders.errands.get(rid)
+        row[rid] = {"at": [round(float(sr.pose[0]), 2), round(float(sr.pose[1]), 2),
+                           round(math.degrees(sr.pose[2]))],
+                    "placed": placed, "v": round(sr.v, 2), "w": round(sr.w, 2)}
+        if e is not None and placed and r is not None:
+            g = compose(frame, np.array([*e.goal_xy, 0.0]))
+            row[rid]["errand"] = {"kind": e.kind, "goal": [round(float(g[0]), 2),
+                                                           round(float(g[1]), 2)],
+                                  "left_m": round(_left_m(e.path_xy, r.pose), 2)}
+    timeline.append(row)
 
 
 def changed_summary(runs: list[dict[str, Any]], first_s: float) -> dict[str, Any]:
@@ -381,6 +430,9 @@ def main() -> None:
     ap.add_argument("--changed-time", type=float, default=72.0, help="sim seconds at most")
     ap.add_argument("--changed-seed", type=int, default=None, help="with --changed: the robots "
                     "at random free poses of this seed (default: the first exploration's spawns)")
+    ap.add_argument("--changed-trace", action="store_true",
+                    help="with --changed: when each change first got a vote and was "
+                    "confirmed, and each robot's pose, speed and errand once a second")
     ap.add_argument("--changed-seeds", default=None, help="with --changed: several runs, "
                     "comma-separated spawn seeds ('default': the first exploration's "
                     "spawns), each stopped once every change is shown; a summary")
@@ -403,7 +455,7 @@ def main() -> None:
     if a.changed:
         first = json.loads((a.out / "demo" / "report.json").read_text())
         row = changed_run(known, frame, float(first["first_team_time_to_threshold_s"]),
-                          a.changed_time, seed=a.changed_seed)
+                          a.changed_time, seed=a.changed_seed, trace=a.changed_trace)
         print(json.dumps({"map": made, **row, "wall_s": round(time.monotonic() - t0, 1)},
                          indent=2))
         return
