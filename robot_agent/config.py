@@ -50,6 +50,10 @@ class LockstepConfig(ConfigModel):
     wait_for_command: bool = Field(
         True, description="while the server is alive, ack a step only after its command")
     command_timeout_s: float = Field(5.0, gt=0.0, description="wall-clock wait for it")
+    first_command_timeout_s: float = Field(
+        55.0, gt=0.0, description="wall-clock wait for the server's first command: a server "
+        "starting on a busy or cold machine may take longer than command_timeout_s to "
+        "answer its first scan; keep it under the simulator's ack_timeout_s")
 
 
 class RplidarConfig(ConfigModel):

@@ -4,7 +4,9 @@ The backend's sensor callbacks only queue events; one thread handles them in arr
 
 - a sweep becomes a ``Scan`` with the wheel-odometry pose at its time; in lockstep the step is
   then acknowledged (after the server's command for it, when a server is alive and
-  ``lockstep.wait_for_command`` is set; bounded by ``command_timeout_s`` of wall time);
+  ``lockstep.wait_for_command`` is set; bounded by ``command_timeout_s`` of wall time, and by
+  ``first_command_timeout_s`` until the server's first command, which a server starting on a
+  busy machine may be slow to send);
 - a camera frame goes through the ArUco detector and becomes ``TagDetections``.
 
 Commands (``VelocityCommand`` on ``mrslam/robot/<id>/cmd_vel``) go straight to the base once
@@ -64,6 +66,7 @@ class Agent:
         self.watchdog = Watchdog()
         self.command: tuple[float, float] = (0.0, 0.0)
         self.last_command_stamp_ns = -1
+        self.awaiting_first_command = True   # the first wait is first_command_timeout_s
         self.server_alive = False
         self.gate = CommandGate(self.rid, cfg.command_max_age_s, cfg.command_max_ahead_s)
         self._ignored_log = RateLimitedLog(log)
@@ -141,14 +144,19 @@ class Agent:
         """Lockstep with a server: hold the ack until the command answering this scan."""
         if not self.cfg.lockstep.wait_for_command:
             return
-        deadline = time.monotonic() + self.cfg.lockstep.command_timeout_s
         with self.cond:
+            lock = self.cfg.lockstep
+            first = self.awaiting_first_command and self.last_command_stamp_ns < 0
+            wait_s = max(lock.command_timeout_s, lock.first_command_timeout_s) if first \
+                else lock.command_timeout_s
+            deadline = time.monotonic() + wait_s
             while self.server_alive and self.last_command_stamp_ns < stamp_ns:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     self.counters["command_timeouts"] += 1
+                    self.awaiting_first_command = False   # a server that answers nobody
                     log.warning("no command for the scan at %d ns within %g s; acking anyway",
-                                stamp_ns, self.cfg.lockstep.command_timeout_s)
+                                stamp_ns, wait_s)
                     return
                 self.cond.wait(left)
 
@@ -256,6 +264,7 @@ class Agent:
             self.watchdog.feed(self.backend.monotonic_ns(), msg.ttl_s)
             self.counters["commands_received"] += 1
             self.last_command_stamp_ns = max(self.last_command_stamp_ns, msg.stamp_ns)
+            self.awaiting_first_command = False
             self.set_velocity(v, w)
             self.cond.notify_all()
 

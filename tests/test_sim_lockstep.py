@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import numpy as np
@@ -31,16 +32,18 @@ def steer(scan: Scan) -> tuple[float, float]:
 Run = tuple[bytes, list[tuple[str, int, tuple[float, float, float], bytes]], list[bytes]]
 
 
-def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int, delay_s: float = 0.0) -> Run:
+def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int, delay_s: float = 0.0,
+                 first_delay_s: float = 0.0, agents: dict[str, Any] | None = None) -> Run:
     """(truth.jsonl, scans, tag detections) of one lockstep run with a server in the loop that
-    answers each scan after ``delay_s`` of wall time."""
+    answers each scan after ``delay_s`` of wall time (the first one after ``first_delay_s``)."""
     scans: list[tuple[str, int, tuple[float, float, float], bytes]] = []
     tags: list[bytes] = []
 
     def server(key: str, scan: Scan) -> None:  # answers every scan at once, stamped with it
+        first = not any(s[0] == scan.robot_id for s in scans)
         scans.append((scan.robot_id, scan.stamp_ns, scan.odom_pose, scan.ranges_mm))
         v, w = steer(scan)
-        time.sleep(delay_s)
+        time.sleep(first_delay_s if first else delay_s)
         router.publish(keys.robot_cmd_vel(scan.robot_id), VelocityCommand(
             robot_id=scan.robot_id, stamp_ns=scan.stamp_ns, v_mps=v, omega_rps=w, ttl_s=0.5))
 
@@ -49,7 +52,7 @@ def lockstep_run(endpoint: str, router: Bus, out: Path, seed: int, delay_s: floa
     token = router.declare_alive(keys.SERVER_ALIVE)
     try:
         with running(endpoint, ROBOTS, {"lockstep": True, "seed": seed, "max_steps": STEPS,
-                                        "out": str(out)}) as results:
+                                        "out": str(out)}, agent_overrides=agents) as results:
             assert within(lambda: "sim" in results, 60.0)  # it stops itself at max_steps
     finally:
         token.undeclare()
@@ -74,6 +77,12 @@ def test_two_lockstep_runs_with_one_seed_are_identical(router: Bus, endpoint: st
     assert [t.seq for t in lines] == list(range(STEPS))
     assert all(p.distance_m > 0.5 for p in lines[-1].poses)  # they moved under the commands
     assert any(t.relatives for t in lines)                   # and saw each other's tags
+    # a server slow to answer its first scan (starting on a busy machine) changes nothing
+    # either: the agents wait longer for a server's first command than for the others
+    truth_d, scans_d, _ = lockstep_run(endpoint, router, tmp_path / "d", seed=7,
+                                       first_delay_s=1.2,
+                                       agents={"lockstep": {"command_timeout_s": 0.5}})
+    assert truth_d == truth_a and scans_d == scans_a
     # a different seed gives other sensor noise
     _, scans_c, _ = lockstep_run(endpoint, router, tmp_path / "c", seed=8)
     assert [s[3] for s in scans_c] != [s[3] for s in scans_a]
