@@ -160,6 +160,17 @@ class MergeVerifier:
         ev.records = [r for r in ev.records if r.stamp_ns >= horizon]
         return self._propose(key, ev)
 
+    def _arrays(self, recs: list[SightingRecord]) -> tuple[
+            np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The seen robot's positions in the pair's first and second team frames (``_in_x``,
+        ``_in_y``), their σ, and which sightings have an informative yaw."""
+        xX = np.array([_in_x(r) for r in recs])
+        xY = np.array([_in_y(r) for r in recs])
+        sig = np.array([r.sigma_p_m for r in recs])
+        informative = np.array([r.sighting.sigma_yaw_rad <= self.p.informative_yaw_rad
+                                for r in recs])
+        return xX, xY, sig, informative
+
     def _propose(self, key: tuple[str, str], ev: PairEvidence) -> MergeProposal | None:
         """RANSAC over the pair's sightings. Each one ties the observed robot's position in
         both team frames (range and bearing are accurate; a tag's yaw often is not past a few
@@ -170,10 +181,7 @@ class MergeVerifier:
         if len(recs) < 2:
             return None
         p = self.p
-        xX = np.array([_in_x(r) for r in recs])
-        xY = np.array([_in_y(r) for r in recs])
-        sig = np.array([r.sigma_p_m for r in recs])
-        informative = np.array([r.sighting.sigma_yaw_rad <= p.informative_yaw_rad for r in recs])
+        xX, xY, sig, informative = self._arrays(recs)
         best = self._consensus(recs, xX, xY, sig, informative, p.min_baseline_m)
         if best is None:
             return None
@@ -245,10 +253,7 @@ class MergeVerifier:
         if ev is None or len(ev.records) < p.min_sightings + 1:
             return None
         recs = ev.records
-        xX = np.array([_in_x(r) for r in recs])
-        xY = np.array([_in_y(r) for r in recs])
-        sig = np.array([r.sigma_p_m for r in recs])
-        informative = np.array([r.sighting.sigma_yaw_rad <= p.informative_yaw_rad for r in recs])
+        xX, xY, sig, informative = self._arrays(recs)
         best = self._consensus(recs, xX, xY, sig, informative, p.min_path_baseline_m)
         if best is None:
             return None
