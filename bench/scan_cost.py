@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import hashlib
 import json
 import pstats
 import sys
@@ -72,10 +73,12 @@ def run(robots: int, steps: int, warmup: int, profile: bool) -> dict[str, Any]:
                 ranges_mm=tracks.ranges_mm[track, j].tobytes())))
         wire.append(frames)
 
+    commands = hashlib.sha1()
+
     def step(k: int) -> None:
         for i in range(robots):
             scan = decode(wire[i][k], Scan)
-            core.on_scan(scan, scan.stamp_ns)
+            commands.update(encode(core.on_scan(scan, scan.stamp_ns)))
 
     for k in range(warmup):
         step(k)
@@ -98,6 +101,9 @@ def run(robots: int, steps: int, warmup: int, profile: bool) -> dict[str, Any]:
         "cpu_ms_per_scan_p90_step": round(float(np.percentile(per_step, 90)), 3),
         "wall_s": round(time.perf_counter() - w0, 2), "profiled": profile,
         "keyframes": {rid: r.slam.stats.keyframes for rid, r in core.robots.items()},
+        # the same behaviour before and after a change that should not change it: the same
+        # commands, bit for bit
+        "commands_sha1": commands.hexdigest(),
     }
     if prof is not None:
         out |= _stages(pstats.Stats(prof), robots * steps)

@@ -11,6 +11,7 @@ from skimage.morphology import skeletonize
 
 from server.exploration.frontiers import cluster_frontiers, dilate
 from server.exploration.skeleton import voronoi_skeleton
+from server.exploration.skeleton_kernel import REMOVAL, thin
 from server.planning.edt_kernel import edt_with_indices
 from server.planning.grid import EIGHT_CONNECTED, small_components
 
@@ -116,6 +117,24 @@ def test_voronoi_skeleton_as_by_shifts() -> None:
         np.testing.assert_array_equal(voronoi_skeleton(m, min_separation_cells=sep), want)
         nonempty += int(want.any())
     assert nonempty > 30
+
+
+def test_thinning_is_skimages() -> None:
+    """The compiled thinning visits only set cells; it gives skimage's skeleton, cell for cell,
+    on blobs, noise, bands one or two cells wide and every 3 × 3 pattern."""
+    rng = np.random.default_rng(11)
+    masks = _masks(7, 300, (0.2, 0.95))
+    masks += [ndimage.binary_opening(m) for m in masks[:150]]
+    masks += [ndimage.binary_dilation(rng.random((40, 50)) < 0.02, iterations=int(k))
+              for k in rng.integers(1, 4, 60)]
+    masks += [np.array([(code >> k) & 1 for k in range(9)], bool).reshape(3, 3)
+              for code in range(512)]
+    thinned = 0
+    for m in masks:
+        want = np.asarray(skeletonize(m), bool)
+        np.testing.assert_array_equal(thin(np.ascontiguousarray(m), REMOVAL), want)
+        thinned += int(want.sum() < m.sum())
+    assert thinned > 300
 
 
 def test_dijkstra_trace_as_mcp_traceback() -> None:

@@ -18,9 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from skimage.morphology import skeletonize
 
-from server.exploration.skeleton_kernel import ridge_cells
+from server.exploration.skeleton_kernel import REMOVAL, ridge_cells, thin
 from server.planning.edt_kernel import edt_with_indices
 from server.planning.grid import EIGHT_CONNECTED
 
@@ -54,7 +53,7 @@ def voronoi_skeleton(space: NDArray[np.bool_], *, min_separation_cells: float,
     ridge_cells(np.ascontiguousarray(space), np.ascontiguousarray(nearest_boundary[0]),
                 np.ascontiguousarray(nearest_boundary[1]),
                 float(min_separation_cells * min_separation_cells), ridge)
-    return np.asarray(skeletonize(ridge), dtype=bool)
+    return thin(ridge, REMOVAL)
 
 
 @dataclass(frozen=True, eq=False)
