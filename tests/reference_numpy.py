@@ -1,6 +1,6 @@
 """The numpy loops that compiled ones replaced, kept as the references their results are
-checked against: ICP (``tests/test_slam_icp.py``) and a scan's normals
-(``tests/test_slam_scan.py``)."""
+checked against: ICP and a scan's normals (``tests/test_slam_icp.py``), and a scan's points
+(``tests/test_slam_scan_points.py``)."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from scipy.spatial import cKDTree
 
 from schemas.se2 import wrap_angle
 from server.slam.icp import IcpParams, MatchResult, PointMap, _solve3, translation_degeneracy
+from server.slam.scan import ScanPoints, field_of_view, line_normals, thin_by_spacing, valid_returns
 
 F64 = NDArray[np.float64]
 
@@ -184,3 +185,25 @@ def reference_line_normals(points: F64, window: int, max_gap_m: F64 | float,
     out[good, 0] = np.where(flip, -nx, nx)[good]
     out[good, 1] = np.where(flip, -ny, ny)[good]
     return out
+
+
+def reference_scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float,
+                             max_range_m: float, normal_window: int = 2,
+                             normal_max_gap_m: float = 0.3, min_spacing_m: float = 0.0,
+                             no_return_free_m: float = 0.0) -> ScanPoints:
+    """``server.slam.scan.scan_to_points`` as numpy steps, before its compiled pass."""
+    r, a = valid_returns(ranges_m, angles_rad, min_range_m, max_range_m)
+    misses = np.zeros((0, 2))
+    if no_return_free_m > 0:
+        ra = np.asarray(ranges_m, dtype=np.float64)
+        aa = np.asarray(angles_rad, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            none = np.isfinite(aa) & ((ra == np.inf) | (np.isfinite(ra) & (ra >= max_range_m)))
+        am = aa[none]
+        misses = no_return_free_m * np.stack([np.cos(am), np.sin(am)], axis=1)
+    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    beam_step = abs(float(a[-1] - a[0])) / (len(a) - 1) if len(a) > 1 else 0.0
+    gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
+    keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
+    normals = line_normals(pts, normal_window, gap, keep)
+    return ScanPoints(pts[keep], normals, r[keep], pts, misses, *field_of_view(angles_rad))

@@ -159,23 +159,109 @@ def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range
     With ``no_return_free_m`` > 0, beams without a return (+inf, or at/after ``max_range_m``)
     give ``misses`` at that range: the sensor would have seen anything closer. NaN and
     readings below ``min_range_m`` say nothing and give neither.
+
+    The beams' cosines and sines are numpy's; the rest is one compiled pass
+    (``_scan_kernel``) in the arithmetic and order of the numpy steps it replaced (the
+    returns, the gap allowed between neighbours, ``thin_by_spacing``, the field of view), so
+    the points, normals and misses are the same to the bit (``tests/test_slam_scan.py``).
     """
-    r, a = valid_returns(ranges_m, angles_rad, min_range_m, max_range_m)
-    misses = np.zeros((0, 2))
-    if no_return_free_m > 0:
-        ra = np.asarray(ranges_m, dtype=np.float64)
-        aa = np.asarray(angles_rad, dtype=np.float64)
-        with np.errstate(invalid="ignore"):
-            none = np.isfinite(aa) & ((ra == np.inf) | (np.isfinite(ra) & (ra >= max_range_m)))
-        am = aa[none]
-        misses = no_return_free_m * np.stack([np.cos(am), np.sin(am)], axis=1)
-    pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    r = np.ascontiguousarray(ranges_m, dtype=np.float64)
+    a = np.ascontiguousarray(angles_rad, dtype=np.float64)
+    if r.shape != a.shape or r.ndim != 1:
+        raise ScanError(f"ranges {r.shape} and angles {a.shape} must be equal 1-D arrays")
+    with np.errstate(invalid="ignore"):
+        cos, sin = np.cos(a), np.sin(a)
+    pts, rv, gap, keep, misses, fov, heading = _scan_kernel(
+        r, a, cos, sin, float(min_range_m), float(max_range_m), float(no_return_free_m),
+        float(min_spacing_m), int(normal_window), float(normal_max_gap_m))
+    normals = _normals(pts, int(normal_window), gap, keep)
+    return ScanPoints(pts[keep], normals, rv[keep], pts, misses, fov, heading)
+
+
+@njit_cached
+def _scan_kernel(r: F64, a: F64, cos: F64, sin: F64, min_range: float, max_range: float,
+                 free_m: float, spacing: float, window: int, max_gap: float
+                 ) -> tuple[F64, F64, F64, NDArray[np.int64], F64, float, float]:
+    """The returns' points and ranges, the gap allowed at each, the indices kept at
+    ``spacing``, the misses at ``free_m``, and the field of view with its middle."""
+    N = len(r)
+    n = 0
+    k = 0
+    for i in range(N):
+        if not math.isfinite(a[i]):
+            continue
+        ri = r[i]
+        if math.isfinite(ri) and ri >= min_range and ri < max_range:
+            n += 1
+        elif free_m > 0 and (ri == math.inf or (math.isfinite(ri) and ri >= max_range)):
+            k += 1
+    pts = np.empty((n, 2))
+    rv = np.empty(n)
+    first, last = 0.0, 0.0
+    misses = np.empty((k, 2))
+    n = 0
+    k = 0
+    finite = 0
+    for i in range(N):
+        if not math.isfinite(a[i]):
+            continue
+        if finite == 0:
+            first = a[i]
+        last = a[i]
+        finite += 1
+        ri = r[i]
+        if math.isfinite(ri) and ri >= min_range and ri < max_range:
+            rv[n] = ri
+            pts[n, 0], pts[n, 1] = ri * cos[i], ri * sin[i]
+            n += 1
+        elif free_m > 0 and (ri == math.inf or (math.isfinite(ri) and ri >= max_range)):
+            misses[k, 0], misses[k, 1] = free_m * cos[i], free_m * sin[i]
+            k += 1
     # the gap allowed between neighbours grows with range, as the beams spread apart
-    beam_step = abs(float(a[-1] - a[0])) / (len(a) - 1) if len(a) > 1 else 0.0
-    gap = np.maximum(normal_max_gap_m, 2.5 * normal_window * beam_step * r)
-    keep = np.flatnonzero(thin_by_spacing(pts, min_spacing_m))
-    normals = line_normals(pts, normal_window, gap, keep)
-    return ScanPoints(pts[keep], normals, r[keep], pts, misses, *field_of_view(angles_rad))
+    step = 0.0
+    if n > 1:
+        first_r, last_r = -1, -1
+        for i in range(N):
+            ri = r[i]
+            if math.isfinite(a[i]) and math.isfinite(ri) and ri >= min_range and ri < max_range:
+                if first_r < 0:
+                    first_r = i
+                last_r = i
+        step = abs(a[last_r] - a[first_r]) / (n - 1)
+    grow = 2.5 * window * step
+    gap = np.empty(n)
+    for i in range(n):
+        g = grow * rv[i]
+        gap[i] = g if g > max_gap else max_gap
+    # thin_by_spacing's bins: a point is kept where the path length along the scan (each
+    # step at most ``spacing``) crosses a multiple of ``spacing``
+    keep = np.empty(n, np.int64)
+    m = 0
+    if n > 0 and spacing > 0:
+        keep[0] = 0
+        m = 1
+        s = 0.0
+        prev = 0.0
+        for i in range(1, n):
+            d = math.hypot(pts[i, 0] - pts[i - 1, 0], pts[i, 1] - pts[i - 1, 1])
+            s += d if d < spacing else spacing
+            b = math.floor(s / spacing)
+            if b != prev:
+                keep[m] = i
+                m += 1
+            prev = b
+    else:
+        for i in range(n):
+            keep[i] = i
+        m = n
+    fov, heading = 0.0, 0.0
+    if finite >= 2:
+        inc = abs(last - first) / (finite - 1)
+        fov = min(abs(last - first) + inc, 2 * math.pi)
+        heading = 0.5 * (first + last)
+    elif finite == 1:
+        heading = first
+    return pts, rv, gap, keep[:m], misses, fov, heading
 
 
 def field_of_view(angles_rad: F64) -> tuple[float, float]:
