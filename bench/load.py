@@ -15,6 +15,9 @@ tracks. After ``--warmup-s`` the bench measures for ``--window-s``:
   in the run (its ``summary.json``); both are reported;
 - ``server_cpu_cores``: utime+stime of the server and its descendants over the window, per wall
   second; ``server_rss_mb`` (VmRSS at the window's end, the whole process tree) and its peak;
+- ``server_cpu_ms_per_scan``: that CPU per scan received (issue 45's measure), and
+  ``server_cpu_split_cores``: the server's busiest thread (the worker handling the scans), its
+  other threads (Zenoh's, the writer's) and its child processes (planners, map matching);
 - the generators' own rate: a run whose slowest robot sent below 95 % of the rate is invalid.
 
 With ``--workers K`` the server is split over K worker processes (``server.runtime.cluster``):
@@ -106,6 +109,38 @@ def tree_cpu_s(pid: int) -> float:
     return total
 
 
+def threads_cpu_s(pid: int) -> dict[int, float]:
+    """utime+stime of each thread of ``pid`` (by thread id)."""
+    out: dict[int, float] = {}
+    try:
+        tids = [int(t.name) for t in Path(f"/proc/{pid}/task").iterdir()]
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            text = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        except OSError:
+            continue
+        f = text[text.rindex(")") + 2:].split()
+        out[tid] = (int(f[11]) + int(f[12])) / _TICK
+    return out
+
+
+def cpu_split(pids: list[int], before: dict[tuple[int, int], float],
+              after: dict[tuple[int, int], float], tree: float, wall: float
+              ) -> dict[str, float]:
+    """Where the servers' CPU went over the window, in cores: each server's busiest thread
+    (the worker that handles the scans), its other threads (Zenoh's, the writer's), and its
+    child processes (the planners, map matching, snapshots)."""
+    per = {k: v - before.get(k, 0.0) for k, v in after.items()}
+    busiest = sum(max((v for (p, _), v in per.items() if p == pid), default=0.0)
+                  for pid in pids)
+    own = sum(per.values())
+    return {"busiest_thread": round(busiest / wall, 3),
+            "other_threads": round((own - busiest) / wall, 3),
+            "child_processes": round(max(0.0, tree - own) / wall, 3)}
+
+
 def machine_busy_s() -> float:
     """CPU seconds the whole machine spent busy (all cores; /proc/stat)."""
     f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:8]]
@@ -186,12 +221,18 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
         def rss() -> float:
             return sum(tree_rss_mb(p) for p in pids)
 
+        def threads() -> dict[tuple[int, int], float]:
+            return {(p, t): v for p in pids for t, v in threads_cpu_s(p).items()}
+
+        th0 = threads()
         cpu0, busy0, w0 = cpu_s(), machine_busy_s(), time.monotonic()
         while time.monotonic() < t_end:
             rss_peak = max(rss_peak, rss())
             time.sleep(min(0.5, max(0.0, t_end - time.monotonic())))
         wall = time.monotonic() - w0
-        cpu = (cpu_s() - cpu0) / wall
+        cpu_tree = cpu_s() - cpu0
+        split = cpu_split(pids, th0, threads(), cpu_tree, wall)
+        cpu = cpu_tree / wall
         busy = (machine_busy_s() - busy0) / wall
         rss_end = rss()
         rss_peak = max(rss_peak, rss_end)
@@ -219,6 +260,9 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
                            **{k: c.get(k, 0) for k in ("claimed", "asked", "given",
                                                        "conflicts_lost")}}
                           for w, c in enumerate(sm.get("cluster") or {} for sm in summaries)]
+    # the goal's measure: the server's CPU per scan, and where it went
+    run["server_cpu_ms_per_scan"] = round(cpu / (n * args.rate_hz) * 1e3, 3)
+    run["server_cpu_split_cores"] = split
     # everything else on the machine meanwhile (other users' work competes for the cores)
     run["machine_busy_cores"] = round(busy, 3)
     run["git_commit"] = git_state()["commit"]   # others commit while the series runs
