@@ -170,6 +170,7 @@ def test_kernels_compiled_apart_are_loaded_from_the_cache(tmp_path: Path,
     then loads it from numba's cache (a hit, no compiling). numba reads ``NUMBA_CACHE_DIR``
     once, at its start: the child inherits this process's."""
     import importlib
+    import os
 
     from server.offline.lean_numba import compile_apart, kernels_cached
 
@@ -187,5 +188,13 @@ def test_kernels_compiled_apart_are_loaded_from_the_cache(tmp_path: Path,
     assert mod.twice(2.5) == 5.0
     # cached: no child at all (one importing this module would fail)
     assert compile_apart("apartpkg.nothing_to_import", pkg)
+    # dated later, the same text (a branch switched and back): numba's index still holds, a
+    # child loads it once, and the indexes are dated after the source again
+    t = (pkg / "kern.py").stat().st_mtime - 10
+    for index in (pkg / "__pycache__").glob("kern.*.nbi"):
+        os.utime(index, (t, t))
+    assert kernels_cached(pkg) is False
+    assert compile_apart("apartpkg.kern", pkg, timeout_s=300)
+    assert kernels_cached(pkg) is True
     (pkg / "kern.py").write_text(KERNEL + "\n")                 # changed: stale, a child runs
     assert not compile_apart("apartpkg.nothing_to_import", pkg)

@@ -91,7 +91,26 @@ def compile_apart(module: str = "server.slam", folder: Path = SLAM,
                     "instead", res.returncode, res.stderr.strip()[-300:])
         return False
     log.info("SLAM kernels compiled into numba's cache in %.1f s", time.perf_counter() - t0)
+    _mark_fresh(folder)
     return True
+
+
+def _mark_fresh(folder: Path) -> None:
+    """Date the cache's indexes of ``folder``'s modules now, after a child has loaded or
+    compiled every kernel. numba judges an index by its module's content, ``kernels_cached``
+    by dates: a source whose date changed but not its text (a branch switched and back, a
+    file touched) keeps numba's index as it was, and without this every later start would
+    run the child again."""
+    tag = f".py{sys.version_info.major}{sys.version_info.minor}.nbi"
+    for d in _cache_dirs(folder) or []:
+        if not d.is_dir():
+            continue
+        for src in folder.glob("*.py"):
+            for f in d.rglob(f"{src.stem}.*{tag}"):
+                try:
+                    os.utime(f)
+                except OSError as e:   # the next start runs the child again: only slower
+                    log.info("could not date %s (%s)", f, e)
 
 
 if skip_scipy_blas():
