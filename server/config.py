@@ -328,7 +328,8 @@ class ServerConfig(ConfigModel):
     outputs_period_s: float = Field(10.0, gt=0.0, description="maps, trajectories and the "
                                     "summary are rewritten this often while running (wall "
                                     "time; each file replaced whole), so a crash leaves the "
-                                    "last good set")
+                                    "last good set; less often once a round would take more "
+                                    "than 4 % of a core (a long mission's trajectories)")
 
     @model_validator(mode="before")
     @classmethod

@@ -41,6 +41,7 @@ from server.runtime.inbox import NEWCOMER, TRUSTED, Inbox
 from server.runtime.journal import JournalWriter
 from server.runtime.keeper import StateKeeper
 from server.runtime.lockstep import StepBarrier
+from server.runtime.outputs import OutputPacer
 from server.runtime.planner_pool import Pools
 from server.runtime.publish import Publisher
 from server.runtime.registry import AdmissionPolicy, Refused, RobotRegistry
@@ -65,7 +66,8 @@ class ServerNode:
                  outputs: Callable[[ServerNode], Callable[[], None] | None] | None = None
                  ) -> None:
         """``journal``: where every processed message is appended first; ``outputs``: called
-        by the worker every ``outputs_period_s`` (and nowhere else touches the core) to
+        by the worker every ``outputs_period_s``, or less often where that would take more than
+        4 % of a core (``OutputPacer``; nowhere else touches the core), to
         gather what to write; the writing it returns runs on the writer thread."""
         self.bus = bus
         self.cfg = cfg
@@ -267,6 +269,7 @@ class ServerNode:
     def _work(self) -> None:
         next_forget = 0.0
         next_outputs = time.monotonic() + self.cfg.outputs_period_s
+        pacer = OutputPacer(self.cfg.outputs_period_s)
         next_snapshot = time.monotonic() + self.cfg.snapshot_period_s
         while not self._stop.is_set():
             for item in self._next(0.1):
@@ -288,9 +291,10 @@ class ServerNode:
                     next_snapshot = time.monotonic() + self.journal.snapshot_interval_s(
                         now, self.cfg.snapshot_period_s)
                 self.guarded("keeping the state", self.journal.maintain, self.core, self._writer)
-            if self.outputs is not None and now >= next_outputs:
-                next_outputs = now + self.cfg.outputs_period_s
-                self.guarded("gathering the outputs", self._outputs)
+            if self.outputs is not None and now >= next_outputs \
+                    and not self._writer.busy("outputs"):
+                self.guarded("gathering the outputs", self._outputs, pacer)
+                next_outputs = now + pacer.next_in()
             if now >= next_forget:
                 next_forget = now + 1.0
                 if self.cluster is not None:
@@ -306,11 +310,13 @@ class ServerNode:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
 
-    def _outputs(self) -> None:
+    def _outputs(self, pacer: OutputPacer) -> None:
         assert self.outputs is not None
+        t0 = time.thread_time()
         job = self.outputs(self)      # gathered here; written by the writer thread
+        pacer.gather_cpu_s = time.thread_time() - t0
         if job is not None:
-            self._writer.submit("outputs", job)
+            self._writer.submit("outputs", pacer.timed_write(job))
 
     def health(self) -> dict[str, Any]:
         """For the console (any thread): per robot the scans accepted and dropped, the

@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,38 @@ from schemas.se2 import wrap_angle
 from server.core import ServerCore
 from server.planning import OccupancyGrid as PlanningGrid
 from server.slam.export import write_ply
+
+#: the share of one core that rewriting the outputs may take
+OUTPUTS_CPU_SHARE = 0.04
+
+
+class OutputPacer:
+    """When the next outputs are due: every ``period_s``, or less often once a round (the
+    gathering on the worker and the writing on the writer thread) costs more than
+    ``OUTPUTS_CPU_SHARE`` of a core over its interval. The trajectories hold every scan's pose
+    and are written whole, so a round grows with the mission: about 0.4 s of CPU per robot
+    and hour of scans at 10 Hz (0.16 s for the CSV, 0.22 s for the TUM file of 36,000 poses),
+    twice (online and final). Twenty robots after an hour would otherwise spend 15 s of CPU
+    every 10 s on it; paced, they write every 6 minutes or so, and always at the end."""
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+        self.gather_cpu_s = 0.0     # the last round's, on the worker
+        self.write_cpu_s = 0.0      # the last round's, on the writer thread
+
+    def next_in(self) -> float:
+        """Seconds to the next round, from the last one's start."""
+        return max(self.period_s, (self.gather_cpu_s + self.write_cpu_s) / OUTPUTS_CPU_SHARE)
+
+    def timed_write(self, write: Callable[[], None]) -> Callable[[], None]:
+        """``write``, its thread's CPU time kept as the round's writing cost."""
+        def job() -> None:
+            t0 = time.thread_time()
+            try:
+                write()
+            finally:
+                self.write_cpu_s = time.thread_time() - t0
+        return job
 
 
 @contextmanager
