@@ -18,7 +18,7 @@ def _outputs(robots: int, poses: int) -> Outputs:
     grid = PlanningGrid(np.zeros((20, 20), np.int8), 0.05, (0.0, 0.0))
     trajectories = {f"r{i}_{kind}": (stamps, rng.normal(size=(poses, 3)))
                     for i in range(robots) for kind in ("online", "final")}
-    return Outputs({"t1": grid}, {"t1": rng.normal(size=(10, 2))}, trajectories,
+    return Outputs({"t1": grid}, {"t1": lambda: rng.normal(size=(10, 2))}, trajectories,
                    {"robots": {}})
 
 

@@ -7,6 +7,7 @@ leaves the previous good file, never half of one.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -25,6 +26,8 @@ from schemas.se2 import wrap_angle
 from server.core import ServerCore
 from server.planning import OccupancyGrid as PlanningGrid
 from server.slam.export import write_ply
+from server.slam.keyframes import Keyframe
+from server.slam.mapping import point_cloud
 
 #: the share of one core that rewriting the outputs may take
 OUTPUTS_CPU_SHARE = 0.04
@@ -113,7 +116,10 @@ class Outputs:
     them while the core goes on)."""
 
     grids: dict[str, PlanningGrid]
-    clouds: dict[str, NDArray[np.float64]]
+    #: each team's point cloud, made when written: a long mission's keyframes hold millions of
+    #: returns, and thinning them took the worker seconds (it holds the keyframes as they were
+    #: and copies of their poses; keyframe scans never change)
+    clouds: dict[str, Callable[[], NDArray[np.float64]]]
     trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]]
     summary: dict[str, Any]
 
@@ -125,7 +131,7 @@ class Outputs:
             tdir = out_dir / "maps" / team_id
             write_nav2_grid(grid, tdir)
             with replaced(tdir / "points.ply") as tmp:
-                write_ply(tmp, self.clouds[team_id])
+                write_ply(tmp, self.clouds[team_id]())
         for team_id in self.summary.get("merged_teams", {}):
             if team_id not in self.grids:   # its last map, in a team frame that is gone
                 shutil.rmtree(out_dir / "maps" / team_id, ignore_errors=True)
@@ -138,6 +144,12 @@ class Outputs:
         return path
 
 
+def _cloud(parts: list[tuple[tuple[Keyframe, ...], NDArray[np.float64]]]
+           ) -> NDArray[np.float64]:
+    """A team's point cloud from its robots' keyframes and their poses."""
+    return np.concatenate([point_cloud(kfs, poses) for kfs, poses in parts])
+
+
 def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None = None) -> Path:
     """Write everything under ``out_dir``; returns the summary's path."""
     return collect_outputs(core, extra).write(out_dir)
@@ -146,11 +158,12 @@ def write_outputs(core: ServerCore, out_dir: Path, extra: dict[str, Any] | None 
 def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Outputs:
     """Team maps and point clouds, trajectories and the summary, as of now."""
     grids: dict[str, PlanningGrid] = {}
-    clouds: dict[str, NDArray[np.float64]] = {}
+    clouds: dict[str, Callable[[], NDArray[np.float64]]] = {}
     for team in core.teams.values():
         grids[team.team_id] = core.planning_grid(team.team_id)
-        clouds[team.team_id] = np.concatenate(
-            [core.robots[r].slam.point_cloud() for r in team.robot_ids])
+        clouds[team.team_id] = functools.partial(_cloud, [
+            (tuple(core.robots[r].slam.keyframes), core.robots[r].slam.keyframe_poses().copy())
+            for r in team.robot_ids])
     trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]] = {}
     robots: dict[str, Any] = {}
     for rid, r in core.robots.items():

@@ -122,7 +122,12 @@ def point_cloud_parts(keyframes: Sequence[Keyframe], poses: F64, voxel_m: float 
         key = voxel_keys(pts, voxel_m)
         _, first = np.unique(key, return_index=True)
         first.sort()
-        new = ~np.isin(key[first], seen, assume_unique=True)
+        k = key[first]
+        # looked up in the sorted cells by bisection, and merged into them: a stable sort of
+        # two sorted runs is one merge (timsort), where a union or ``isin`` would sort all of
+        # the cells again for every chunk (a long run's million cells, hundreds of times)
+        at = np.minimum(np.searchsorted(seen, k), max(len(seen) - 1, 0))
+        new = ~(seen[at] == k) if len(seen) else np.ones(len(k), dtype=bool)
         parts.append(pts[first[new]])
-        seen = np.union1d(seen, key[first[new]])
+        seen = np.sort(np.concatenate([seen, np.sort(k[new])]), kind="stable")
     return parts
