@@ -21,6 +21,14 @@ WALL_CLOCK = {"wall_time_s", "decision_ms_median", "map_query_ms_median", "bytes
               "sim_time_s", "exit_codes", "figures", "world"}
 
 
+#: counters the server keeps counting until its process stops, a little after the finish: the
+#: steps run meanwhile follow the machine's timing (case 2 seed 0, four runs: 75.1, 75.4, 75.5
+#: and 75.6 s of simulated time at the end gave 109, 115, 115 and 118 tag sightings, all
+#: finishing at 74.0 s). Their differences are listed apart and count against ``identical``
+#: only where both runs ended at the same simulated time.
+AFTER_FINISH = {"tag_counters"}
+
+
 def differences(a: Any, b: Any, path: str = "") -> list[dict[str, Any]]:
     """The leaves where ``a`` and ``b`` differ (lists of unequal length count as one)."""
     if isinstance(a, dict) and isinstance(b, dict):
@@ -41,9 +49,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("b", type=Path)
     args = ap.parse_args(argv)
     a, b = (json.loads(p.read_text()) for p in (args.a, args.b))
-    diffs = differences(a, b)
+    found = differences(a, b)
+    late = [d for d in found if d["field"].split(".")[1].split("[")[0] in AFTER_FINISH]
+    if a.get("sim_time_s") == b.get("sim_time_s"):
+        late = []
+    diffs = [d for d in found if d not in late]
     json.dump({"a": str(args.a), "b": str(args.b), "identical": not diffs,
-               "differences": diffs}, sys.stdout, indent=1, default=str)
+               "differences": diffs, "counted_after_the_finish": late,
+               "sim_time_s": [a.get("sim_time_s"), b.get("sim_time_s")]},
+              sys.stdout, indent=1, default=str)
     print()
     return 0
 
