@@ -311,6 +311,20 @@ def start_servers(folder: Path, config: dict[str, Any], workers: int) -> list[Se
     return out
 
 
+def slow_moments(gens: list[dict[str, Any]], limit_ms: float = P99_LIMIT_MS,
+                 bin_s: float = 0.5) -> list[list[float]]:
+    """The moments (s into the window, by ``bin_s``) when answers took over ``limit_ms``:
+    how many scans each, and the slowest; the ten slowest moments, in time order. A pause of
+    the server's own (a snapshot, the outputs, a decision) holds every robot at once."""
+    bins: dict[float, list[float]] = {}
+    for g in gens:
+        for t, ms in g.get("slowest", []):
+            if ms > limit_ms:
+                bins.setdefault(round(t // bin_s * bin_s, 2), []).append(ms)
+    worst = sorted(bins.items(), key=lambda kv: -max(kv[1]))[:10]
+    return [[t, len(v), max(v)] for t, v in sorted(worst)]
+
+
 def summarise(n: int, n_procs: int, gens: list[dict[str, Any]], cpu: float, rss_end: float,
               rss_peak: float, summary: dict[str, Any], code: int,
               args: argparse.Namespace) -> dict[str, Any]:
@@ -343,6 +357,7 @@ def summarise(n: int, n_procs: int, gens: list[dict[str, Any]], cpu: float, rss_
         "unanswered_fraction": round(own, 4),
         "server_dropped_scans": dropped, "server_accepted_scans": accepted,
         "server_dropped_fraction": None if server_frac is None else round(server_frac, 4),
+        "slow_moments": slow_moments(gens),
         "server_errors": summary.get("errors"),
         "server_refused": summary.get("admission", {}).get("refused"),
         "server_exit_code": code,

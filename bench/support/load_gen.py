@@ -202,6 +202,7 @@ def run_generator(spec: dict[str, Any], timing_line: Any, emit: Any) -> dict[str
             raise RuntimeError("nobody subscribes to the robots' scans")
         emit({"ready": True})
         timing = timing_line()
+        measure_ns = time.time_ns() + int((timing["t_measure"] - time.monotonic()) * 1e9)
         cpu0 = time.process_time()
         sent, lateness = _send_loop(bus, robots, tracks, 1.0 / float(spec["rate_hz"]),
                                     timing["t_start"], timing["t_measure"], timing["t_end"],
@@ -223,6 +224,10 @@ def run_generator(spec: dict[str, Any], timing_line: Any, emit: Any) -> dict[str
                 "unanswered": len(pending),
                 "answered_late": len(late),
                 "latencies_ms": [round(v * 1e3, 3) for v in answered.values()],
+                # the slowest answers, each with when its scan was sent (s into the window):
+                # a server's slow moments line up across robots
+                "slowest": [[round((k[1] - measure_ns) * 1e-9, 3), round(v * 1e3, 1)]
+                            for k, v in sorted(answered.items(), key=lambda kv: -kv[1])[:100]],
                 "commands": counts["commands"], "unmatched_commands": counts["unmatched"],
             }
         window = timing["t_end"] - timing["t_measure"]
