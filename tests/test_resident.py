@@ -198,3 +198,17 @@ def test_kernels_compiled_apart_are_loaded_from_the_cache(tmp_path: Path,
     assert kernels_cached(pkg) is True
     (pkg / "kern.py").write_text(KERNEL + "\n")                 # changed: stale, a child runs
     assert not compile_apart("apartpkg.nothing_to_import", pkg)
+
+
+@pytest.mark.e2e
+def test_the_slam_kernels_compile_in_bare_children(tmp_path: Path,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """The children that fill an empty cache import only ``KERNEL_GROUPS``' modules of
+    ``server.slam`` (no GTSAM, no back-end), and between them compile every kernel of it:
+    afterwards the cache holds a fresh index for each, so ``slam-log`` compiles nothing."""
+    from server.offline.lean_numba import KERNEL_GROUPS, SLAM, compile_apart, kernels_cached
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert kernels_cached(SLAM) is False
+    assert compile_apart(groups=KERNEL_GROUPS, timeout_s=600)
+    assert kernels_cached(SLAM) is True

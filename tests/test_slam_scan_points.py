@@ -54,3 +54,20 @@ def test_compiled_scan_points_are_the_numpy_ones(seed: int) -> None:
 def test_ranges_and_angles_of_different_shapes_are_refused() -> None:
     with pytest.raises(ScanError, match="equal 1-D arrays"):
         scan_to_points(np.ones(10), np.zeros(9), 0.05, 40.0)
+
+
+def test_read_only_inputs_use_the_kernel_compiled_at_import() -> None:
+    """A wire message's ranges and a shared angle table are read-only arrays, which numba
+    types apart: they must not compile another variant of the kernel on a first scan (seconds
+    in a scan's time, and the compiler's memory in ``slam-log``)."""
+    from server.slam.scan import _scan_kernel
+
+    before = len(_scan_kernel.signatures)
+    a = np.linspace(-np.pi, np.pi, 360, endpoint=False)
+    r = np.frombuffer((np.full(360, 2.5)).tobytes())           # read-only, as from bytes
+    a_ro = a.copy()
+    a_ro.setflags(write=False)
+    got = scan_to_points(r, a_ro, 0.1, 10.0, min_spacing_m=0.05)
+    want = scan_to_points(r.copy(), a, 0.1, 10.0, min_spacing_m=0.05)
+    assert len(_scan_kernel.signatures) == before == 1
+    assert np.array_equal(got.points, want.points) and len(got.points) > 100

@@ -19,11 +19,14 @@ to about 215 MB (243 MB at the peak of a short log). The child's own peak is abo
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import subprocess
 import sys
 import time
+import types
+from collections.abc import Sequence
 from pathlib import Path
 
 from server.jit import skip_scipy_blas
@@ -33,6 +36,10 @@ log = logging.getLogger(__name__)
 
 SLAM = Path(__file__).resolve().parent.parent / "slam"
 _CHILD = "MRSLAM_COMPILING_KERNELS"
+# the modules of ``server.slam`` whose import compiles its kernels (a warm-up at the end of
+# each), in the children that compile them: the matcher's apart, since compiling it alone
+# raises a child's peak by about 80 MB
+KERNEL_GROUPS: tuple[tuple[str, ...], ...] = (("icp",), ("scan", "grid", "loop_kernel"))
 
 
 def _cache_dirs(folder: Path) -> list[Path] | None:
@@ -67,20 +74,46 @@ def kernels_cached(folder: Path = SLAM) -> bool | None:
     return True
 
 
+def import_bare(package: str, folder: Path, modules: Sequence[str]) -> None:
+    """Import ``modules`` of ``package`` (found in ``folder``) without running the package's
+    ``__init__``, which would import all the rest (for ``server.slam``: GTSAM and the
+    back-end, about 90 MB that compiling the kernels does not need)."""
+    if package not in sys.modules:
+        pkg = types.ModuleType(package)
+        pkg.__path__ = [str(folder)]
+        sys.modules[package] = pkg
+    for m in modules:
+        importlib.import_module(f"{package}.{m}")
+
+
 def compile_apart(module: str = "server.slam", folder: Path = SLAM,
-                  timeout_s: float = 900.0) -> bool:
-    """Compile the kernels of ``module`` (those of ``folder``) into numba's cache in a child
-    process that imports it, its start taken in steps as here (its peak: 218 MB for
-    ``server.slam``, against 281 MB for the bare import). Nothing is done in such a child
+                  timeout_s: float = 900.0,
+                  groups: Sequence[Sequence[str]] | None = None) -> bool:
+    """Compile the kernels of ``module`` (those of ``folder``) into numba's cache in child
+    processes, their start taken in steps as here. With ``groups``, one child per group
+    imports only those modules of the package (``import_bare``), whose imports compile their
+    kernels; without, one child imports ``module`` whole. Nothing is done in such a child
     itself, where the cache holds the kernels already, or where it is not looked for. False
-    if the child failed: this process then compiles them at the import, as before (logged)."""
+    if a child failed: this process then compiles the rest at the import, as before
+    (logged)."""
     if os.environ.get(_CHILD) or kernels_cached(folder) is not False:
         return True
     t0 = time.perf_counter()
     env = {**os.environ, _CHILD: "1",
            "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    codes = ([f"import server.offline.lean_numba as L; L.import_bare({module!r}, "
+              f"L.Path({str(folder)!r}), {list(g)!r})" for g in groups] if groups
+             else [f"import server.offline.lean_numba, {module}"])
+    for code in codes:
+        if not _run_child(code, env, timeout_s):
+            return False
+    log.info("SLAM kernels compiled into numba's cache in %.1f s", time.perf_counter() - t0)
+    _mark_fresh(folder)
+    return True
+
+
+def _run_child(code: str, env: dict[str, str], timeout_s: float) -> bool:
     try:
-        code = f"import server.offline.lean_numba, {module}"
         res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                              text=True, timeout=timeout_s, check=False)
     except (OSError, subprocess.SubprocessError) as e:
@@ -90,8 +123,6 @@ def compile_apart(module: str = "server.slam", folder: Path = SLAM,
         log.warning("compiling the SLAM kernels apart failed (exit %d: %s): compiled here "
                     "instead", res.returncode, res.stderr.strip()[-300:])
         return False
-    log.info("SLAM kernels compiled into numba's cache in %.1f s", time.perf_counter() - t0)
-    _mark_fresh(folder)
     return True
 
 
@@ -119,7 +150,8 @@ if skip_scipy_blas():
 
     cpu_target.typing_context.refresh()   # done by the first kernel's load otherwise
     release_file_pages()
-    import gtsam  # noqa: F401  (imported by server.slam's back-end)
+    if not os.environ.get(_CHILD):     # a child that compiles imports no back-end
+        import gtsam  # noqa: F401  (imported by server.slam's back-end)
 
-    release_file_pages()
-    compile_apart()
+        release_file_pages()
+        compile_apart(groups=KERNEL_GROUPS)

@@ -40,3 +40,8 @@ def relax(arc: F64, source: int, ea: I64, eb: I64, ew: F64) -> F64:
 
 
 relax(np.zeros(2), 0, np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64), np.ones(1))
+
+
+# compiled now, at import, not at the first loop closure (see ``server.slam.icp._warm_up``)
+relax(np.array([0.0, 1.0, 2.0]), 0, np.array([0], dtype=np.int64),
+      np.array([2], dtype=np.int64), np.array([0.5]))

@@ -151,6 +151,13 @@ def thin_by_spacing(points: F64, spacing_m: float) -> NDArray[np.bool_]:
     return keep
 
 
+def _writable(x: F64) -> F64:
+    """``x``, or a copy where it is read-only (a wire message's buffer, a shared angle table):
+    numba types a read-only array apart, and every such variant of ``_scan_kernel`` would be
+    compiled again on its first scan, outside the warm-up at import."""
+    return x if x.flags.writeable else x.copy()
+
+
 def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range_m: float,
                    normal_window: int = 2, normal_max_gap_m: float = 0.3,
                    min_spacing_m: float = 0.0, no_return_free_m: float = 0.0) -> ScanPoints:
@@ -163,10 +170,10 @@ def scan_to_points(ranges_m: F64, angles_rad: F64, min_range_m: float, max_range
     The beams' cosines and sines are numpy's; the rest is one compiled pass
     (``_scan_kernel``) in the arithmetic and order of the numpy steps it replaced (the
     returns, the gap allowed between neighbours, ``thin_by_spacing``, the field of view), so
-    the points, normals and misses are the same to the bit (``tests/test_slam_scan.py``).
+    the points, normals and misses are the same to the bit (``tests/test_slam_scan_points.py``).
     """
-    r = np.ascontiguousarray(ranges_m, dtype=np.float64)
-    a = np.ascontiguousarray(angles_rad, dtype=np.float64)
+    r = _writable(np.ascontiguousarray(ranges_m, dtype=np.float64))
+    a = _writable(np.ascontiguousarray(angles_rad, dtype=np.float64))
     if r.shape != a.shape or r.ndim != 1:
         raise ScanError(f"ranges {r.shape} and angles {a.shape} must be equal 1-D arrays")
     with np.errstate(invalid="ignore"):
@@ -278,3 +285,5 @@ def field_of_view(angles_rad: F64) -> tuple[float, float]:
 
 # compiled now, at import, not on a first scan (see ``server.slam.icp._warm_up``)
 line_normals(np.array([[1.0, -0.2], [1.0, -0.1], [1.0, 0.0], [1.0, 0.1], [1.0, 0.2]]), 2, 0.5)
+scan_to_points(np.array([1.0, np.inf, 2.0]), np.array([-0.1, 0.0, 0.1]), 0.1, 10.0,
+               min_spacing_m=0.05, no_return_free_m=3.0)
