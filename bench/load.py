@@ -207,6 +207,7 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
         t_start = time.monotonic() + 0.5
         t_measure = t_start + args.warmup_s
         t_end = t_measure + args.window_s
+        window_unix = time.time() + (t_measure - time.monotonic())
         for g in gens:
             assert g.stdin is not None
             g.stdin.write(json.dumps({"t_start": t_start, "t_measure": t_measure,
@@ -255,6 +256,9 @@ def run_one(n: int, args: argparse.Namespace, tracks_path: Path, n_tracks: int, 
     summary["errors"] = sum(sm.get("errors") or 0 for sm in summaries)
     code = max(codes, key=abs)
     run = summarise(n, n_procs, results, cpu, rss_end, rss_peak, summary, code, args)
+    # to line up slow_moments with a profile or a log of the server's taken meanwhile
+    run["window_start_unix"] = round(window_unix, 3)
+    run["server_pids"] = pids
     if len(servers) > 1:
         run["workers"] = [{"worker": w, "robots_served": len(c.get("robots_served", [])),
                            **{k: c.get(k, 0) for k in ("claimed", "asked", "given",
