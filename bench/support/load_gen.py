@@ -227,7 +227,7 @@ def run_generator(spec: dict[str, Any], timing_line: Any, emit: Any) -> dict[str
                 # the slowest answers, each with when its scan was sent (s into the window):
                 # a server's slow moments line up across robots
                 "slowest": [[round((k[1] - measure_ns) * 1e-9, 3), round(v * 1e3, 1)]
-                            for k, v in sorted(answered.items(), key=lambda kv: -kv[1])[:100]],
+                            for k, v in sorted(answered.items(), key=lambda kv: -kv[1])[:2000]],
                 "commands": counts["commands"], "unmatched_commands": counts["unmatched"],
             }
         window = timing["t_end"] - timing["t_measure"]

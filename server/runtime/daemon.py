@@ -45,7 +45,7 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
     environment's ``MRSLAM_CONSOLE_TOKEN``, else a new one, logged with the address);
     ``on_console`` is called with it once it is up."""
     from schemas.config_loading import load_config, write_resolved
-    from server.runtime.outputs import collect_outputs, write_outputs
+    from server.runtime.outputs import Pause, collect_outputs, write_outputs
 
     cfg = load_config(ServerConfig, config_path, overrides)
     out = Path(cfg.out) if cfg.out else None
@@ -58,16 +58,16 @@ def run(config_path: str | Path | None = None, overrides: dict[str, Any] | None 
         name="the server")
     t0 = time.monotonic()
 
-    def outputs(node: ServerNode) -> Callable[[], None] | None:
+    def outputs(node: ServerNode) -> Callable[[Pause], None] | None:
         if out is None:
             return None
         gathered = collect_outputs(node.core, {"wall_s": time.monotonic() - t0,
                                                **node.summary(), "resumed": resumed,
                                                "running": True})
 
-        def write() -> None:
+        def write(pause: Pause) -> None:
             assert out is not None
-            gathered.write(out)
+            gathered.write(out, pause)
 
         return write
 

@@ -41,7 +41,7 @@ from server.runtime.inbox import NEWCOMER, TRUSTED, Inbox
 from server.runtime.journal import JournalWriter
 from server.runtime.keeper import StateKeeper
 from server.runtime.lockstep import StepBarrier
-from server.runtime.outputs import OutputPacer
+from server.runtime.outputs import OutputPacer, Pause, Spread
 from server.runtime.planner_pool import Pools
 from server.runtime.publish import Publisher
 from server.runtime.registry import AdmissionPolicy, Refused, RobotRegistry
@@ -63,7 +63,7 @@ log = logging.getLogger(__name__)
 class ServerNode:
     def __init__(self, bus: Bus, cfg: ServerConfig, core: ServerCore | None = None,
                  journal: JournalWriter | None = None,
-                 outputs: Callable[[ServerNode], Callable[[], None] | None] | None = None
+                 outputs: Callable[[ServerNode], Callable[[Pause], None] | None] | None = None
                  ) -> None:
         """``journal``: where every processed message is appended first; ``outputs``: called
         by the worker every ``outputs_period_s``, or less often where that would take more than
@@ -100,6 +100,8 @@ class ServerNode:
         self.pools = Pools(cfg.planner_processes, cfg.teams.map_match, lambda: self._lockstep)
         self.core.use_pools(self.pools.planner, self.pools.matcher)
         self._writer = BackgroundWriter(self._write_failed)
+        self._outputs_writer = BackgroundWriter(self._write_failed, name="server-outputs")
+        self._spread = Spread()
         #: one worker of several (``server.runtime.cluster``), or None: the only server
         self.cluster = None if cfg.cluster.worker is None else Cluster(
             bus, cfg.cluster, self._on_give, self._on_handover)
@@ -292,7 +294,7 @@ class ServerNode:
                         now, self.cfg.snapshot_period_s)
                 self.guarded("keeping the state", self.journal.maintain, self.core, self._writer)
             if self.outputs is not None and now >= next_outputs \
-                    and not self._writer.busy("outputs"):
+                    and not self._outputs_writer.busy("outputs"):
                 self.guarded("gathering the outputs", self._outputs, pacer)
                 next_outputs = now + pacer.next_in()
             if now >= next_forget:
@@ -313,10 +315,17 @@ class ServerNode:
     def _outputs(self, pacer: OutputPacer) -> None:
         assert self.outputs is not None
         t0 = time.thread_time()
-        job = self.outputs(self)      # gathered here; written by the writer thread
+        job = self.outputs(self)      # gathered here; written by the outputs' thread
         pacer.gather_cpu_s = time.thread_time() - t0
-        if job is not None:
-            self._writer.submit("outputs", pacer.timed_write(job))
+        if job is None:
+            return
+        write = job
+
+        def spread() -> None:
+            self._spread.begin()
+            write(self._spread)
+
+        self._outputs_writer.submit("outputs", pacer.timed_write(spread))
 
     def health(self) -> dict[str, Any]:
         """For the console (any thread): per robot the scans accepted and dropped, the
@@ -391,6 +400,8 @@ class ServerNode:
         if self._worker.is_alive():
             self._worker.join(timeout=10)
         self.pools.stop()   # killed, not waited for: no job holds the stop up
+        self._spread.stop()   # a round being written goes on without its pauses
+        self._outputs_writer.close()
         self._writer.close()
         if self.journal is not None:
             self.guarded("closing the journal", self.journal.close)

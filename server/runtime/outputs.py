@@ -11,6 +11,7 @@ import functools
 import json
 import os
 import shutil
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -31,6 +32,46 @@ from server.slam.mapping import point_cloud
 
 #: the share of one core that rewriting the outputs may take
 OUTPUTS_CPU_SHARE = 0.04
+#: while a round is written, the share of its wall time the outputs' thread may be busy
+OUTPUTS_DUTY = 0.2
+
+#: what a round of writing calls between its files (``Spread``)
+Pause = Callable[[], None]
+
+
+def no_pause() -> None:
+    """A round written at full speed (the last one, when the server stops)."""
+
+
+class Spread:
+    """The pauses that spread a round of writing over time (``Outputs.write`` calls this
+    between a team's files, a robot's trajectories and the summary). After each piece it
+    waits ``1 / duty - 1`` times as long as the piece took, so the outputs' thread is busy
+    at most ``duty`` of the round's wall time, in stretches of one piece. ``stop`` ends the
+    pauses (a server that stops writes on at full speed).
+
+    The worker needs the interpreter (the GIL) for every scan. A round written in one go (at
+    60 robots about 0.5 s of CPU after a minute, more as the trajectories grow: opening,
+    writing and syncing 420 files, formatting trajectories) held it long enough that every
+    robot's answers waited: 100–840 ms for one to three seconds after each round. Spread,
+    the rounds alone left no answer over 100 ms (``docs/scale.md``)."""
+
+    def __init__(self, duty: float = OUTPUTS_DUTY) -> None:
+        self.factor = 1.0 / duty - 1.0
+        self._stop = threading.Event()
+        self._since: float | None = None
+
+    def begin(self) -> None:
+        """A round starts: its first piece is timed from now."""
+        self._since = time.monotonic()
+
+    def __call__(self) -> None:
+        if self._since is not None:
+            self._stop.wait((time.monotonic() - self._since) * self.factor)
+        self._since = time.monotonic()
+
+    def stop(self) -> None:
+        self._stop.set()
 
 
 class OutputPacer:
@@ -123,8 +164,9 @@ class Outputs:
     trajectories: dict[str, tuple[list[int] | NDArray[np.int64], NDArray[np.float64]]]
     summary: dict[str, Any]
 
-    def write(self, out_dir: Path) -> Path:
-        """Write everything under ``out_dir``; returns the summary's path."""
+    def write(self, out_dir: Path, pause: Pause = no_pause) -> Path:
+        """Write everything under ``out_dir``, calling ``pause`` between a team's files,
+        each trajectory's and the summary (``Spread``); returns the summary's path."""
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "trajectories").mkdir(exist_ok=True)
         for team_id, grid in self.grids.items():
@@ -132,12 +174,14 @@ class Outputs:
             write_nav2_grid(grid, tdir)
             with replaced(tdir / "points.ply") as tmp:
                 write_ply(tmp, self.clouds[team_id]())
+            pause()
         for team_id in self.summary.get("merged_teams", {}):
             if team_id not in self.grids:   # its last map, in a team frame that is gone
                 shutil.rmtree(out_dir / "maps" / team_id, ignore_errors=True)
         for name, (stamps, poses) in self.trajectories.items():
             write_trajectory(out_dir / "trajectories" / f"{name}.csv", stamps, poses)
             write_tum(out_dir / "trajectories" / f"{name}.tum", stamps, poses)
+            pause()
         path = out_dir / "summary.json"
         with replaced(path) as tmp:
             tmp.write_text(json.dumps(self.summary, indent=2))

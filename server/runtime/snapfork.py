@@ -108,6 +108,7 @@ def _child(snaps: Snapshots, core: ServerCore, sequence: int, r: int, w: int) ->
     code = 1
     try:
         gc.disable()
+        os.nice(10)   # background work: the worker's answers come first on a busy machine
         _die_with_parent()
         os.close(r)
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):

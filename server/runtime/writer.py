@@ -13,13 +13,14 @@ log = logging.getLogger(__name__)
 
 
 class BackgroundWriter:
-    def __init__(self, on_error: Callable[[str, Exception], None] | None = None) -> None:
+    def __init__(self, on_error: Callable[[str, Exception], None] | None = None,
+                 name: str = "server-writer") -> None:
         self._jobs: dict[str, Callable[[], None]] = {}
         self._running: str | None = None
         self._cv = threading.Condition()
         self._closed = False
         self._on_error = on_error
-        self._thread = threading.Thread(target=self._run, name="server-writer", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
     def submit(self, kind: str, job: Callable[[], None]) -> None:
