@@ -40,13 +40,14 @@ sys.path.insert(0, str(ROOT))
 
 
 def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bool,
-        fork: bool, huge_pages: bool = True) -> dict[str, Any]:
+        fork: bool, huge_pages: bool = False) -> dict[str, Any]:
     import numpy as np
 
     from bench.support.load_gen import make_tracks, pingpong
     from schemas import Scan
     from server.config import ServerConfig
     from server.core import ServerCore
+    from server.runtime.hugepages import Collapser
     from server.runtime.snapshot import Pending, Snapshots
 
     tracks = make_tracks(600)
@@ -66,8 +67,8 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
     folder = Path(tempfile.mkdtemp(prefix="mrslam-snapcost-"))
     snaps = Snapshots(folder)
     snaps.use_fork = fork
-    if not huge_pages:
-        snaps.huge_pages = None
+    if huge_pages:
+        snaps.huge_pages = Collapser()
     rows: list[dict[str, Any]] = []
     prof_out: list[dict[str, Any]] = []
     step_ms: list[tuple[float, bool]] = []     # each step's wall time, and whether a child ran
@@ -215,11 +216,12 @@ def main() -> None:
     ap.add_argument("--check", action="store_true", help="load the last snapshot back")
     ap.add_argument("--in-process", action="store_true",
                     help="pickle on the worker (Snapshots.prepare), as before the fork")
-    ap.add_argument("--no-huge-pages", action="store_true",
-                    help="leave the server's memory in small pages after each snapshot")
+    ap.add_argument("--huge-pages", action="store_true",
+                    help="gather the server's memory into huge pages after each snapshot (not "
+                         "the server's default)")
     a = ap.parse_args()
     print(json.dumps(run(a.robots, a.steps, a.every, a.late, a.profile, a.check,
-                         not a.in_process, not a.no_huge_pages), indent=1))
+                         not a.in_process, a.huge_pages), indent=1))
 
 
 if __name__ == "__main__":

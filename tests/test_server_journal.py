@@ -301,7 +301,6 @@ def test_a_snapshot_taken_by_a_forked_copy_is_the_one_taken_in_process(tmp_path:
     the state at the fork, byte for byte what pickling it in process gives, and resumes the
     same core (real graphs, replayed from the journal after it)."""
     from server.runtime.snapfork import Forked
-    from server.runtime.snapshot import COLLAPSE_ABOVE_HOLD_S
 
     msgs = messages(120)
     live = ServerCore(config(), navigate=False)
@@ -325,9 +324,8 @@ def test_a_snapshot_taken_by_a_forked_copy_is_the_one_taken_in_process(tmp_path:
     j.close()
     assert _body(forked.paths()[0]) == _body(inproc.paths()[0])
     assert forked.last_bytes > 0 and forked.last_cpu_s > 0
-    pages = forked.huge_pages     # the writer gathered the server's pages once the child left
-    assert pages is not None and (pages.unavailable or pages.runs == (
-        job.hold_s >= COLLAPSE_ABOVE_HOLD_S))
+    # the server's pages are left as they are: gathering them stalled the worker's faults
+    assert forked.huge_pages is None
     loaded = Snapshots(tmp_path / "journal").load()       # a new server: the store's index
     assert loaded is not None and loaded[1] == 200
     core, since = loaded

@@ -202,9 +202,13 @@ class Snapshots:
         self.last_bytes = 0
         self._blobs: BlobStore | None = None
         self.use_fork = True      # ``begin`` forks (copy-on-write) where it can
-        #: after each child, the writer gathers the server's memory into huge pages again, so
-        #: the next fork copies few page tables (``server.runtime.hugepages``); None: not
-        self.huge_pages: Collapser | None = Collapser()
+        #: after each child, the writer may gather the server's memory into huge pages again,
+        #: so that the next fork copies fewer page tables (``server.runtime.hugepages``; a
+        #: ``Collapser`` here). Not by default: while the kernel gathers, the worker's page
+        #: faults wait for the process's memory map, and at 50 robots a scan then took 40–190
+        #: ms of wall time for 5–7 ms of CPU, every robot's answers late for a second after
+        #: each snapshot; the fork it saves is a few ms (``docs/state-and-recovery.md``)
+        self.huge_pages: Collapser | None = None
 
     @property
     def blobs(self) -> BlobStore:
