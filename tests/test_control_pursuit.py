@@ -98,6 +98,21 @@ def test_hairpin_is_followed_not_cut() -> None:
     assert poses[:, 0].max() > 4.5  # went round the far end instead of jumping across
 
 
+def test_long_segments_of_a_planned_path_are_followed_past_their_corners() -> None:
+    """A planner's path has few points (segments of several metres). The progress moves on
+    past each corner: the robot reaches the end, never circling a look-ahead point held a
+    look-ahead past the first corner (it once did, until an errand was given up)."""
+    path = np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 4.0], [9.0, 4.0]])
+    poses, twists, reached = drive(path, (0.0, 0.0, 0.0), max_s=80.0)
+    assert reached
+    check_limits(twists)
+    length = 13.0
+    assert len(twists) * DT < 1.3 * length / PARAMS.v_mps
+    # no turning on the spot once under way (the corners are taken on arcs)
+    assert sum(1 for t in twists if t.v_mps == 0.0) * DT < 1.0
+    assert max(cross_track(path, p[:2]) for p in poses) < 0.6
+
+
 def test_saturated_turn_keeps_curvature() -> None:
     pp = PurePursuit(PursuitParams(lookahead_m=0.3, v_mps=1.0, omega_max_rps=0.5,
                                    goal_tolerance_m=0.05))

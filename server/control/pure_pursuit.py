@@ -132,11 +132,14 @@ class PurePursuit:
         if len(path) == 1:
             tx, ty, cross = gx, gy, 0.0
         else:
-            # Search forward from the current progress, up to one look-ahead beyond it.
+            # Search forward from the current progress, up to one look-ahead beyond it, and
+            # always into the next segment: a segment longer than the look-ahead would
+            # otherwise hold the progress at its end for good, the look-ahead point fixed
+            # a look-ahead past its corner (the robot drove there and turned on the spot)
             cum = self._cum_list
             s0 = cum[self._segment]
             last = bisect.bisect_right(cum, s0 + p.lookahead_m + 1.0) - 1
-            last = min(max(last, self._segment), len(path) - 2)
+            last = min(max(last, self._segment + 1), len(path) - 2)
             seg, t, cross = _closest(path, x, y, self._segment, last + 1)
             self._segment = seg
             s = cum[seg] + t * (cum[seg + 1] - cum[seg]) + p.lookahead_m
