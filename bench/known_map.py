@@ -32,7 +32,13 @@ found again; prints JSON.
    sides) against the first exploration's time to its coverage (goal: 30 % or less), the
    ``map_changed`` regions farther than 1 m from every change (false changes), and the map's
    known area at the start, when every change is shown and at ``--changed-time`` (what the
-   retired keyframes alone had shown is unknown until the robots see it again).
+   retired keyframes alone had shown is unknown until the robots see it again). Beside it,
+   a bound from the world's truth (``bench.support.earliest``): when each change could be
+   seen at the earliest, by the robot nearest it driving straight to a place in view of it
+   from when it was placed, and the latest of them plus ``CHANGE_SPAN_S`` (the second view a
+   change needs): no pass that does not know where the changes are can do better
+   (``bound_up_to_date_s``; with several runs, ``bound_over_goal`` counts the spawns where
+   even that misses the goal).
 
     PYTHONPATH=. python bench/known_map.py --changed [--changed-time 72] [--changed-seed N]
         [--changed-trace]
@@ -72,6 +78,7 @@ from bench.support.known_mission import (  # noqa: E402
 from bench.support.survey import survey_map  # noqa: E402
 from schemas.se2 import compose, inverse  # noqa: E402
 from server.command.operator import OperatorCommand  # noqa: E402
+from server.knownmap.changes import CHANGE_SPAN_S  # noqa: E402
 from server.knownmap.ghosts import MAP_ID, MAP_TEAM  # noqa: E402
 from server.knownmap.mapdata import KnownMap  # noqa: E402
 from server.runtime.mapfind import find_map  # noqa: E402
@@ -248,6 +255,7 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
                                                   (g["y0"] + g["y1"]) / 2 - xy[1])
                                        for xy in at) > 1.0]
     up_to_date = max(shown.values()) if len(shown) == len(changes) else None
+    bound = _earliest(spawn, {p.robot_id: p.at_s for p in m.placed}, changes)
     known_m2.append(_known_m2(m.core.fleet.team_grid(MAP_TEAM)))
     still = [k for k, (_, _, _, r) in enumerate(changes) if k in shown and not
              _occupied_near(m.core.fleet.team_grid(MAP_TEAM), at[k], r)]
@@ -257,7 +265,13 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
                         for k, (w, x, y, _) in enumerate(changes)],
             "all_shown": len(shown) == len(changes), "up_to_date_s": up_to_date,
             "vs_first": None if up_to_date is None else round(up_to_date / first_s, 3),
-            "goal_vs_first": 0.30, "placed": len(m.placed),
+            "goal_vs_first": 0.30,
+            # the earliest each change could be seen, knowing where it is (bench.support.
+            # earliest), and all of them confirmed (a second view CHANGE_SPAN_S later)
+            "earliest_sight_s": [round(t, 1) for t in bound],
+            "bound_up_to_date_s": round(max(bound) + CHANGE_SPAN_S, 1),
+            "bound_vs_first": round((max(bound) + CHANGE_SPAN_S) / first_s, 3),
+            "placed": len(m.placed),
             "map_changed_regions": len(regions), "false_changes": len(false),
             "false_changes_at_world": [
                 [round(float(v), 2) for v in compose(frame, np.array(
@@ -274,6 +288,23 @@ def changed_run(known: KnownMap, frame: np.ndarray, first_s: float, limit_s: flo
             **({"votes": {f"{changes[k][0]} ({changes[k][1]}, {changes[k][2]})": v
                           for k, v in sorted(votes.items())},
                 "timeline": timeline} if trace else {})}
+
+
+def _earliest(spawn: dict[str, np.ndarray], placed_s: dict[str, float],
+              changes: list[tuple[str, float, float, float]]) -> list[float]:
+    """``bench.support.earliest`` for a changed-house run: the robots from their spawns, each
+    from when it was placed, at the pursuit's speed, the simulator's LIDAR range."""
+    from bench.support.earliest import earliest_sight_s
+    from server.control.pure_pursuit import PursuitParams
+    from server.control.vfh import VfhParams
+    from sim.simulator import SimParams
+
+    vfh = VfhParams()
+    starts = {rid: (float(p[0]), float(p[1]), placed_s[rid]) for rid, p in spawn.items()
+              if rid in placed_s}
+    return earliest_sight_s(CHANGED, starts, [(x, y, max(r - 0.15, 0.2)) for _, x, y, r in changes],
+                            PursuitParams().v_mps, SimParams().lidar.range_max_m,
+                            vfh.robot_radius_m + vfh.safety_m)
 
 
 def _trace(m: Any, frame: np.ndarray, changes: list[tuple[str, float, float, float]],
@@ -322,9 +353,13 @@ def changed_summary(runs: list[dict[str, Any]], first_s: float) -> dict[str, Any
             "runs": [{"spawn_seed": r["spawn_seed"], "up_to_date_s": r["up_to_date_s"],
                       "vs_first": r["vs_first"], "placed": r["placed"],
                       "shown_at_s": [c["shown_at_s"] for c in r["changes"]],
+                      "earliest_sight_s": r["earliest_sight_s"],
+                      "bound_up_to_date_s": r["bound_up_to_date_s"],
                       "false_changes": r["false_changes"], "robots_lost": r["robots_lost"],
                       "wall_s": r["wall_s"]}
                      for r in runs],
+            # spawns where even a team knowing where the changes are could not meet the goal
+            "bound_over_goal": sum(r["bound_vs_first"] > 0.30 for r in runs),
             "all_shown": sum(r["all_shown"] for r in runs), "of": len(runs),
             "vs_first_median": round(float(np.median(ratios)), 3) if ratios else None,
             "vs_first_max": max(ratios) if len(ratios) == len(runs) else None,
