@@ -111,6 +111,41 @@ def test_a_meeting_that_does_not_happen_in_time_refutes_it(core: ServerCore) -> 
     assert e.status == "refuted" and r1.meeting is None
 
 
+def test_both_robots_at_their_places_unseen_refute_it_before_the_time_runs_out(
+        core: ServerCore) -> None:
+    """Under a wrong transform each robot reaches its own place; standing there
+    ``MEET_SEEN_S`` with no merge refutes the meeting long before its time runs out (in a
+    floor of offices alike, 70 s had been spent waiting at two places 17 m apart)."""
+    wrong = T_TRUE + np.array([0.0, 0.6, 0.0])
+    e = _plan(core, wrong)
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert r1.meeting is not None and r2.meeting is not None
+    now = r1.last_stamp_ns
+    # one robot there: it waits for the other
+    r1.meeting.path_xy, r1.meeting.arrived_ns = None, now
+    core.matcher.tick(now + int(meetings.MEET_SEEN_S * 1e9) + int(1e9))
+    assert e.status == "meeting" and r1.meeting is not None
+    # both there, not yet long enough
+    r2.meeting.path_xy, r2.meeting.arrived_ns = None, now + int(2e9)
+    core.matcher.tick(now + int((2 + meetings.MEET_SEEN_S - 1) * 1e9))
+    assert e.status == "meeting"
+    assert now * 1e-9 + 2 + meetings.MEET_SEEN_S + 1 < r1.meeting.until_s
+    core.matcher.tick(now + int((2 + meetings.MEET_SEEN_S + 1) * 1e9))
+    assert e.status == "refuted" and "saw no tag of each other" in e.reason
+    assert r1.meeting is None and r2.meeting is None
+
+
+def test_a_robot_that_reaches_its_place_is_marked_there(core: ServerCore) -> None:
+    e = _plan(core, T_TRUE)
+    r2 = core.robots["r2"]
+    assert e.status == "meeting" and r2.meeting is not None and r2.meeting.path_xy is not None
+    goal = r2.meeting.path_xy[-1]
+    r2.pose = np.array([goal[0], goal[1], 0.0])
+    cmd = core.steering.meet(r2, Obstacles(), 123)
+    assert (cmd.v_mps, cmd.omega_rps) == (0.0, 0.0)
+    assert r2.meeting.path_xy is None and r2.meeting.arrived_ns == 123
+
+
 def test_a_meeting_too_far_away_is_not_planned(core: ServerCore) -> None:
     far = T_TRUE + np.array([0.0, 0.0, 0.0])
     e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", far, 3, 2, 1, 0, 0.99)

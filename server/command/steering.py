@@ -85,7 +85,7 @@ class Steering:
             elif look is not None:
                 twist = look
             elif r.meeting is not None:
-                twist = self.meet(r, obstacles)
+                twist = self.meet(r, obstacles, stamp_ns)
             elif self.sweep_stop(r, stamp_ns):
                 twist = Twist(0.0, 0.0)   # still, while its turning camera looks round once
             else:
@@ -98,7 +98,7 @@ class Steering:
                                v_mps=twist.v_mps, omega_rps=twist.omega_rps,
                                ttl_s=self.cfg.control.command_ttl_s)
 
-    def meet(self, r: RobotContext, obstacles: Obstacles) -> Twist:
+    def meet(self, r: RobotContext, obstacles: Obstacles, stamp_ns: int = 0) -> Twist:
         """Drive to a planned meeting's place, then wait there (the lookout turns toward the
         other robot when it comes; see ``server.rendezvous.matchdesk``)."""
         m = r.meeting
@@ -108,6 +108,7 @@ class Steering:
         drive = r.nav.driver.follow(r.nav.pursuit, r.pose, m.path_xy, obstacles)
         if drive.reached:
             m.path_xy = None
+            m.arrived_ns = stamp_ns or r.last_stamp_ns
         return drive.twist
 
     def sweep_stop(self, r: RobotContext, stamp_ns: int) -> bool:

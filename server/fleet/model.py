@@ -54,6 +54,7 @@ class Meeting:
     target_xy: F64 | None = None   # where to go (team frame), for "go"
     path_xy: F64 | None = None     # planned on the team's map
     team_id: str = ""              # the robot's team when planned (whose frame these are in)
+    arrived_ns: int = 0            # when it reached its place (0: not yet)
 
 
 class Sighted(NamedTuple):

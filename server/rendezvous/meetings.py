@@ -26,6 +26,10 @@ if TYPE_CHECKING:
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
+#: both robots of a meeting at their places this long without a merge refute it [s]: each
+#: robot's lookout has turned toward where the other should stand by then
+MEET_SEEN_S = 15.0
+
 
 def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
     """One robot of each team to one place of the overlap, if some pair of them can get
@@ -120,6 +124,19 @@ def follow(desk: MapMatchDesk, now_ns: int) -> None:
         elif now_ns * 1e-9 > m.until_s:
             settle(desk, e, "refuted", "the robots did not meet where the maps said",
                          now_ns)
+        elif _both_there(m, other.meeting, now_ns):
+            settle(desk, e, "refuted", f"both robots stood at the place the maps agree on "
+                   f"for {MEET_SEEN_S:.0f} s and saw no tag of each other: not one place",
+                   now_ns)
+
+
+def _both_there(m: Meeting, other: Meeting | None, now_ns: int) -> bool:
+    """Both robots of a meeting reached their places ``MEET_SEEN_S`` ago or more. Under a
+    true transform they cannot both: the places are one, and the first there stands in the
+    other's way, which then sees it (and its tag) on its way."""
+    arrived = (getattr(m, "arrived_ns", 0), getattr(other, "arrived_ns", 0))
+    return other is not None and min(arrived) > 0 and \
+        now_ns - max(arrived) > MEET_SEEN_S * 1e9
 
 
 def _agrees(desk: MapMatchDesk, e: HypothesisEntry, rec: MergeRecord) -> bool:
