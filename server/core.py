@@ -48,7 +48,7 @@ from server.command.operator import OperatorCommand, OperatorError, OperatorOrde
 from server.command.steering import Steering
 from server.config import ServerConfig
 from server.fleet.events import EventLog
-from server.fleet.model import Fleet, MergeRecord, RobotContext, Team
+from server.fleet.model import Fleet, LiveView, MergeRecord, RobotContext, Team
 from server.fleet.progress import Progress
 from server.fleet.stages import Stages
 from server.knownmap.byhand import localisation, place_by_hand
@@ -127,6 +127,7 @@ class ServerCore:
         if not r.start_checked and r.robot_id in self.cfg.teams.start_poses:
             self.merger.join_known_start(r, scan.stamp_ns)
         r.last_stamp_ns = scan.stamp_ns
+        r.view = LiveView(scan.stamp_ns, r.team_id, r.pose.copy(), ranges, angles)
         self._record_online_pose(r, scan.stamp_ns)
         # 2b. on a known map: a robot not yet in it is matched against it, a robot in it is
         #     watched for being lost (and, extending the map, keeps the map up to date)

@@ -57,6 +57,18 @@ class Meeting:
     arrived_ns: int = 0            # when it reached its place (0: not yet)
 
 
+@dataclass
+class LiveView:
+    """A robot's latest scan as the server used it: when, in which team's frame, from where,
+    and its beams (ranges [m], NaN for none, and bearings [rad], in the robot's frame)."""
+
+    stamp_ns: int
+    team_id: str
+    pose: F64
+    ranges: F64
+    angles: F64
+
+
 class Sighted(NamedTuple):
     """A tag sighting between a robot and one of another team, as the robot keeps it."""
 
@@ -85,6 +97,8 @@ class RobotContext:
     #: map frame (its first pose is the origin; a merge does not move it)
     online: StampedRows = field(default_factory=lambda: StampedRows(3))
     meeting: Meeting | None = None
+    #: its latest scan (``server.rendezvous.liveview``: transforms checked against it)
+    view: LiveView | None = None
     sensor_range_m: float = float("inf")   # its latest scan's maximum range
     #: a narrow sensor's recent obstacles, for the reactive layer (``server.command.steering``)
     obstacles: ObstacleMemory | None = None

@@ -34,6 +34,8 @@ class RendezvousCounters:
     calls_paused: int = 0       # tag calls not passed on: the two teams' maps keep refusing a merge
     one_place_proposals: int = 0   # sightings from one place turned by the square walls
     short_path_proposals: int = 0  # ... and from a short path, turned so
+    map_refuted_by_view: int = 0   # transforms refuted: a robot saw open floor where one put
+    #                                a robot of the other team (``liveview``)
 
     def as_dict(self) -> dict[str, int]:
         """The counters by their names in the run's outputs."""

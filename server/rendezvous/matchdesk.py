@@ -39,6 +39,7 @@ from server.fleet.model import Fleet
 from server.rendezvous import meetings
 from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal
+from server.rendezvous.liveview import Contradictions
 from server.rendezvous.mapmatch import (
     Candidate,
     Hypothesis,
@@ -135,6 +136,8 @@ class MapMatchDesk:
         self.query_ms: list[float] = []          # the latest queries' times (one per submap)
         self.memory: dict[tuple[str, str], PairMemory] = {}
         self._job: _Job | None = None
+        #: looks that found open floor where a transform puts a robot (``liveview``)
+        self.looks = Contradictions()
         #: where queries run (the server's matcher process; ``ServerCore.use_pools``),
         #: None: here
         self.matcher: Callable[[int], Executor | None] | None = None
@@ -153,6 +156,7 @@ class MapMatchDesk:
         t = self.cfg.teams
         planner = None if self.matcher is None else self.matcher(len(self.fleet.teams))
         meetings.follow(self, now_ns)
+        self._look(now_ns)
         if not t.enabled or not t.map_match:
             return
         job = self._job
@@ -188,6 +192,29 @@ class MapMatchDesk:
             except RuntimeError as e:   # the pool is shutting down or broken: match here
                 log.warning("matching maps here: the planner pool is gone (%s)", e)
         self._take(job, submap_candidates(*args), now_ns)
+
+    def _look(self, now_ns: int) -> None:
+        """Transforms not settled yet, checked against what the robots see now
+        (``liveview``): one whose robots look where it puts another and see open floor is
+        refuted (its meeting, if any, ended)."""
+        if not getattr(self, "looks", None):
+            self.looks = Contradictions()
+        teams = self.fleet.teams
+        for k, e in enumerate(self.log):
+            if e.status not in ("pending", "meeting"):
+                continue
+            if e.team_a not in teams or e.team_b not in teams:
+                continue        # a team merged or gone: its frame moved, asked again later
+            why = self.looks.check(self.fleet, k, e.team_a, e.team_b, e.T_ab)
+            if why is None:
+                continue
+            self.counters.map_refuted_by_view += 1
+            self.looks.forget(k)
+            if e.status == "meeting":
+                meetings.settle(self, e, "refuted", why, now_ns)
+            else:
+                e.status, e.reason = "refuted", why
+                log.info("maps of %s and %s: transform refuted: %s", e.team_b, e.team_a, why)
 
     def _next_pair(self) -> tuple[str, str] | None:
         """The pair of live teams with maps that waited longest; the larger team first (it
