@@ -126,11 +126,14 @@ class Detours:
         return self._decide(price, r, caller, stamp_ns)
 
     def meeting(self, ra: RobotContext, rb: RobotContext, path_a_m: float, path_b_m: float,
-                stamp_ns: int) -> bool:
-        """Whether two robots of two teams should go to a meeting the maps suggest."""
+                stamp_ns: int, transforms: int = 1) -> bool:
+        """Whether two robots of two teams should go to a meeting the maps suggest, on one of
+        ``transforms`` the two teams' maps fit under now (not refuted): at most one of them
+        is right, so they share the chance a meeting pays (in a floor of offices alike the
+        maps fit under several)."""
         price = merge_price("meeting", self.rates,
                             [(ra, self._way_s(path_a_m, 0.0)), (rb, self._way_s(path_b_m, 0.0))],
-                            ra.team_id, rb.team_id, self.p("meeting"))
+                            ra.team_id, rb.team_id, self.p("meeting") / max(1, transforms))
         return self._decide(price, ra, rb.robot_id, stamp_ns)
 
     def keep_clear(self, r: RobotContext, other: RobotContext, hold_s: float, tangle_p: float,

@@ -68,9 +68,14 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) 
     if best is None:
         return
     _, ra, rb, p, p_b, path_a, path_b = best
-    # worth the two robots' time? (server.fleet.detours; not asked again soon if not)
+    # worth the two robots' time? (server.fleet.detours; not asked again soon if not) The
+    # transforms the two maps fit under, not refuted, share the chance that one is right
+    pair = {e.team_a, e.team_b}
+    transforms = sum(1 for x in desk.log if {x.team_a, x.team_b} == pair
+                     and x.status in ("pending", "meeting"))
     if fleet.detours.recently_declined(ra, "meeting", rb.robot_id, now_ns) or \
-            not fleet.detours.meeting(ra, rb, _length(path_a), _length(path_b), now_ns):
+            not fleet.detours.meeting(ra, rb, _length(path_a), _length(path_b), now_ns,
+                                      transforms):
         return
     cost, v = best[0], ra.nav.pursuit.params.v_mps
     until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
