@@ -54,6 +54,9 @@ from server.rendezvous.submaps import submap_candidates
 F64 = NDArray[np.float64]
 log = logging.getLogger(__name__)
 
+#: transforms are checked against the robots' latest scans this often [s] (whatever the
+#: number of robots: each check looks at every pair of robots of the two teams)
+LOOK_PERIOD_S = 0.25
 #: σ of a map-matched transform as the merger weighs it (the keyframe matches then refine it)
 MAP_SIGMA_M, MAP_SIGMA_DEG = 0.3, 2.0
 
@@ -138,6 +141,7 @@ class MapMatchDesk:
         self._job: _Job | None = None
         #: looks that found open floor where a transform puts a robot (``liveview``)
         self.looks = Contradictions()
+        self.look_next_ns = 0
         #: where queries run (the server's matcher process; ``ServerCore.use_pools``),
         #: None: here
         self.matcher: Callable[[int], Executor | None] | None = None
@@ -199,6 +203,9 @@ class MapMatchDesk:
         refuted (its meeting, if any, ended)."""
         if not getattr(self, "looks", None):
             self.looks = Contradictions()
+        if now_ns < getattr(self, "look_next_ns", 0):
+            return
+        self.look_next_ns = now_ns + int(LOOK_PERIOD_S * 1e9)
         teams = self.fleet.teams
         for k, e in enumerate(self.log):
             if e.status not in ("pending", "meeting"):
