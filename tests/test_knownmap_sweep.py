@@ -139,3 +139,55 @@ def test_returns_on_a_robot_of_the_team_are_never_a_change() -> None:
     assert _views(views, robot) == 0
     elsewhere = np.array([[2.5, 2.5, 0.28]])
     assert _views(views, elsewhere) > 0
+
+
+def test_a_place_given_to_see_a_change_again_is_the_nearest_and_given_once() -> None:
+    """``urgent`` places (those that see a change seen once): the nearest not given yet,
+    whatever it shows, kept until it is reached or no longer needed; none left: None."""
+    from server.knownmap.sweep import URGENT
+
+    s = _started()
+    pose = np.array([9.0, 0.0, 0.0])
+    assert s.goal("r1", pose, OWNERS, XY, hits, urgent=[0, 1]) == (10.0, 0.0)
+    assert s.goals["r1"][2] == URGENT and not s.stale("r1", hits)
+    assert s.goal("r2", pose, OWNERS, XY, hits, urgent=[1]) is None       # given already
+    assert s.goal("r2", pose, OWNERS, XY, hits, urgent=[0, 1]) == (1.0, 0.0)
+
+
+def test_a_change_seen_once_keeps_the_pass_going_until_seen_again() -> None:
+    """A box seen by one keyframe only is no change yet; the older keyframe whose beams
+    crossed that floor, 1 m or more from where it was seen, is where to see it again — and
+    once a second view has confirmed it, nowhere is."""
+    from types import SimpleNamespace
+    from typing import Any, cast
+
+    from server.knownmap.changes import CHANGE_SPAN_S, Old, Upkeep
+    from server.knownmap.config import KnownMapConfig
+
+    u = Upkeep(KnownMapConfig())
+    lay = cast(Any, _open_floor())
+    box = np.array([[1.0 + dx, 0.5 + dy] for dx in np.arange(-0.1, 0.11, 0.05)
+                    for dy in (-0.1, 0.1)])
+    # two older keyframes: one at (2.5, 0.5) whose beams crossed the floor where the box now
+    # stands, one at (2.5, 2.5) beyond the wall (beams of 0.5 m: it saw nothing of it)
+    profs = {("g", 0): np.full(BINS, 3.0), ("g", 1): np.full(BINS, 0.5)}
+    old = Old(list(profs), np.array([[2.5, 0.5, 0.0], [2.5, 2.5, 0.0]]))
+    u._cache = {k: (np.zeros((0, 2)), p) for k, p in profs.items()}
+    fleet = cast(Any, None)
+
+    def view(x: float, y: float, s: float) -> None:
+        T = np.array([x, y, 0.0])
+        kf = SimpleNamespace(hits=box - T[:2], stamp_ns=int(s * 1e9))
+        u._vote(fleet, cast(Any, kf), T, np.full(BINS, np.nan), Old([], np.zeros((0, 3))),
+                lay)
+
+    assert u._confirming(fleet, old) == []              # nothing seen yet
+    view(0.2, 0.2, 0.0)
+    assert len(u._unconfirmed()[0]) > 0
+    assert u._confirming(fleet, old) == [0]
+    # a place within 1 m of where it was first seen is no second view
+    near = Old(list(profs), np.array([[0.4, 0.2, 0.0], [2.5, 2.5, 0.0]]))
+    assert u._confirming(fleet, near) == []
+    view(0.2, 1.2, CHANGE_SPAN_S + 1)                    # the second view confirms it
+    assert len(u.changed_xy("wall", 0.05)) > 0
+    assert u._confirming(fleet, old) == []

@@ -42,7 +42,8 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Fleet, RobotContext
 from server.knownmap.config import KnownMapConfig
-from server.knownmap.sweep import Sweep
+from server.knownmap.ghosts import MAP_TEAM
+from server.knownmap.sweep import URGENT, Sweep
 from server.knownmap.views import BINS, COVER, REACH_TOL_M, _bins, beams, reach
 from server.rendezvous.mapmatch import Layers, _cells
 from server.slam.keyframes import Keyframe
@@ -92,6 +93,7 @@ class Upkeep:
     votes: dict[tuple[str, int, int], tuple[int, int, float, float]] = field(
         default_factory=dict)
     confirmed: dict[tuple[str, int, int], int] = field(default_factory=dict)  # -> applied?
+    step_m: float = 0.0                         # the side of the cells voted for [m]
     pending: list[tuple[str, int, str, int, str]] = field(default_factory=list)
     #: robot -> (its keyframe, ghost, ghost's keyframe) retired because of it
     retired_by: dict[str, list[tuple[int, str, int]]] = field(default_factory=dict)
@@ -185,7 +187,7 @@ class Upkeep:
               lay: Layers, bodies: F64 | None = None) -> None:
         """The cells ``kf`` (at ``T``) sees changed get its vote; its returns within
         ``bodies`` (the team's robots: (x, y, radius)) are robots, not walls."""
-        step = lay.fine_m
+        step = self.step_m = lay.fine_m
         hits = transform_points(T, np.asarray(kf.hits, np.float64))
         i, j, ok = _cells(lay, hits)
         new_wall = np.zeros(len(hits), dtype=bool)
@@ -298,13 +300,60 @@ class Upkeep:
         goal = None
         if self.sweep.share_seen() < self.k.inspected_share and len(old.poses):
             goal = self.sweep.goal(r.robot_id, r.pose, old.owners, old.poses[:, :2], hits)
+        if goal is None and len(old.poses):
+            # nothing left to see again, but a change seen by one view only: the pass goes
+            # on to a place that sees it again, from elsewhere (else it would never show)
+            goal = self.sweep.goal(r.robot_id, r.pose, old.owners, old.poses[:, :2], hits,
+                                   urgent=self._confirming(fleet, old))
         if goal is None:
             self.inspected = True
         return goal
 
     def inspect_stale(self, fleet: Fleet, r: RobotContext) -> bool:
-        """``r``'s place on the pass shows little not seen again by now (``Sweep.stale``)."""
+        """``r``'s place on the pass shows little not seen again by now (``Sweep.stale``);
+        one it was sent to to see a change again, once it sees none left unconfirmed."""
+        g = self.sweep.goals.get(r.robot_id)
+        if g is not None and g[2] == URGENT:
+            old = self._old(fleet, MAP_TEAM)
+            j = [k for k, p in enumerate(old.owners) if p == g[0]]
+            return not j or not self._sees_unconfirmed(fleet, old, j[0], self._unconfirmed())
         return self.sweep.stale(r.robot_id, self._xy(fleet))
+
+    def _unconfirmed(self) -> tuple[F64, F64]:
+        """The cells seen changed but not confirmed, in clusters of ``SUPPORT`` + 1 within
+        ``SUPPORT_M`` (what a change needs): their centres, and where each was first seen."""
+        keys = [(key, v) for key, v in self.votes.items() if key not in self.confirmed]
+        if not keys or self.step_m <= 0:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        xy = np.array([((c + 0.5) * self.step_m, (r + 0.5) * self.step_m)
+                       for (_, r, c), _ in keys])
+        first = np.array([(v[2], v[3]) for _, v in keys])
+        d = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+        keep = (d <= SUPPORT_M).sum(axis=1) - 1 >= SUPPORT
+        return xy[keep], first[keep]
+
+    def _sees_unconfirmed(self, fleet: Fleet, old: Old, j: int,
+                          cells: tuple[F64, F64]) -> bool:
+        """The older keyframe ``j``'s beams reached ``SUPPORT`` + 1 of ``cells`` (it saw open
+        floor there, or the returns now gone), from ``VIEWS_APART_M`` or more from where
+        they were first seen: from its place they are seen again, by another view."""
+        xy, first = cells
+        if not len(xy):
+            return False
+        P = old.poses[j]
+        apart = np.hypot(first[:, 0] - P[0], first[:, 1] - P[1]) >= VIEWS_APART_M
+        if apart.sum() <= SUPPORT:
+            return False
+        _, prof = self._hits(fleet, *old.owners[j])
+        dist, got = reach(prof, P, xy[apart])
+        return int((np.isfinite(got) & (got >= dist - REACH_TOL_M)).sum()) > SUPPORT
+
+    def _confirming(self, fleet: Fleet, old: Old) -> list[int]:
+        """The places (indices into ``old``) from which a change seen once is seen again."""
+        cells = self._unconfirmed()
+        if not len(cells[0]):
+            return []
+        return [j for j in range(len(old.owners)) if self._sees_unconfirmed(fleet, old, j, cells)]
 
     def _xy(self, fleet: Fleet) -> Callable[[str, int], F64]:
         return lambda gid, i: self._hits(fleet, gid, i)[0]

@@ -35,6 +35,8 @@ MIN_GAIN = 6
 STALE_SHARE = 0.25
 #: added to the way to a place [m] when its cells are weighed by it
 TRAVEL_M = 5.0
+#: what a place given to see a change again is recorded as showing (``goal``'s ``urgent``)
+URGENT = -1
 
 
 def cells_of(xy: F64) -> set[Cell]:
@@ -93,9 +95,20 @@ class Sweep:
         return len((self._view(p, hits) & self.todo) - skip)
 
     def goal(self, rid: str, pose: F64, owners: list[Place], xy: F64,
-             hits: Callable[[str, int], F64]) -> tuple[float, float] | None:
-        """``rid``'s next place (``xy``: the places of ``owners``); None: none is worth it."""
+             hits: Callable[[str, int], F64], urgent: list[int] | None = None
+             ) -> tuple[float, float] | None:
+        """``rid``'s next place (``xy``: the places of ``owners``); None: none is worth it.
+        ``urgent`` (indices into ``owners``): the nearest of these places not given yet,
+        whatever it shows (one that sees a change again)."""
         self.goals.pop(rid, None)
+        if urgent is not None:
+            near = [j for j in urgent if owners[j] not in self.tried]
+            if not near:
+                return None
+            j = min(near, key=lambda k: float(np.hypot(*(xy[k] - pose[:2]))))
+            self.tried.add(owners[j])
+            self.goals[rid] = (owners[j], (float(xy[j, 0]), float(xy[j, 1])), URGENT)
+            return self.goals[rid][1]
         skip: set[Cell] = set()
         for p, _, _ in self.goals.values():
             skip |= self._view(p, hits)
@@ -118,6 +131,6 @@ class Sweep:
         """``rid``'s place shows fewer than ``MIN_GAIN`` cells not seen again by now, or less
         than ``STALE_SHARE`` of those it showed when given (the rest seen on the way)."""
         g = self.goals.get(rid)
-        if g is None or self.todo is None:
+        if g is None or self.todo is None or g[2] == URGENT:
             return False
         return self._gain(g[0], hits, set()) < max(MIN_GAIN, STALE_SHARE * g[2])
