@@ -127,7 +127,8 @@ class ServerCore:
         if not r.start_checked and r.robot_id in self.cfg.teams.start_poses:
             self.merger.join_known_start(r, scan.stamp_ns)
         r.last_stamp_ns = scan.stamp_ns
-        r.view = LiveView(scan.stamp_ns, r.team_id, r.pose.copy(), ranges, angles)
+        r.view = LiveView(scan.stamp_ns, r.team_id, r.pose.copy(), ranges, angles,
+                          scan.range_max_mm / 1000.0)
         self._record_online_pose(r, scan.stamp_ns)
         # 2b. on a known map: a robot not yet in it is matched against it, a robot in it is
         #     watched for being lost (and, extending the map, keeps the map up to date)

@@ -46,6 +46,10 @@ def test_a_robot_in_the_disc_a_wall_in_it_or_no_return_tell_nothing() -> None:
                           np.array([3.0, 0.0]))
     assert not seen_empty(_ring(20.0), np.array([9.0, 0.0]))  # too far to tell
     assert seen_empty(_ring(math.inf), np.array([3.0, 0.0]))  # no return in range: open
+    short = _ring(math.inf)
+    short.range_max_m = 3.0                                   # a depth camera's 3 m
+    assert not seen_empty(short, np.array([2.5, 0.0]))        # the disc reaches past it
+    assert seen_empty(short, np.array([1.5, 0.0]))            # within it: open
     assert not seen_empty(view, np.array([0.8, 0.0]))         # the robot itself is in it
 
 

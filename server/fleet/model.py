@@ -67,6 +67,7 @@ class LiveView:
     pose: F64
     ranges: F64
     angles: F64
+    range_max_m: float = float("inf")     # a no-return (+inf) says: nothing nearer
 
 
 class Sighted(NamedTuple):

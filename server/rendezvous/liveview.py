@@ -10,7 +10,9 @@ The spot is a disc (``RADIUS_M``): the other robot's body, its pose error, and a
 only roughly right, as a meeting's may be (one 0.74 m off still brought two robots together
 in the large house, and their tags merged them). It is seen empty when every beam toward it
 ends beyond it, with ``MIN_BEAMS`` beams or more on it, from at most ``RANGE_M`` away
-(farther, the beams thin out); a wall in it, or a beam not read (NaN), tells nothing. One look
+(farther, the beams thin out); a wall in it, or a beam not read (NaN), tells nothing, and
+neither does a beam with no return from a sensor whose range ends before the disc's far side
+(a depth camera's 3 m). One look
 can be unlucky (a pose off for a moment), so a transform is taken as contradicted after
 ``LOOKS`` looks at least ``LOOKS_SPAN_S`` apart in all. No I/O here.
 """
@@ -56,6 +58,8 @@ def seen_empty(view: LiveView, q: F64, radius: float = RADIUS_M) -> bool:
     r = view.ranges[on]
     if len(r) < MIN_BEAMS or np.isnan(r).any():
         return False            # too few beams, or some unread: cannot tell
+    if np.isinf(r).any() and not getattr(view, "range_max_m", math.inf) > d + radius:
+        return False            # no return within a range short of the disc's far side
     return bool(np.all(r > d + radius))      # (+inf: no return within the sensor's range)
 
 
