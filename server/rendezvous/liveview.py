@@ -12,9 +12,9 @@ in the large house, and their tags merged them). It is seen empty when every bea
 ends beyond it, with ``MIN_BEAMS`` beams or more on it, from at most ``RANGE_M`` away
 (farther, the beams thin out); a wall in it, or a beam not read (NaN), tells nothing, and
 neither does a beam with no return from a sensor whose range ends before the disc's far side
-(a depth camera's 3 m). One look
-can be unlucky (a pose off for a moment), so a transform is taken as contradicted after
-``LOOKS`` looks at least ``LOOKS_SPAN_S`` apart in all. No I/O here.
+(a depth camera's 3 m). One look can be unlucky (a pose off for a moment), so a transform is
+taken as contradicted after ``LOOKS`` looks at least ``LOOKS_SPAN_S`` apart in all. No I/O
+here.
 """
 
 from __future__ import annotations
