@@ -102,3 +102,16 @@ def test_looks_needed_before_a_transform_is_refuted() -> None:
     wrong = T_TRUE + np.array([-2.0, -1.5, 0.0])
     _, e = _run(wrong, 5)                     # 0.5 s of looks: not yet
     assert e.status == "pending"
+
+
+def test_the_latest_scan_is_not_kept_in_a_snapshot() -> None:
+    """A robot's latest scan is the moment's: a snapshot (a pickle of the core) leaves it
+    out, and the next scan after a restart gives it again."""
+    import pickle
+
+    core, _ = _run(T_TRUE, 3)
+    r1 = core.robots["r1"]
+    assert r1.view is not None and len(r1.view.ranges) > 0
+    back = pickle.loads(pickle.dumps(r1))
+    assert back.view is None and back.robot_id == "r1"
+    assert np.array_equal(back.pose, r1.pose)

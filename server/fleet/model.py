@@ -114,6 +114,10 @@ class RobotContext:
     #: keyframes left out of its team's map (out of date, or made while lost)
     retired: set[int] = field(default_factory=set)
 
+    def __getstate__(self) -> dict[str, object]:
+        # its latest scan is the moment's, not state: the next scan after a restart gives it
+        return {**self.__dict__, "view": None}
+
     def mapped_keyframes(self) -> tuple[list[Keyframe], F64]:
         """The keyframes its team's map is drawn from, and their poses."""
         sl = self.slam
