@@ -42,7 +42,6 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Fleet, RobotContext
 from server.knownmap.config import KnownMapConfig
-from server.knownmap.ghosts import MAP_TEAM
 from server.knownmap.sweep import URGENT, Sweep
 from server.knownmap.views import BINS, COVER, REACH_TOL_M, _bins, beams, reach
 from server.rendezvous.mapmatch import Layers, _cells
@@ -110,9 +109,11 @@ class Upkeep:
         "superseded": 0, "trimmed": 0, "changed_cells": 0})
     _cache: dict[tuple[str, int], tuple[F64, F64]] = field(default_factory=dict)
     _far: tuple[Layers, NDArray[np.bool_]] | None = None
+    _unconf: tuple[F64, F64] | None = None      # ``_unconfirmed``, until the votes change
 
     def __getstate__(self) -> dict[str, Any]:
-        return {**self.__dict__, "_cache": {}, "_far": None}      # made again on demand
+        return {**self.__dict__, "_cache": {}, "_far": None,       # made again on demand
+                "_unconf": None}
 
     def _open(self, lay: Layers) -> NDArray[np.bool_]:
         """The map's open floor ``WALL_GAP_M`` or more from every wall it shows (a return
@@ -188,6 +189,7 @@ class Upkeep:
         """The cells ``kf`` (at ``T``) sees changed get its vote; its returns within
         ``bodies`` (the team's robots: (x, y, radius)) are robots, not walls."""
         step = self.step_m = lay.fine_m
+        self._unconf = None             # the votes change
         hits = transform_points(T, np.asarray(kf.hits, np.float64))
         i, j, ok = _cells(lay, hits)
         new_wall = np.zeros(len(hits), dtype=bool)
@@ -314,14 +316,21 @@ class Upkeep:
         one it was sent to to see a change again, once it sees none left unconfirmed."""
         g = self.sweep.goals.get(r.robot_id)
         if g is not None and g[2] == URGENT:
-            old = self._old(fleet, MAP_TEAM)
-            j = [k for k, p in enumerate(old.owners) if p == g[0]]
-            return not j or not self._sees_unconfirmed(fleet, old, j[0], self._unconfirmed())
+            gid, i = g[0]
+            ghost = fleet.robots.get(gid)
+            return ghost is None or i in ghost.retired or not self._sees_unconfirmed(
+                fleet, g[0], ghost.slam.keyframe_pose(i), self._unconfirmed())
         return self.sweep.stale(r.robot_id, self._xy(fleet))
 
     def _unconfirmed(self) -> tuple[F64, F64]:
         """The cells seen changed but not confirmed, in clusters of ``SUPPORT`` + 1 within
-        ``SUPPORT_M`` (what a change needs): their centres, and where each was first seen."""
+        ``SUPPORT_M`` (what a change needs): their centres, and where each was first seen
+        (kept until a keyframe votes again)."""
+        if self._unconf is None:
+            self._unconf = self._clusters()
+        return self._unconf
+
+    def _clusters(self) -> tuple[F64, F64]:
         keys = [(key, v) for key, v in self.votes.items() if key not in self.confirmed]
         if not keys or self.step_m <= 0:
             return np.zeros((0, 2)), np.zeros((0, 2))
@@ -332,19 +341,19 @@ class Upkeep:
         keep = (d <= SUPPORT_M).sum(axis=1) - 1 >= SUPPORT
         return xy[keep], first[keep]
 
-    def _sees_unconfirmed(self, fleet: Fleet, old: Old, j: int,
+    def _sees_unconfirmed(self, fleet: Fleet, place: tuple[str, int], P: F64,
                           cells: tuple[F64, F64]) -> bool:
-        """The older keyframe ``j``'s beams reached ``SUPPORT`` + 1 of ``cells`` (it saw open
-        floor there, or the returns now gone), from ``VIEWS_APART_M`` or more from where
-        they were first seen: from its place they are seen again, by another view."""
+        """The older keyframe ``place`` (at ``P``) has beams that reached ``SUPPORT`` + 1 of
+        ``cells`` (it saw open floor there, or the returns now gone), from ``VIEWS_APART_M``
+        or more from where they were first seen: from there they are seen again, by another
+        view."""
         xy, first = cells
         if not len(xy):
             return False
-        P = old.poses[j]
         apart = np.hypot(first[:, 0] - P[0], first[:, 1] - P[1]) >= VIEWS_APART_M
         if apart.sum() <= SUPPORT:
             return False
-        _, prof = self._hits(fleet, *old.owners[j])
+        _, prof = self._hits(fleet, *place)
         dist, got = reach(prof, P, xy[apart])
         return int((np.isfinite(got) & (got >= dist - REACH_TOL_M)).sum()) > SUPPORT
 
@@ -353,7 +362,8 @@ class Upkeep:
         cells = self._unconfirmed()
         if not len(cells[0]):
             return []
-        return [j for j in range(len(old.owners)) if self._sees_unconfirmed(fleet, old, j, cells)]
+        return [j for j, place in enumerate(old.owners)
+                if self._sees_unconfirmed(fleet, place, old.poses[j], cells)]
 
     def _xy(self, fleet: Fleet) -> Callable[[str, int], F64]:
         return lambda gid, i: self._hits(fleet, gid, i)[0]

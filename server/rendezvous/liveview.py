@@ -58,7 +58,7 @@ def seen_empty(view: LiveView, q: F64, radius: float = RADIUS_M) -> bool:
     r = view.ranges[on]
     if len(r) < MIN_BEAMS or np.isnan(r).any():
         return False            # too few beams, or some unread: cannot tell
-    if np.isinf(r).any() and not getattr(view, "range_max_m", math.inf) > d + radius:
+    if np.isinf(r).any() and not view.range_max_m > d + radius:
         return False            # no return within a range short of the disc's far side
     return bool(np.all(r > d + radius))      # (+inf: no return within the sensor's range)
 

@@ -201,9 +201,7 @@ class MapMatchDesk:
         """Transforms not settled yet, checked against what the robots see now
         (``liveview``): one whose robots look where it puts another and see open floor is
         refuted (its meeting, if any, ended)."""
-        if not getattr(self, "looks", None):
-            self.looks = Contradictions()
-        if now_ns < getattr(self, "look_next_ns", 0):
+        if now_ns < self.look_next_ns:
             return
         self.look_next_ns = now_ns + int(LOOK_PERIOD_S * 1e9)
         teams = self.fleet.teams

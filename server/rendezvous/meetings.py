@@ -139,9 +139,9 @@ def _both_there(m: Meeting, other: Meeting | None, now_ns: int) -> bool:
     """Both robots of a meeting reached their places ``MEET_SEEN_S`` ago or more. Under a
     true transform they cannot both: the places are one, and the first there stands in the
     other's way, which then sees it (and its tag) on its way."""
-    arrived = (getattr(m, "arrived_ns", 0), getattr(other, "arrived_ns", 0))
-    return other is not None and min(arrived) > 0 and \
-        now_ns - max(arrived) > MEET_SEEN_S * 1e9
+    if other is None or not (m.arrived_ns and other.arrived_ns):
+        return False
+    return now_ns - max(m.arrived_ns, other.arrived_ns) > MEET_SEEN_S * 1e9
 
 
 def _agrees(desk: MapMatchDesk, e: HypothesisEntry, rec: MergeRecord) -> bool:
