@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from server.jit import njit_cached
-from server.planning.astar_kernel import SQRT2
+from server.planning.astar_kernel import SQRT2, _less
 
 #: the eight steps (row, column), in the order MCP_Geometric lists its offsets; a cell's
 #: traceback value indexes this table (-1: the start, or not reached)
@@ -61,19 +61,23 @@ NEW, SETTLED = -1, -2
 
 
 @njit_cached
+def _put(hf: NDArray[np.float64], hv: NDArray[np.int64], where: NDArray[np.int64], i: int,
+         f: float, v: int) -> None:
+    hf[i], hv[i] = f, v
+    where[v] = i
+
+
+@njit_cached
 def _up(hf: NDArray[np.float64], hv: NDArray[np.int64], where: NDArray[np.int64], i: int,
         f: float, v: int) -> None:
     """Put (f, v) at place ``i`` or above, moving greater parents down."""
     while i > 0:
         p = (i - 1) >> 1
-        if f < hf[p] or (f == hf[p] and v < hv[p]):
-            hf[i], hv[i] = hf[p], hv[p]
-            where[hv[i]] = i
-            i = p
-        else:
+        if not _less(f, v, hf[p], hv[p]):
             break
-    hf[i], hv[i] = f, v
-    where[v] = i
+        _put(hf, hv, where, i, hf[p], hv[p])
+        i = p
+    _put(hf, hv, where, i, f, v)
 
 
 @njit_cached
@@ -81,21 +85,15 @@ def _down(hf: NDArray[np.float64], hv: NDArray[np.int64], where: NDArray[np.int6
           f: float, v: int) -> None:
     """Put (f, v) at the root or below, moving lesser children up (a heap of ``n``)."""
     i = 0
-    while True:
-        ch = 2 * i + 1
-        if ch >= n:
+    ch = 1
+    while ch < n:
+        if ch + 1 < n and _less(hf[ch + 1], hv[ch + 1], hf[ch], hv[ch]):
+            ch += 1
+        if not _less(hf[ch], hv[ch], f, v):
             break
-        r = ch + 1
-        if r < n and (hf[r] < hf[ch] or (hf[r] == hf[ch] and hv[r] < hv[ch])):
-            ch = r
-        if hf[ch] < f or (hf[ch] == f and hv[ch] < v):
-            hf[i], hv[i] = hf[ch], hv[ch]
-            where[hv[i]] = i
-            i = ch
-        else:
-            break
-    hf[i], hv[i] = f, v
-    where[v] = i
+        _put(hf, hv, where, i, hf[ch], hv[ch])
+        i, ch = ch, 2 * ch + 1
+    _put(hf, hv, where, i, f, v)
 
 
 @njit_cached
