@@ -30,6 +30,29 @@ def _own_frame(stamps: np.ndarray, online: np.ndarray, t: dict[str, Any]) -> np.
     return anchor_transform(true_first[0], online[0]) if len(idx) else np.zeros(3)
 
 
+def _in_team_error(rid: str, folder: Path, own_frames: dict[str, np.ndarray],
+                   truth: dict[str, Any], gaps: Gaps) -> float | None:
+    """The largest position error of ``rid``'s online poses while in a team, as the team's
+    map placed it: in the own frame of the team's first robot (``<rid>_online_in_<first>``),
+    that frame placed in the world by the first robot's start. None if it was never in a
+    team or neither robot's truth is known."""
+    t = truth.get(rid)
+    if t is None:
+        return None
+    worst = None
+    for path in sorted(folder.glob(f"{rid}_online_in_*.csv")):
+        first = path.stem[len(f"{rid}_online_in_"):]
+        if first not in own_frames:
+            continue
+        stamps, poses = read_trajectory(path, gaps)
+        if not len(stamps):
+            continue
+        err = pose_errors(stamps, poses, own_frames[first], t["stamps_ns"], t["poses"])
+        if len(err.position_m):
+            worst = max(worst or 0.0, float(err.position_m.max()))
+    return _finite(worst) if worst is not None else None
+
+
 def _transform_error(T: Any, T_true: np.ndarray) -> tuple[float, float]:
     return pose_distance(compose(inverse(T_true), np.asarray(T, dtype=np.float64)))
 
@@ -239,6 +262,9 @@ def build_report(cfg: Any, plan: dict[str, Any], out: Path, watch: dict[str, Any
         robots.setdefault(rid, {"team_id": None, **_truth_row(t, watch, rid),
                                 "max_position_error_m": None, "max_yaw_error_rad": None,
                                 "ate_rmse_m": None, **dict.fromkeys(SERVER_ROBOT_FIELDS)})
+    for rid, row in robots.items():
+        row["max_team_position_error_m"] = _in_team_error(
+            rid, server_dir / "trajectories", own_frames, truth, gaps)
     final_traj = {rid: trajectory(rid, "final") for rid in summary.get("robots", {})
                   if (server_dir / "trajectories" / f"{rid}_final.csv").exists()}
     merges = merge_errors(summary.get("merges", []), own_frames, final_traj, truth,

@@ -61,6 +61,7 @@ from server.rendezvous.desk import SightingDesk
 from server.rendezvous.matchdesk import MapMatchDesk
 from server.rendezvous.merger import Merger
 from server.rendezvous.surgery import GraphSurgery
+from server.slam.stamped import StampedRows
 
 F64 = NDArray[np.float64]
 
@@ -194,8 +195,13 @@ class ServerCore:
     def _record_online_pose(self, r: RobotContext, stamp_ns: int) -> None:
         """The pose the server believes now, in the robot's own map frame."""
         own = r.pose
-        if len(self.fleet.team_of(r).robot_ids) > 1:
+        team = self.fleet.team_of(r)
+        if len(team.robot_ids) > 1:
             own = compose(inverse(r.own_frame_in_team()), r.pose)
+            first = self.fleet.robots.get(team.robot_ids[0])
+            if first is not None and first is not r and len(first.online):
+                rows = r.online_in.setdefault(first.robot_id, StampedRows(3))
+                rows.append(stamp_ns, compose(inverse(first.own_frame_in_team()), r.pose)[:3])
         r.online.append(stamp_ns, own[:3])
 
     def on_tags(self, msg: TagDetections) -> None:

@@ -8,7 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mrslam.report import first_sight, merge_errors
+from mrslam.report import _in_team_error, first_sight, merge_errors
+from mrslam.run_files import Gaps
 from schemas.se2 import compose
 
 A0 = np.array([-23.0, -22.0, 0.0])      # where robots a and b started (world)
@@ -218,3 +219,23 @@ def test_only_the_teams_at_the_end_have_maps_and_theirs_name_who_joined(tmp_path
     assert not (tmp_path / "map_t2.png").exists()
     assert "t2 joined at 1.5 s" in titles["map_t1.png"]
     assert "t2 (b), into t1 at 1.5 s" in legends["coverage.png"]
+
+
+def test_a_robots_error_in_its_team_map_is_scored_in_the_first_robots_frame(
+        tmp_path: Path) -> None:
+    """b's poses in a's own frame (``b_online_in_a.csv``), a's frame placed in the world by
+    a's start: b was 0.2 m off where the team's map put it, though its own frame may say
+    less; robots never in a team, or whose first robot's truth is unknown, get None."""
+    from server.runtime.outputs import write_trajectory
+
+    stamps = np.arange(5) * 10**8
+    truth_b = np.array([compose(B0, np.array([0.1 * k, 0.0, 0.0])) for k in range(5)])
+    in_a = np.array([compose(np.array([-A0[0], -A0[1], 0.0]), p) for p in truth_b])
+    in_a[3, 1] += 0.2                            # one pose 0.2 m off in the team's map
+    write_trajectory(tmp_path / "b_online_in_a.csv", stamps, in_a)
+    truth = {"b": {"stamps_ns": stamps, "poses": truth_b}}
+    gaps = Gaps(tmp_path)
+    err = _in_team_error("b", tmp_path, {"a": A0, "b": B0}, truth, gaps)
+    assert err is not None and abs(err - 0.2) < 1e-6
+    assert _in_team_error("a", tmp_path, {"a": A0, "b": B0}, truth, gaps) is None
+    assert _in_team_error("b", tmp_path, {"b": B0}, truth, gaps) is None

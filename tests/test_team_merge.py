@@ -622,3 +622,25 @@ def test_teams_whose_merge_the_maps_keep_refusing_stop_seeking_each_other() -> N
     # and with refusals_to_pause 0 nothing ever pauses
     core.cfg.teams.refusals_to_pause = 0
     assert not core.fleet.seeking_paused("team-r1", "team-r2", now)
+
+
+def test_the_online_pose_is_kept_in_the_team_maps_frame_too(
+        met: tuple[ServerCore, Simulator]) -> None:
+    """After the merge, r2's poses are also recorded in r1's own map frame (the frame the
+    team's map is drawn in), and they lie on the truth there; r1, the team's first robot,
+    has no such rows."""
+    core, sim = met
+    team = core.fleet.team_of(core.robots["r2"])
+    first = team.robot_ids[0]
+    other = next(r for r in SPAWN if r != first)
+    assert not core.robots[first].online_in
+    rows = core.robots[other].online_in[first]
+    merged_ns = core.merges[0].stamp_ns
+    assert len(rows) > 10 and rows.stamps[0] >= merged_ns
+    last = compose(np.array(SPAWN[first]), rows.values[-1])
+    truth = np.array(sim.robots[other].pose)
+    assert math.hypot(*(last[:2] - truth[:2])) < 0.1
+    # the same pose as the robot's own-frame row, seen through its first keyframe's place
+    own = core.robots[other].online.values[-1]
+    T = core.robots[other].own_frame_in_team()
+    np.testing.assert_allclose(compose(T, own)[:2], rows.values[-1][:2], atol=1e-6)

@@ -97,6 +97,9 @@ class RobotContext:
     #: the pose the server believed at each scan (stamps; values x, y, θ), in the robot's own
     #: map frame (its first pose is the origin; a merge does not move it)
     online: StampedRows = field(default_factory=lambda: StampedRows(3))
+    #: the same poses while in a team, in the own map frame of the team's first robot (the
+    #: frame its map is drawn in), keyed by that robot: where the team's map puts it
+    online_in: dict[str, StampedRows] = field(default_factory=dict)
     meeting: Meeting | None = None
     #: its latest scan (``server.rendezvous.liveview``: transforms checked against it)
     view: LiveView | None = None

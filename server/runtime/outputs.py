@@ -212,6 +212,8 @@ def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Ou
     robots: dict[str, Any] = {}
     for rid, r in core.robots.items():
         trajectories[f"{rid}_online"] = (r.online.stamps.copy(), r.online.values.copy())
+        for first, rows in r.online_in.items():
+            trajectories[f"{rid}_online_in_{first}"] = (rows.stamps.copy(), rows.values.copy())
         stamps, poses = r.slam.scan_poses()
         trajectories[f"{rid}_final"] = (np.array(stamps), np.array(poses))
         ms = r.nav.stats.decision_ms
