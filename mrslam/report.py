@@ -35,7 +35,7 @@ def _in_team_error(rid: str, folder: Path, own_frames: dict[str, np.ndarray],
     """The largest position error of ``rid``'s online poses while in a team, as the team's
     map placed it: in the own frame of the team's first robot (``<rid>_online_in_<first>``),
     that frame placed in the world by the first robot's start. None if it was never in a
-    team or neither robot's truth is known."""
+    team, or if its truth or its first robot's is unknown."""
     t = truth.get(rid)
     if t is None:
         return None

@@ -193,7 +193,8 @@ class ServerCore:
                          f"came back", stamp_ns, transform=(x, y, th))
 
     def _record_online_pose(self, r: RobotContext, stamp_ns: int) -> None:
-        """The pose the server believes now, in the robot's own map frame."""
+        """The pose the server believes now, in the robot's own map frame, and in a team also
+        where the team's map puts it (in its first robot's own frame)."""
         own = r.pose
         team = self.fleet.team_of(r)
         if len(team.robot_ids) > 1:
