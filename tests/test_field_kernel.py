@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from skimage.graph import MCP_Geometric
 
@@ -56,7 +58,7 @@ def test_a_search_with_ends_settles_them_as_a_full_one() -> None:
                 steps = np.diff(path, axis=0)
                 assert (np.abs(steps) <= 1).all() and (np.abs(steps).sum(axis=1) > 0).all()
                 total = 0.0
-                for (r0, c0), (r1, c1) in zip(path[:-1], path[1:], strict=True):
+                for (r0, c0), (r1, c1) in itertools.pairwise(path):
                     length = np.sqrt(2.0) if r0 != r1 and c0 != c1 else 1.0
                     total = total + length * 0.5 * (cost[r0, c0] + cost[r1, c1])
                 assert total == full[r, c]
