@@ -24,6 +24,8 @@ from server.planning.astar_kernel import SQRT2, _less
 #: traceback value indexes this table (-1: the start, or not reached)
 OFFSETS = np.array([[-1, -1], [-1, 0], [-1, 1], [0, -1], [0, 1], [1, -1], [1, 0], [1, 1]],
                    dtype=np.int64)
+#: a cell's place in the heap before it enters and after it is settled
+NEW, SETTLED = -1, -2
 
 
 def cost_field(cost: NDArray[np.float64], start_rc: tuple[int, int],
@@ -54,10 +56,6 @@ def cost_field(cost: NDArray[np.float64], start_rc: tuple[int, int],
             where, heap_f, heap_v)
     return (np.ascontiguousarray(cum.reshape(H + 2, W2)[1:-1, 1:-1]),
             np.ascontiguousarray(back.reshape(H + 2, W2)[1:-1, 1:-1]))
-
-
-#: a cell's place in the heap before it enters and after it is settled
-NEW, SETTLED = -1, -2
 
 
 @njit_cached
