@@ -378,13 +378,17 @@ def test_a_misread_tag_that_puts_a_robot_on_a_teammate_does_not_split_the_team()
 def test_a_misread_tag_does_not_merge_a_robot_that_is_elsewhere() -> None:
     """r1 and r2 start as one team (known start poses); r3 explores far off. r1 reads r2's
     tag as r3's: sightings that say r3 stands where r1's teammate r2 is are taken as misread,
-    not as evidence for merging r3."""
+    not as evidence for merging r3, and call neither robot."""
     spawn = {**SPAWN, "r3": (4.0, -9.0, math.pi)}
     cfg = config(("r1", "r2", "r3"), start_poses={r: list(SPAWN[r]) for r in ("r1", "r2")})
     core, _ = run(60, cfg=cfg, spawn=spawn, relabel=misread(0, "r2", "r3"))
     assert [m.kind for m in core.merges] == ["start"]
     assert core.robots["r3"].team_id != core.robots["r1"].team_id
-    assert core.tag_counters["misread"] >= 8
+    # nor as a call: neither r1 nor r3 drove off to find the other (before, r1 answered
+    # and drove up to r2, and r3 turned about; the nearer sightings were then placed and
+    # taken for misread there)
+    assert core.tag_counters["calls_misread"] >= 8
+    assert [core.robots[r].look.calls for r in ("r1", "r2", "r3")] == [0, 0, 0]
 
 
 def test_a_team_split_after_it_finished_explores_again() -> None:

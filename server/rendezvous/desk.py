@@ -61,7 +61,7 @@ class SightingDesk:
             if det.observed_robot_id == msg.robot_id:
                 self.counters.own_tag += 1
                 continue
-            self._call(msg.robot_id, det)
+            self._call(msg.robot_id, det, msg.stamp_ns)
             if det.range_m > self._usable_range_m(det):
                 self.counters.too_far += 1
                 continue
@@ -77,9 +77,11 @@ class SightingDesk:
             return max(t.max_sighting_range_m, t.max_lidar_sighting_range_m)
         return t.max_sighting_range_m
 
-    def _call(self, observer: str, det: TagDetection) -> None:
+    def _call(self, observer: str, det: TagDetection, stamp_ns: int | None = None) -> None:
         """A robot of another team was seen: tell both robots where the other one is, so they
-        close in until the tags can be read well (see server.lookout)."""
+        close in until the tags can be read well (see server.lookout). Not when the tag was
+        seen where a teammate of the observer stands: that is the teammate's tag, misread
+        (placing it later says the same, but by then both robots would have turned to it)."""
         t = self.cfg.teams
         robots = self.fleet.robots
         a, b = robots.get(observer), robots.get(det.observed_robot_id)
@@ -94,8 +96,16 @@ class SightingDesk:
             return   # their maps keep refusing the merge: both go on exploring
         rel = np.array([det.range_m * math.cos(det.bearing_rad),
                         det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
+        seen = transform_points(a.pose, rel[None, :2])[0]
+        mate = self._teammate_near(a, b.robot_id, det, seen,
+                                   a.last_stamp_ns if stamp_ns is None else stamp_ns)
+        if mate is not None:
+            self.counters.calls_misread += 1
+            log.debug("no call from %s's sighting of %s: %s stands there", a.robot_id,
+                      b.robot_id, mate)
+            return
         now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
-        a.look.hear(now_a, transform_points(a.pose, rel[None, :2])[0],
+        a.look.hear(now_a, seen,
                     max(0.5, 0.1 * det.range_m), sure=True, caller=b.robot_id)
         # the reader as the seen robot would place it: through the tag's heading, which is
         # poor at range, hence the wide tolerance
@@ -103,6 +113,29 @@ class SightingDesk:
         b.look.hear(now_b, transform_points(b.pose, back[None, :2])[0],
                     max(1.0, 0.35 * det.range_m), sure=False, range_m=det.range_m,
                     range_tolerance_m=3.0 * det.sigma_range_m + 0.2, caller=a.robot_id)
+
+    def _teammate_near(self, a: RobotContext, observed: str, det: TagDetection, seen: F64,
+                       stamp_ns: int) -> str | None:
+        """A teammate of observer ``a`` (not the robot named) whose latest pose is where the
+        tag was seen (``seen``, by ``a``'s latest pose): within the gate a placed sighting
+        gets (``_teammate_there``), widened by how far either robot can have driven between
+        the sighting and its latest pose."""
+        vp, ps = self.merger.verifier.p, self.pose_sigmas
+        r = det.range_m
+        sig = math.sqrt(det.sigma_range_m ** 2 + (r * det.sigma_bearing_rad) ** 2
+                        + 2 * ps[0] ** 2 + (r * ps[2]) ** 2)
+        gate = vp.gate_sigmas * sig + vp.gate_floor_m
+        v = self.cfg.control.v_mps
+        for cid in self.fleet.team_of(a).robot_ids:
+            if cid in (a.robot_id, observed):
+                continue
+            c = self.fleet.robots[cid]
+            if not c.scans:
+                continue
+            lag_s = (abs(a.last_stamp_ns - stamp_ns) + abs(c.last_stamp_ns - stamp_ns)) * 1e-9
+            if float(np.hypot(*(c.pose[:2] - seen))) <= gate + min(v * lag_s, 1.0):
+                return cid
+        return None
 
     # -- 2. waiting for the scans around a sighting's time ---------------------------------
     def process(self, now_ns: int) -> None:
