@@ -367,7 +367,8 @@ def hypothesis_errors(hyps: list[dict[str, Any]], own_frames: dict[str, np.ndarr
             "sim_time_s": round(h["first_ns"] * 1e-9, 2), "last_s": round(h["last_ns"] * 1e-9, 2),
             "teams": [h["team_a"], h["team_b"]], "status": h["status"], "reason": h["reason"],
             "support": h["support"], "sides": [h["side_a"], h["side_b"]], "rival": h["rival"],
-            "acceptance": h["acceptance"], "seen": h["seen"], "error_m": None,
+            "acceptance": h["acceptance"], "seen": h["seen"],
+            "union_coverage": h.get("union_coverage"), "error_m": None,
             "error_deg": None, "wrong": None}
         a, b = h["anchor_a"], h["anchor_b"]
         if a in own_frames and b in own_frames:

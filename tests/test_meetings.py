@@ -164,3 +164,45 @@ def _merge(core: ServerCore, T: np.ndarray) -> None:
     fleet.retired_teams["team-r2"] = fleet.teams.pop("team-r2")
     fleet.merges.append(MergeRecord(r2.last_stamp_ns, "team-r1", "team-r2", ["r1"], ["r2"],
                                     [], T, np.eye(3), T, T, {}))
+
+
+def test_the_union_of_two_maps_counts_their_overlap_once(core: ServerCore) -> None:
+    """Under the true transform the two robots' maps of one room overlap; moved far apart
+    they do not, and the union is the sum of the two."""
+    from server.rendezvous.maps import union_area_m2
+
+    core.progress.update(core.robots["r1"].last_stamp_ns)
+    ga, gb = core.fleet.latest_grids["team-r1"], core.fleet.latest_grids["team-r2"]
+    area_a = float((ga.free | ga.occupied).sum()) * ga.geometry.cell_area_m2
+    area_b = float((gb.free | gb.occupied).sum()) * gb.geometry.cell_area_m2
+    apart = union_area_m2(ga, gb, T_TRUE + np.array([60.0, 0.0, 0.0]))
+    assert apart == pytest.approx(area_a + area_b, rel=1e-9)
+    together = union_area_m2(ga, gb, T_TRUE)
+    assert max(area_a, area_b) <= together < 0.8 * (area_a + area_b)
+
+
+def test_a_transform_seen_from_one_map_is_met_only_if_the_maps_joined_would_finish(
+        core: ServerCore) -> None:
+    """Places of one team's map found in the other's, none the other way: no meeting while
+    the two maps joined under it leave the building unexplored; a meeting once they would
+    cover the threshold."""
+    desk, now = core.matcher, core.robots["r1"].last_stamp_ns
+    core.progress.update(now)
+    places = [(1.0, -0.5), (0.8, -0.3), (1.2, -0.6), (0.9, -0.7)]
+    members = tuple(Candidate(T_TRUE, "b", k, np.asarray(xy, dtype=float), 100.0, 100, 0,
+                              0.99, 1000) for k, xy in enumerate(places))
+    h = Hypothesis(T_TRUE, 4, members, 1, 0.99)
+    assert h.side_support("a") == 0 and not h.accepted(desk.params)
+    e = HypothesisEntry(0, now, "team-r1", "team-r2", "r1", "r2", T_TRUE, 4, 0, 4, 1, 0.99)
+    desk.log.append(e)
+    desk._decide(e, h, now)
+    assert e.status == "pending" and core.robots["r1"].meeting is None
+    assert e.union_coverage is not None and e.union_coverage < 0.5   # the room of 374 m²
+    # the same maps, in a building no larger than what they hold together
+    explore = core.cfg.explore.model_copy(update={
+        "total_area_m2": e.union_coverage * core.cfg.explore.total_area_m2 / 0.99})
+    core.cfg = core.cfg.model_copy(update={"explore": explore})
+    desk.cfg = core.cfg
+    desk._decide(e, h, now)
+    assert e.union_coverage >= core.cfg.explore.coverage_threshold
+    assert e.status == "meeting" and core.robots["r1"].meeting is not None

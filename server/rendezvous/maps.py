@@ -20,6 +20,7 @@ from server.slam import RobotSlam
 from server.slam.grid import OccupancyGrid
 
 if TYPE_CHECKING:
+    from server.planning.grid import OccupancyGrid as PlanningMap
     from server.slam.icp import PointMap
 
 F64 = NDArray[np.float64]
@@ -75,6 +76,24 @@ def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
                     + (a_occ & b_free & ~near_b[rb, cb] & open_b[rb, cb]).sum())
     checked = int((b_occ | a_occ).sum())
     return MapAgreement(len(ia), checked, conflicts)
+
+
+def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64) -> float:
+    """The area both maps know together [m²] when grid b is moved into a's frame by
+    ``T_ab``: a's explored cells, and b's that fall where a has explored nothing (each cell
+    of b counted once, at its centre: a rigid move keeps the area)."""
+    known_a = grid_a.free | grid_a.occupied
+    rc = np.argwhere(grid_b.free | grid_b.occupied)
+    if not len(rc):
+        return float(known_a.sum()) * grid_a.geometry.cell_area_m2
+    xy = grid_b.geometry.cell_to_world(rc)
+    c, s = math.cos(T_ab[2]), math.sin(T_ab[2])
+    at_a = xy @ np.array([[c, s], [-s, c]]) + T_ab[:2]
+    cell = grid_a.geometry.world_to_cell(at_a)
+    inside = grid_a.geometry.contains(cell)
+    new = int((~inside).sum()) + int((~known_a[cell[inside, 0], cell[inside, 1]]).sum())
+    return float(known_a.sum()) * grid_a.geometry.cell_area_m2 + \
+        new * grid_b.geometry.cell_area_m2
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,11 @@ from several places of both maps agree — goes one of three ways:
   drives to one place of the overlap, the place as each team's map has it. If the transform is
   right they arrive at the same spot, see each other, and the tags merge them (the merge is
   then of kind ``meeting``); if they have not merged within ``teams.meet_timeout_s`` the
-  transform is refuted and never tried again;
+  transform is refuted and never tried again. Its places must come from both maps, more
+  than any rival has. Places from one map only (one team's submaps found in the other's
+  map, none the other way) are mostly a wrong fit, but they earn a meeting still when the
+  two maps joined under the transform would cover the coverage threshold: the teams would be
+  done if merged, and have nothing better to do than find each other;
 - otherwise it is logged and nothing happens.
 
 Every hypothesis is kept in ``log`` with its support and what became of it, for the run's
@@ -48,6 +52,7 @@ from server.rendezvous.mapmatch import (
     best_hypothesis,
     same_transform,
 )
+from server.rendezvous.maps import union_area_m2
 from server.rendezvous.merger import Merger
 from server.rendezvous.submaps import submap_candidates
 
@@ -80,6 +85,8 @@ class HypothesisEntry:
     status: str = "pending"   # pending, meeting, accepted, refused, confirmed, refuted
     reason: str = ""
     seen: int = 1             # queries that found it
+    #: the coverage of the two maps joined under T_ab, when it was asked (one-sided ones)
+    union_coverage: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"first_ns": self.first_ns, "last_ns": self.last_ns, "team_a": self.team_a,
@@ -87,7 +94,7 @@ class HypothesisEntry:
                 "T_ab": [float(v) for v in self.T_ab], "support": self.support,
                 "side_a": self.side_a, "side_b": self.side_b, "rival": self.rival,
                 "acceptance": self.acceptance, "status": self.status, "reason": self.reason,
-                "seen": self.seen}
+                "seen": self.seen, "union_coverage": self.union_coverage}
 
 
 @dataclass
@@ -263,14 +270,37 @@ class MapMatchDesk:
         entry = self._entry(ta.team_id, tb.team_id, ta.anchor, tb.anchor, h, now_ns)
         if entry.status in ("refuted", "refused"):
             return
+        self._decide(entry, h, now_ns)
+
+    def _decide(self, entry: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
+        """A merge, a meeting, or nothing yet (see the module docstring)."""
+        one_sided = min(h.side_support("a"), h.side_support("b")) == 0
+        finish = one_sided and entry.status == "pending" and self._would_finish(entry)
         if h.accepted(self.params):
             self._merge(entry, now_ns)
         elif entry.status == "pending" and self.cfg.teams.map_match_meet and \
                 h.support >= self.cfg.teams.meet_min_support and \
-                min(h.side_support("a"), h.side_support("b")) >= 1 and \
-                h.support > h.rival_support:
-            # more places than any rival, seen from both maps, but not clearly enough: meet
+                h.support > h.rival_support and (not one_sided or finish):
+            # more places than any rival, seen from both maps, but not clearly enough: meet.
+            # Seen from one map only, such a transform is mostly wrong, and a meeting is
+            # planned on it only when the two maps joined by it would finish the
+            # exploration: then the teams have nothing left but each other to find
+            if finish:
+                log.info("maps of %s and %s joined under T %s would cover %.1f %%: a "
+                         "meeting, though only one map's places fit the other", entry.team_b,
+                         entry.team_a, entry.T_ab.round(2), 100 * (entry.union_coverage or 0))
             meetings.arrange(self, entry, h, now_ns)
+
+    def _would_finish(self, e: HypothesisEntry) -> bool:
+        """The two teams' latest maps joined under the entry's transform cover the coverage
+        threshold (``explore``): merged now, the teams would be done. The coverage is kept
+        in the entry (``union_coverage``)."""
+        total = self.cfg.explore.total_area_m2
+        ga, gb = self.fleet.latest_grids.get(e.team_a), self.fleet.latest_grids.get(e.team_b)
+        if not total or ga is None or gb is None:
+            return False
+        e.union_coverage = round(union_area_m2(ga, gb, e.T_ab) / total, 4)
+        return e.union_coverage >= self.cfg.explore.coverage_threshold
 
     def _entry(self, a: str, b: str, anchor_a: str, anchor_b: str, h: Hypothesis,
                now_ns: int) -> HypothesisEntry:
