@@ -134,11 +134,13 @@ class TeamsConfig(ConfigModel):
                                   "cut from each map, and more than any rival transform has)")
     meet_max_detour_m: float = Field(25.0, gt=0.0, description="a meeting is planned only "
                                      "when the robot sent is at most this far (straight "
-                                     "line) from where it predicts the other")
+                                     "line) from where it predicts the other; any distance "
+                                     "when the two maps joined would cover the threshold")
     meet_timeout_s: float = Field(120.0, gt=0.0, description="a planned meeting that has "
                                   "not merged the two teams after its robots' travel time "
-                                  "and half a minute, or this long at most, refutes its "
-                                  "transform")
+                                  "and half a minute, or this long at most (not capped "
+                                  "when the two maps joined would cover the threshold), "
+                                  "refutes its transform")
     look_at_movers: bool = Field(True, description="while robots outside the team remain, "
                                  "turn toward moving things the LIDAR sees (a robot whose tag "
                                  "the forward camera would otherwise miss)")

@@ -155,6 +155,22 @@ def test_a_meeting_too_far_away_is_not_planned(core: ServerCore) -> None:
     assert e.status == "pending" and core.robots["r1"].meeting is None
 
 
+def test_a_meeting_that_would_finish_the_exploration_is_planned_at_any_distance(
+        core: ServerCore) -> None:
+    """The same place, beyond ``meet_max_detour_m``: no meeting, unless the two maps joined
+    would cover the threshold; then it is planned, with the time its paths take."""
+    teams = core.cfg.teams.model_copy(update={"meet_max_detour_m": 0.3})
+    core.cfg = core.matcher.cfg = core.cfg.model_copy(update={"teams": teams})
+    places = [(1.0, -0.5), (0.8, -0.3), (1.2, -0.6)]
+    e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", T_TRUE, 3, 2, 1, 0, 0.99)
+    core.matcher.log.append(e)
+    now = core.robots["r1"].last_stamp_ns
+    meetings.arrange(core.matcher, e, _hypothesis(T_TRUE, places), now)
+    assert e.status == "pending" and core.robots["r1"].meeting is None
+    meetings.arrange(core.matcher, e, _hypothesis(T_TRUE, places), now, finishing=True)
+    assert e.status == "meeting" and core.robots["r1"].meeting is not None
+
+
 def _merge(core: ServerCore, T: np.ndarray) -> None:
     """The two teams joined as a tag merge would (r2's team into r1's under ``T``)."""
     fleet = core.fleet

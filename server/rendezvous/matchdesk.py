@@ -15,7 +15,8 @@ from several places of both maps agree — goes one of three ways:
   than any rival has. Places from one map only (one team's submaps found in the other's
   map, none the other way) are mostly a wrong fit, but they earn a meeting still when the
   two maps joined under the transform would cover the coverage threshold: the teams would be
-  done if merged, and have nothing better to do than find each other;
+  done if merged, and have nothing better to do than find each other. Such a "finishing"
+  meeting is planned whatever the distance, and has the time its paths take;
 - otherwise it is logged and nothing happens.
 
 Every hypothesis is kept in ``log`` with its support and what became of it, for the run's
@@ -275,7 +276,7 @@ class MapMatchDesk:
     def _decide(self, entry: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
         """A merge, a meeting, or nothing yet (see the module docstring)."""
         one_sided = min(h.side_support("a"), h.side_support("b")) == 0
-        finish = one_sided and entry.status == "pending" and self._would_finish(entry)
+        finish = entry.status == "pending" and self._would_finish(entry)
         if h.accepted(self.params):
             self._merge(entry, now_ns)
         elif entry.status == "pending" and self.cfg.teams.map_match_meet and \
@@ -287,9 +288,10 @@ class MapMatchDesk:
             # exploration: then the teams have nothing left but each other to find
             if finish:
                 log.info("maps of %s and %s joined under T %s would cover %.1f %%: a "
-                         "meeting, though only one map's places fit the other", entry.team_b,
-                         entry.team_a, entry.T_ab.round(2), 100 * (entry.union_coverage or 0))
-            meetings.arrange(self, entry, h, now_ns)
+                         "meeting%s", entry.team_b, entry.team_a, entry.T_ab.round(2),
+                         100 * (entry.union_coverage or 0),
+                         ", though only one map's places fit the other" if one_sided else "")
+            meetings.arrange(self, entry, h, now_ns, finishing=finish)
 
     def _would_finish(self, e: HypothesisEntry) -> bool:
         """The two teams' latest maps joined under the entry's transform cover the coverage

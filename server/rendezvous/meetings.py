@@ -31,11 +31,16 @@ log = logging.getLogger(__name__)
 MEET_SEEN_S = 15.0
 
 
-def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) -> None:
+def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
+            finishing: bool = False) -> None:
     """One robot of each team to one place of the overlap, if some pair of them can get
     there within ``teams.meet_max_detour_m`` (the farther of the two paths) and the meeting
-    is worth their time (``server.fleet.detours``)."""
+    is worth their time (``server.fleet.detours``). ``finishing``: the two maps joined under
+    the transform would cover the threshold; the robots have nothing left to explore that
+    the merge would not give them, so any distance is worth driving, and the meeting has
+    the time its paths take."""
     fleet, t = desk.fleet, desk.cfg.teams
+    reach_m = math.inf if finishing else t.meet_max_detour_m
     if e.status != "pending":
         return      # refuted, refused, merged, or already being met
     if fleet.seeking_paused(e.team_a, e.team_b, now_ns):
@@ -55,7 +60,7 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) 
                      i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
                     for k, p in enumerate(places)), key=lambda x: x[0])
     for straight, i, j, k in tries[:6]:
-        if straight > t.meet_max_detour_m:
+        if straight > reach_m:
             break
         ra, rb, p = side_a[i], side_b[j], places[k]
         p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
@@ -63,9 +68,14 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) 
         if path_a is None or path_b is None:
             continue
         cost = max(_length(path_a), _length(path_b))
-        if cost <= 1.5 * t.meet_max_detour_m and (best is None or cost < best[0]):
+        if cost <= 1.5 * reach_m and (best is None or cost < best[0]):
             best = (cost, ra, rb, p, p_b, path_a, path_b)
     if best is None:
+        if e.seen == 1 or finishing:
+            log.info("no meeting on T %s: %s", e.T_ab.round(2),
+                     f"the nearest robots are {tries[0][0]:.1f} m from a place (at most "
+                     f"{reach_m:.0f} m)" if tries and tries[0][0] > reach_m else
+                     "no path of both robots within reach")
         return
     _, ra, rb, p, p_b, path_a, path_b = best
     # worth the two robots' time? (server.fleet.detours; not asked again soon if not) The
@@ -78,7 +88,8 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int) 
                                       transforms):
         return
     cost, v = best[0], ra.nav.pursuit.params.v_mps
-    until = now_ns * 1e-9 + min(t.meet_timeout_s, 1.5 * cost / max(v, 0.05) + 30.0)
+    until = now_ns * 1e-9 + min(math.inf if finishing else t.meet_timeout_s,
+                                1.5 * cost / max(v, 0.05) + 30.0)
     idx = desk.log.index(e)
     ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
     rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
