@@ -12,11 +12,12 @@ from several places of both maps agree — goes one of three ways:
   right they arrive at the same spot, see each other, and the tags merge them (the merge is
   then of kind ``meeting``); if they have not merged within ``teams.meet_timeout_s`` the
   transform is refuted and never tried again. Its places must come from both maps, more
-  than any rival has. Places from one map only (one team's submaps found in the other's
-  map, none the other way) are mostly a wrong fit, but they earn a meeting still when the
-  two maps joined under the transform would cover the coverage threshold: the teams would be
-  done if merged, and have nothing better to do than find each other. Such a "finishing"
-  meeting is planned whatever the distance, and has the time its paths take;
+  than any rival has. Fewer places (``map_match_min_support``), or places from one map only
+  (one team's submaps found in the other's map, none the other way), are mostly a wrong
+  fit, but they earn a meeting still when the two maps joined under the transform would
+  cover the coverage threshold: the teams would be done if merged, and have nothing better
+  to do than find each other. Such a "finishing" meeting is planned whatever the distance,
+  and has the time its paths take;
 - otherwise it is logged and nothing happens.
 
 Every hypothesis is kept in ``log`` with its support and what became of it, for the run's
@@ -280,12 +281,13 @@ class MapMatchDesk:
         if h.accepted(self.params):
             self._merge(entry, now_ns)
         elif entry.status == "pending" and self.cfg.teams.map_match_meet and \
-                h.support >= self.cfg.teams.meet_min_support and \
-                h.support > h.rival_support and (not one_sided or finish):
+                h.support > h.rival_support and \
+                ((h.support >= self.cfg.teams.meet_min_support and not one_sided) or finish):
             # more places than any rival, seen from both maps, but not clearly enough: meet.
-            # Seen from one map only, such a transform is mostly wrong, and a meeting is
-            # planned on it only when the two maps joined by it would finish the
-            # exploration: then the teams have nothing left but each other to find
+            # Seen from one map only, or at fewer places, such a transform is mostly wrong,
+            # and a meeting is planned on it only when the two maps joined by it would
+            # finish the exploration: then the teams have nothing left but each other to
+            # find (a wrong one costs the two robots' drive, which a look often cuts short)
             if finish:
                 log.info("maps of %s and %s joined under T %s would cover %.1f %%: a "
                          "meeting%s", entry.team_b, entry.team_a, entry.T_ab.round(2),
