@@ -59,12 +59,13 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
                          math.hypot(*(transform_points(e.T_ab, rb.pose[None, :2])[0] - p))),
                      i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
                     for k, p in enumerate(places)), key=lambda x: x[0])
+    why: list[str] = []
     for straight, i, j, k in tries[:6]:
         if straight > reach_m:
             break
         ra, rb, p = side_a[i], side_b[j], places[k]
         p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
-        path_a, path_b = _path(desk, ra, p), _path(desk, rb, p_b)
+        path_a, path_b = _path(desk, ra, p, why), _path(desk, rb, p_b, why)
         if path_a is None or path_b is None:
             continue
         cost = max(_length(path_a), _length(path_b))
@@ -75,7 +76,7 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
             log.info("no meeting on T %s: %s", e.T_ab.round(2),
                      f"the nearest robots are {tries[0][0]:.1f} m from a place (at most "
                      f"{reach_m:.0f} m)" if tries and tries[0][0] > reach_m else
-                     "no path of both robots within reach")
+                     "no path of both robots within reach (" + "; ".join(why[:3]) + ")")
         return
     _, ra, rb, p, p_b, path_a, path_b = best
     # worth the two robots' time? (server.fleet.detours; not asked again soon if not) The
@@ -102,12 +103,27 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     desk.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
 
 
-def _path(desk: MapMatchDesk, r: RobotContext, goal: F64) -> F64 | None:
+#: a meeting's place that falls on a lethal cell of a robot's map (a wall's margin: the
+#: transform is good to a few decimetres) moves to the nearest free cell this close [m]
+PLACE_ESCAPE_M = 1.0
+
+
+def _path(desk: MapMatchDesk, r: RobotContext, goal: F64,
+          why: list[str] | None = None) -> F64 | None:
+    """The robot's path to ``goal`` on its team's map, or None (the reason appended to
+    ``why``)."""
     grid = desk.fleet.planning_grid(r.team_id)
     try:
         layer = build_cost_layer(grid, r.nav.own_explorer.params.analysis.cost)
+        rc = layer.geometry.world_to_cell(goal)
+        if layer.geometry.contains(rc):
+            near = layer.escape((int(rc[0]), int(rc[1])), PLACE_ESCAPE_M)
+            if near is not None:
+                goal = layer.geometry.cell_to_world(np.array(near))
         return plan(layer, r.pose[:2], goal, timeout_s=0.5).xy_m
-    except PlanningError:
+    except PlanningError as e:
+        if why is not None:
+            why.append(f"{r.robot_id}: {e}")
         return None
 
 
