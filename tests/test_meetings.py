@@ -222,3 +222,26 @@ def test_a_transform_seen_from_one_map_is_met_only_if_the_maps_joined_would_fini
     desk._decide(e, h, now)
     assert e.union_coverage >= core.cfg.explore.coverage_threshold
     assert e.status == "meeting" and core.robots["r1"].meeting is not None
+
+
+def test_a_place_in_a_walls_margin_is_reached_at_the_nearest_free_cell(
+        core: ServerCore) -> None:
+    """The transform is good to decimetres, so a meeting's place can fall within a wall's
+    margin on one robot's map: that robot is sent to the nearest free cell instead."""
+    from server.planning.costmap import build_cost_layer
+
+    r1 = core.robots["r1"]
+    layer = build_cost_layer(core.fleet.planning_grid("team-r1"),
+                             r1.nav.own_explorer.params.analysis.cost)
+    # a lethal cell next to the free floor around r1, within 3 m of it
+    rc = np.argwhere(~np.isfinite(layer.cost))
+    xy = layer.geometry.cell_to_world(rc)
+    near = np.hypot(*(xy - r1.pose[:2]).T) < 3.0
+    ok = [k for k in np.flatnonzero(near) if layer.escape(tuple(rc[k]), 0.3) not in
+          (None, tuple(rc[k]))]
+    assert ok, "no wall margin near r1"
+    goal = xy[ok[0]]
+    why: list[str] = []
+    path = meetings._path(core.matcher, r1, goal, why)
+    assert path is not None, why
+    assert 0 < math.hypot(*(path[-1] - goal)) <= meetings.PLACE_ESCAPE_M
