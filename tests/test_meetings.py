@@ -224,24 +224,26 @@ def test_a_transform_seen_from_one_map_is_met_only_if_the_maps_joined_would_fini
     assert e.status == "meeting" and core.robots["r1"].meeting is not None
 
 
-def test_a_place_in_a_walls_margin_is_reached_at_the_nearest_free_cell(
-        core: ServerCore) -> None:
-    """The transform is good to decimetres, so a meeting's place can fall within a wall's
-    margin on one robot's map: that robot is sent to the nearest free cell instead."""
-    from server.planning.costmap import build_cost_layer
+def test_a_place_in_a_walls_margin_moves_to_floor_free_on_both_maps(core: ServerCore) -> None:
+    """The transform is good to decimetres, and a place cut from one map may lie in the
+    other's unknown: a meeting's place moves to the nearest cell free on both maps, and
+    each robot can drive to it. Where the other map knows nothing near, there is none."""
+    from schemas.se2 import transform_points
 
-    r1 = core.robots["r1"]
-    layer = build_cost_layer(core.fleet.planning_grid("team-r1"),
-                             r1.nav.own_explorer.params.analysis.cost)
-    # a lethal cell next to the free floor around r1, within 3 m of it
-    rc = np.argwhere(~np.isfinite(layer.cost))
-    xy = layer.geometry.cell_to_world(rc)
-    near = np.hypot(*(xy - r1.pose[:2]).T) < 3.0
-    ok = [k for k in np.flatnonzero(near) if layer.escape(tuple(rc[k]), 0.3) not in
-          (None, tuple(rc[k]))]
-    assert ok, "no wall margin near r1"
-    goal = xy[ok[0]]
+    desk, r1, r2 = core.matcher, core.robots["r1"], core.robots["r2"]
+    la, lb = meetings._layer(desk, r1), meetings._layer(desk, r2)
+    rc = np.argwhere(~np.isfinite(la.cost))
+    xy = la.geometry.cell_to_world(rc)
+    near = np.flatnonzero(np.hypot(*(xy - r1.pose[:2]).T) < 3.0)
+    margin = [k for k in near if la.escape(tuple(rc[k]), 0.3) not in (None, tuple(rc[k]))]
+    assert margin, "no wall margin near r1"
+    goal = xy[margin[0]]
+    found = meetings._common_place(la, lb, T_TRUE, goal)
+    assert found is not None
+    p_a, p_b = found
+    assert 0 < math.hypot(*(p_a - goal)) <= meetings.PLACE_SEARCH_M
+    assert np.allclose(transform_points(T_TRUE, p_b[None, :])[0], p_a, atol=1e-9)
     why: list[str] = []
-    path = meetings._path(core.matcher, r1, goal, why)
-    assert path is not None, why
-    assert 0 < math.hypot(*(path[-1] - goal)) <= meetings.PLACE_ESCAPE_M
+    assert meetings._path(la, r1, p_a, why) is not None, why
+    assert meetings._path(lb, r2, p_b, why) is not None, why
+    assert meetings._common_place(la, lb, T_TRUE + np.array([60.0, 0.0, 0.0]), goal) is None

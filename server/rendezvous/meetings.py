@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from schemas.se2 import inverse, transform_points
 from server.fleet.model import Meeting, MergeRecord, RobotContext
 from server.planning import plan
-from server.planning.costmap import build_cost_layer
+from server.planning.costmap import CostLayer, build_cost_layer
 from server.planning.errors import PlanningError
 from server.rendezvous.mapmatch import Hypothesis, same_transform
 
@@ -53,19 +53,22 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
               if fleet.robots[r].alive]
     side_b = [fleet.robots[r] for r in fleet.teams[e.team_b].robot_ids
               if fleet.robots[r].alive]
-    places = [c.centre_a for c in h.members]
+    layer_a, layer_b = _layer(desk, side_a[0]), _layer(desk, side_b[0])
+    # each place moved to where both maps have free floor: a place cut from one map can lie
+    # in the other's unknown, or in a wall's margin (the transform is good to decimetres)
+    found = [_common_place(layer_a, layer_b, e.T_ab, c.centre_a) for c in h.members]
+    places = [f for f in found if f is not None]
     best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
     tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
-                         math.hypot(*(transform_points(e.T_ab, rb.pose[None, :2])[0] - p))),
+                         math.hypot(*(rb.pose[:2] - p_b))),
                      i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
-                    for k, p in enumerate(places)), key=lambda x: x[0])
-    why: list[str] = []
+                    for k, (p, p_b) in enumerate(places)), key=lambda x: x[0])
+    why: list[str] = [] if places else [f"no place of the {len(found)} is free on both maps"]
     for straight, i, j, k in tries[:6]:
         if straight > reach_m:
             break
-        ra, rb, p = side_a[i], side_b[j], places[k]
-        p_b = transform_points(inverse(e.T_ab), p[None, :])[0]
-        path_a, path_b = _path(desk, ra, p, why), _path(desk, rb, p_b, why)
+        ra, rb, (p, p_b) = side_a[i], side_b[j], places[k]
+        path_a, path_b = _path(layer_a, ra, p, why), _path(layer_b, rb, p_b, why)
         if path_a is None or path_b is None:
             continue
         cost = max(_length(path_a), _length(path_b))
@@ -103,23 +106,52 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     desk.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
 
 
-#: a meeting's place that falls on a lethal cell of a robot's map (a wall's margin: the
-#: transform is good to a few decimetres) moves to the nearest free cell this close [m]
-PLACE_ESCAPE_M = 1.0
+#: a meeting's place moves to the nearest cell free on both teams' maps within this [m]
+PLACE_SEARCH_M = 3.0
+#: ... preferring cells this clear of walls on both maps [m]
+PLACE_CLEARANCE_M = 0.5
 
 
-def _path(desk: MapMatchDesk, r: RobotContext, goal: F64,
-          why: list[str] | None = None) -> F64 | None:
-    """The robot's path to ``goal`` on its team's map, or None (the reason appended to
-    ``why``)."""
-    grid = desk.fleet.planning_grid(r.team_id)
+def _layer(desk: MapMatchDesk, r: RobotContext) -> CostLayer:
+    """The cost layer of the robot's team's map, as the robot plans on it."""
+    return build_cost_layer(desk.fleet.planning_grid(r.team_id),
+                            r.nav.own_explorer.params.analysis.cost)
+
+
+def _common_place(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64, p: F64
+                  ) -> tuple[F64, F64] | None:
+    """The cell nearest ``p`` (team a's frame) that both maps let a robot stand on, within
+    ``PLACE_SEARCH_M``, those ``PLACE_CLEARANCE_M`` clear of walls on both first: its
+    centre in a's frame and in b's. None when there is none."""
+    geo = layer_a.geometry
+    k = math.ceil(PLACE_SEARCH_M / geo.resolution_m)
+    r, c = (int(v) for v in geo.world_to_cell(p))
+    H, W = layer_a.cost.shape
+    r0, r1, c0, c1 = max(0, r - k), min(H, r + k + 1), max(0, c - k), min(W, c + k + 1)
+    if r0 >= r1 or c0 >= c1:
+        return None
+    rr, cc = np.nonzero(np.isfinite(layer_a.cost[r0:r1, c0:c1]))
+    rr, cc = rr + r0, cc + c0
+    xy_a = geo.cell_to_world(np.stack([rr, cc], axis=1))
+    d = np.hypot(*(xy_a - p).T)
+    xy_b = transform_points(inverse(T_ab), xy_a)
+    rc_b = layer_b.geometry.world_to_cell(xy_b)
+    ok = (d <= PLACE_SEARCH_M) & layer_b.geometry.contains(rc_b)
+    ok[ok] = np.isfinite(layer_b.cost[rc_b[ok, 0], rc_b[ok, 1]])
+    if not ok.any():
+        return None
+    idx = np.flatnonzero(ok)
+    clear = np.minimum(layer_a.clearance_m[rr[idx], cc[idx]],
+                       layer_b.clearance_m[rc_b[idx, 0], rc_b[idx, 1]])
+    best = idx[np.lexsort((d[idx], clear < PLACE_CLEARANCE_M))[0]]
+    return xy_a[best], xy_b[best]
+
+
+def _path(layer: CostLayer, r: RobotContext, goal: F64, why: list[str] | None = None
+          ) -> F64 | None:
+    """The robot's path to ``goal`` on its team's map (``layer``), or None (the reason
+    appended to ``why``)."""
     try:
-        layer = build_cost_layer(grid, r.nav.own_explorer.params.analysis.cost)
-        rc = layer.geometry.world_to_cell(goal)
-        if layer.geometry.contains(rc):
-            near = layer.escape((int(rc[0]), int(rc[1])), PLACE_ESCAPE_M)
-            if near is not None:
-                goal = layer.geometry.cell_to_world(np.array(near))
         return plan(layer, r.pose[:2], goal, timeout_s=0.5).xy_m
     except PlanningError as e:
         if why is not None:
