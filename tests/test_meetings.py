@@ -192,7 +192,7 @@ def test_the_union_of_two_maps_counts_their_overlap_once(core: ServerCore) -> No
     area_a = float((ga.free | ga.occupied).sum()) * ga.geometry.cell_area_m2
     area_b = float((gb.free | gb.occupied).sum()) * gb.geometry.cell_area_m2
     apart = union_area_m2(ga, gb, T_TRUE + np.array([60.0, 0.0, 0.0]))
-    assert apart == pytest.approx(area_a + area_b, rel=1e-9)
+    assert apart == pytest.approx(area_a + area_b, rel=0.05)   # b sampled every 0.2 m
     together = union_area_m2(ga, gb, T_TRUE)
     assert max(area_a, area_b) <= together < 0.8 * (area_a + area_b)
 

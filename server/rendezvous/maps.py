@@ -78,12 +78,15 @@ def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
     return MapAgreement(len(ia), checked, conflicts)
 
 
-def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64) -> float:
+def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64,
+                  sample_m: float = 0.2) -> float:
     """The area both maps know together [m²] when grid b is moved into a's frame by
-    ``T_ab``: a's explored cells, and b's that fall where a has explored nothing (each cell
-    of b counted once, at its centre: a rigid move keeps the area)."""
+    ``T_ab``: a's explored cells, and b's that fall where a has explored nothing. b's cells
+    are taken every ``sample_m`` along each axis, each standing for its block (a rigid move
+    keeps the area): a large house's map in a few milliseconds, to a percent."""
     known_a = grid_a.free | grid_a.occupied
-    rc = np.argwhere(grid_b.free | grid_b.occupied)
+    step = max(1, round(sample_m / grid_b.geometry.resolution_m))
+    rc = np.argwhere((grid_b.free | grid_b.occupied)[::step, ::step]) * step
     if not len(rc):
         return float(known_a.sum()) * grid_a.geometry.cell_area_m2
     xy = grid_b.geometry.cell_to_world(rc)
@@ -93,7 +96,7 @@ def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64) -> float:
     inside = grid_a.geometry.contains(cell)
     new = int((~inside).sum()) + int((~known_a[cell[inside, 0], cell[inside, 1]]).sum())
     return float(known_a.sum()) * grid_a.geometry.cell_area_m2 + \
-        new * grid_b.geometry.cell_area_m2
+        new * step * step * grid_b.geometry.cell_area_m2
 
 
 @dataclass(frozen=True)
