@@ -147,6 +147,9 @@ def test_a_robot_that_reaches_its_place_is_marked_there(core: ServerCore) -> Non
 
 
 def test_a_meeting_too_far_away_is_not_planned(core: ServerCore) -> None:
+    """Beyond ``meet_max_detour_m`` from every floor both maps know, no meeting."""
+    teams = core.cfg.teams.model_copy(update={"meet_max_detour_m": 0.3})
+    core.cfg = core.matcher.cfg = core.cfg.model_copy(update={"teams": teams})
     far = T_TRUE + np.array([0.0, 0.0, 0.0])
     e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", far, 3, 2, 1, 0, 0.99)
     core.matcher.log.append(e)
@@ -247,3 +250,20 @@ def test_a_place_in_a_walls_margin_moves_to_floor_free_on_both_maps(core: Server
     assert meetings._path(la, r1, p_a, why) is not None, why
     assert meetings._path(lb, r2, p_b, why) is not None, why
     assert meetings._common_place(la, lb, T_TRUE + np.array([60.0, 0.0, 0.0]), goal) is None
+
+
+def test_without_a_place_near_the_submaps_the_robots_meet_on_floor_both_maps_know(
+        core: ServerCore) -> None:
+    """A place far from anything both maps know: the robots are sent instead to the floor
+    free on both maps nearest to them, the same spot in the world."""
+    e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", T_TRUE, 3, 2, 1, 0, 0.99)
+    core.matcher.log.append(e)
+    meetings.arrange(core.matcher, e, _hypothesis(T_TRUE, [(40.0, 40.0)] * 3),
+                     core.robots["r1"].last_stamp_ns)
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert e.status == "meeting" and r1.meeting is not None and r2.meeting is not None
+    assert r1.meeting.target_xy is not None and r2.meeting.target_xy is not None
+    w1 = compose(np.array(SPAWN["r1"]), np.array([*r1.meeting.target_xy, 0.0]))
+    w2 = compose(np.array(SPAWN["r2"]), np.array([*r2.meeting.target_xy, 0.0]))
+    assert math.hypot(*(w1[:2] - w2[:2])) < 0.05
+    assert math.hypot(*(r1.meeting.target_xy - r1.pose[:2])) < 5.0

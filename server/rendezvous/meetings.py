@@ -58,12 +58,17 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     # in the other's unknown, or in a wall's margin (the transform is good to decimetres)
     found = [_common_place(layer_a, layer_b, e.T_ab, c.centre_a) for c in h.members]
     places = [f for f in found if f is not None]
+    if not places:
+        # none near the submaps' centres: the free floor of both maps nearest each pair of
+        # robots (under a right transform they meet wherever both maps know the floor)
+        places = _overlap_places(layer_a, layer_b, e.T_ab,
+                                 [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b])
     best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
     tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
                          math.hypot(*(rb.pose[:2] - p_b))),
                      i, j, k) for i, ra in enumerate(side_a) for j, rb in enumerate(side_b)
                     for k, (p, p_b) in enumerate(places)), key=lambda x: x[0])
-    why: list[str] = [] if places else [f"no place of the {len(found)} is free on both maps"]
+    why: list[str] = [] if places else ["no floor is free on both maps"]
     for straight, i, j, k in tries[:6]:
         if straight > reach_m:
             break
@@ -145,6 +150,39 @@ def _common_place(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64, p: F64
                        layer_b.clearance_m[rc_b[idx, 0], rc_b[idx, 1]])
     best = idx[np.lexsort((d[idx], clear < PLACE_CLEARANCE_M))[0]]
     return xy_a[best], xy_b[best]
+
+
+#: the overlap's free floor is searched at this spacing [m]
+OVERLAP_STEP_M = 0.5
+
+
+def _overlap_places(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64,
+                    pairs: list[tuple[F64, F64]]) -> list[tuple[F64, F64]]:
+    """For each pair of robots (a's position in a's frame, b's in b's), the cell that both
+    maps let a robot stand on, ``PLACE_CLEARANCE_M`` clear of walls on both, nearest to the
+    farther of the two (straight lines): its centre in a's frame and in b's."""
+    geo = layer_a.geometry
+    step = max(1, round(OVERLAP_STEP_M / geo.resolution_m))
+    sub = layer_a.clearance_m[::step, ::step] >= PLACE_CLEARANCE_M
+    sub &= np.isfinite(layer_a.cost[::step, ::step])
+    rc = np.argwhere(sub) * step
+    if not len(rc):
+        return []
+    xy_a = geo.cell_to_world(rc)
+    xy_b = transform_points(inverse(T_ab), xy_a)
+    rc_b = layer_b.geometry.world_to_cell(xy_b)
+    ok = layer_b.geometry.contains(rc_b)
+    ok[ok] = np.isfinite(layer_b.cost[rc_b[ok, 0], rc_b[ok, 1]]) & \
+        (layer_b.clearance_m[rc_b[ok, 0], rc_b[ok, 1]] >= PLACE_CLEARANCE_M)
+    if not ok.any():
+        return []
+    xy_a, xy_b = xy_a[ok], xy_b[ok]
+    out: list[tuple[F64, F64]] = []
+    for pa, pb in pairs:
+        k = int(np.argmin(np.maximum(np.hypot(*(xy_a - pa).T), np.hypot(*(xy_b - pb).T))))
+        if not any(np.array_equal(xy_a[k], q) for q, _ in out):
+            out.append((xy_a[k], xy_b[k]))
+    return out
 
 
 def _path(layer: CostLayer, r: RobotContext, goal: F64, why: list[str] | None = None
