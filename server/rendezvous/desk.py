@@ -32,6 +32,7 @@ from server.rendezvous.evidence import (
     agrees_with_team,
     chi2_between,
     make_record,
+    seen_sigma_m,
 )
 from server.rendezvous.merger import Merger
 
@@ -120,10 +121,9 @@ class SightingDesk:
         tag was seen (``seen``, by ``a``'s latest pose): within the gate a placed sighting
         gets (``_teammate_there``), widened by how far either robot can have driven between
         the sighting and its latest pose."""
-        vp, ps = self.merger.verifier.p, self.pose_sigmas
-        r = det.range_m
-        sig = math.sqrt(det.sigma_range_m ** 2 + (r * det.sigma_bearing_rad) ** 2
-                        + 2 * ps[0] ** 2 + (r * ps[2]) ** 2)
+        vp = self.merger.verifier.p
+        sig = seen_sigma_m(det.range_m, det.sigma_range_m, det.sigma_bearing_rad,
+                           self.pose_sigmas)
         gate = vp.gate_sigmas * sig + vp.gate_floor_m
         v = self.cfg.control.v_mps
         for cid in self.fleet.team_of(a).robot_ids:

@@ -61,6 +61,14 @@ class MergeProposal:
     direct_first: F64     # the direct method on the first sighting alone
 
 
+def seen_sigma_m(range_m: float, sigma_range_m: float, sigma_bearing_rad: float,
+                 pose_sigmas: Sequence[float]) -> float:
+    """σ of where a sighting places the robot it saw (isotropic): the sighting's range and
+    bearing, and both robots' own pose uncertainty."""
+    return math.sqrt(sigma_range_m ** 2 + (range_m * sigma_bearing_rad) ** 2
+                     + 2 * pose_sigmas[0] ** 2 + (range_m * pose_sigmas[2]) ** 2)
+
+
 def make_record(stamp_ns: int, observer: str, observed: str, sighting: Sighting,
                 at_a: tuple[int, F64], at_b: tuple[int, F64], P_a: F64, P_b: F64,
                 pose_sigmas: Sequence[float]) -> SightingRecord:
@@ -68,9 +76,8 @@ def make_record(stamp_ns: int, observer: str, observed: str, sighting: Sighting,
     T_ab = direct_transform(P_a, sighting, P_b)
     cov = transform_covariance(P_a, sighting, P_b, pose_sigmas)
     seen = compose(P_a, sighting.relative_pose())[:2]
-    r = sighting.range_m
-    sig = math.sqrt(sighting.sigma_range_m ** 2 + (r * sighting.sigma_bearing_rad) ** 2
-                    + 2 * pose_sigmas[0] ** 2 + (r * pose_sigmas[2]) ** 2)
+    sig = seen_sigma_m(sighting.range_m, sighting.sigma_range_m, sighting.sigma_bearing_rad,
+                       pose_sigmas)
     return SightingRecord(stamp_ns, observer, observed, sighting, at_a[0], at_a[1],
                           at_b[0], at_b[1], T_ab, cov, seen, np.asarray(P_b[:2], float), sig)
 
