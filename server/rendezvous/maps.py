@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.se2 import between, compose, wrap_angle
+from schemas.se2 import between, compose, transform_points, wrap_angle
 from server.slam import RobotSlam
 from server.slam.grid import OccupancyGrid
 
@@ -89,9 +89,7 @@ def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64,
     rc = np.argwhere((grid_b.free | grid_b.occupied)[::step, ::step]) * step
     if not len(rc):
         return float(known_a.sum()) * grid_a.geometry.cell_area_m2
-    xy = grid_b.geometry.cell_to_world(rc)
-    c, s = math.cos(T_ab[2]), math.sin(T_ab[2])
-    at_a = xy @ np.array([[c, s], [-s, c]]) + T_ab[:2]
+    at_a = transform_points(T_ab, grid_b.geometry.cell_to_world(rc))
     cell = grid_a.geometry.world_to_cell(at_a)
     inside = grid_a.geometry.contains(cell)
     new = int((~inside).sum()) + int((~known_a[cell[inside, 0], cell[inside, 1]]).sum())

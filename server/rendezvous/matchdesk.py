@@ -87,7 +87,7 @@ class HypothesisEntry:
     status: str = "pending"   # pending, meeting, accepted, refused, confirmed, refuted
     reason: str = ""
     seen: int = 1             # queries that found it
-    #: the coverage of the two maps joined under T_ab, when it was asked (one-sided ones)
+    #: the coverage of the two maps joined under T_ab, at its latest query while pending
     union_coverage: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
