@@ -18,7 +18,13 @@ from server.exploration import (
     assign_spread,
 )
 from server.exploration.navigator import Navigator
-from server.fleet.coordination import Member, TeamExplorer, in_sight, walls_beyond_reach
+from server.fleet.coordination import (
+    Member,
+    TeamExplorer,
+    in_sight,
+    remaining_m,
+    walls_beyond_reach,
+)
 from server.planning import OccupancyGrid
 from tests.test_exploration_skeleton import t_corridor
 
@@ -163,3 +169,41 @@ def test_the_modes_old_names_still_configure_a_server_and_a_demo(
     assert ServerConfig().teams.coordination == DemoConfig().coordination == "joint"
     with pytest.raises(ValueError, match=r"joint.*greedy"):
         DemoConfig.model_validate({"coordination": "best"})
+
+
+def long_corridor() -> OccupancyGrid:
+    """A 1.5 m wide corridor from x = 1 m to x = 30 m (y 1.5–3.0 m), walled at its west end
+    and open onto unknown space at its east end. 10 cm cells."""
+    d = np.full((45, 320), -1, np.int8)
+    d[15:30, 10:300] = 0
+    d[14, 9:300] = d[30, 9:300] = 100
+    d[14:31, 9] = 100
+    return OccupancyGrid(d, 0.1, (0.0, 0.0))
+
+
+@pytest.mark.parametrize("r2_x, taken", [(26.0, True), (6.0, False)])
+def test_a_goal_is_taken_over_by_a_teammate_that_gets_there_in_less_than_half_the_way(
+        r2_x: float, taken: bool) -> None:
+    """r1 is 27 m from the corridor's open end, on its way there. r2, deciding, is 3 m
+    from it: it takes the goal over and r1 chooses again. From 23 m away (not less than half
+    of r1's 27 m) it leaves the goal to r1 and follows it there, as before."""
+    grid = long_corridor()
+    ex, members = team("joint")
+    r1, r2 = members
+    r1.pose = np.array([2.0, 2.25, 0.0])
+    r2.pose = r2.start_pose = np.array([r2_x, 2.25, 0.0])
+    first = ex.base.decide(grid, r1.pose, r1.pose, VisitedTargets())
+    assert isinstance(first, Decision) and first.target_xy[0] > 28.0
+    r1.nav.redirect(first.target_xy, first.path.xy_m)
+    got = ex.decide(grid, r2.pose, r2.start_pose, VisitedTargets())
+    assert isinstance(got, Decision) and got.target_xy[0] > 28.0
+    assert (r1.nav.target_xy is None) is taken
+    assert ex.takeovers == int(taken)
+    if not taken:
+        assert r1.nav.target_xy == first.target_xy
+
+
+def test_remaining_path_counts_from_the_nearest_point_on_it() -> None:
+    path = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 5.0]])
+    assert remaining_m(path, [4.0, 1.0]) == pytest.approx(1.0 + 6.0 + 5.0)
+    assert remaining_m(None, [0.0, 0.0]) == float("inf")

@@ -2,7 +2,10 @@
 
 ``TeamExplorer`` stands in for a robot's explorer once its team has more than one robot. When
 that robot needs a target, teammates still heading for an open target keep it (their goals are
-reserved); the robot and every teammate without a target are assigned jointly:
+reserved), unless a robot being assigned would get there in less than half the path the
+teammate still has to drive: then it may be assigned that goal, and the teammate chooses again
+(a robot does not cross the building to a frontier a teammate stands beside). The robot and
+every teammate without a target are assigned jointly:
 
 - ``joint``: the free robots are assigned together: the minimum total path cost over the
   team's cost matrix (Hungarian method), then, where two targets lie within the reserve radius,
@@ -35,11 +38,12 @@ from server.exploration import (
     Explorer,
     ExplorerParams,
     Finished,
+    TeamCosts,
     VisitedTargets,
     assign_spread,
 )
 from server.exploration.navigator import Navigator, NavMode
-from server.planning import OccupancyGrid
+from server.planning import OccupancyGrid, polyline_length_m
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +110,30 @@ def in_sight(grid: OccupancyGrid, targets_xy: F64, reach_m: float) -> NDArray[np
     return out | out.T
 
 
+# A teammate's goal is taken over by a robot whose path to it is shorter than this share of
+# the path the teammate still has to drive there.
+TAKE_OVER_SHARE = 0.5
+
+
+def remaining_m(path_xy: F64 | None, pose: ArrayLike) -> float:
+    """Length [m] from ``pose`` to the path's nearest point and on along it to its end (∞
+    without a path)."""
+    if path_xy is None or len(path_xy) == 0:
+        return math.inf
+    xy = np.asarray(path_xy, np.float64).reshape(-1, 2)
+    at = np.asarray(pose, np.float64).reshape(-1)[:2]
+    if len(xy) == 1:
+        return float(np.hypot(*(xy[0] - at)))
+    a, b = xy[:-1], xy[1:]
+    ab = b - a
+    t = np.clip(np.sum((at - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-12),
+                0.0, 1.0)
+    foot = a + t[:, None] * ab
+    i = int(np.argmin(np.hypot(*(foot - at).T)))
+    return (float(np.hypot(*(foot[i] - at))) + float(np.hypot(*(b[i] - foot[i])))
+            + polyline_length_m(xy[i + 1:]))
+
+
 class TeamExplorer:
     """The explorer of one robot in a team of several (same ``decide`` as ``Explorer``)."""
 
@@ -121,6 +149,8 @@ class TeamExplorer:
         self.sensor_weight = sensor_weight
         self.sight_spread = sight_spread
         self.assignments = 0
+        #: goals taken from a teammate by a robot that gets there in far less (``_hold``)
+        self.takeovers = 0
 
     @property
     def params(self) -> ExplorerParams:
@@ -150,14 +180,10 @@ class TeamExplorer:
                                   [team[i].start_pose for i in free], visited)
         if tc.cost.shape[1] == 0:
             return self._alone(grid, robot_pose, start_pose, visited, committed)
-        cost = tc.cost + walls_beyond_reach(grid, tc.targets_xy,
-                                            [team[i].sensor_range_m for i in free],
-                                            self.sensor_weight)
-        if len(committed):
-            r = self.params.reserve_radius_m
-            near = np.hypot(tc.targets_xy[:, None, 0] - committed[None, :, 0],
-                            tc.targets_xy[:, None, 1] - committed[None, :, 1]).min(axis=1) < r
-            cost[:, near] = np.inf
+        extra = walls_beyond_reach(grid, tc.targets_xy, [team[i].sensor_range_m for i in free],
+                                   self.sensor_weight)
+        cost = tc.cost + extra
+        held = self._hold(team, free, tc, extra, cost)
         assignment = assign_spread(cost, tc.targets_xy, self.params.reserve_radius_m,
                                    self._sight_clashes(grid, tc.targets_xy,
                                                        [team[i].sensor_range_m for i in free]))
@@ -165,6 +191,7 @@ class TeamExplorer:
         if mine is None:
             return self._alone(grid, robot_pose, start_pose, visited, committed)
         self.assignments += 1
+        self._take_over(team, free, assignment, held, tc.targets_xy)
         for row, i in enumerate(free):
             k = assignment[row]
             if i == me or k is None:
@@ -179,6 +206,48 @@ class TeamExplorer:
         xy = (float(tc.targets_xy[mine, 0]), float(tc.targets_xy[mine, 1]))
         return Decision(xy, tc.path(free.index(me), mine), f"team assignment ({tc.kind})",
                         (), None)
+
+    def _hold(self, team: Sequence[Member], free: list[int], tc: TeamCosts, extra: F64,
+              cost: F64) -> list[tuple[int, NDArray[np.bool_], float]]:
+        """Keep the free robots (rows of ``cost``, set to ∞ in place) off the targets near a
+        teammate's goal, unless one of them would get there in less than ``TAKE_OVER_SHARE``
+        of the path the teammate still has to drive: a goal is held for the robot that gets
+        there first, not for the one that chose it first. Returns, per teammate with a goal,
+        (its index, the targets near its goal, its remaining path [m])."""
+        r = self.params.reserve_radius_m
+        held: list[tuple[int, NDArray[np.bool_], float]] = []
+        for j, m in enumerate(team):
+            if j in free or m.nav.target_xy is None or m.nav.mode == NavMode.DONE:
+                continue
+            goal = np.asarray(m.nav.target_xy, np.float64)
+            near = np.hypot(*(tc.targets_xy - goal).T) < r
+            if not near.any():
+                continue
+            left = remaining_m(m.nav.path_xy, m.pose)
+            for row in range(len(free)):
+                f = tc.fields[row]
+                for k in np.flatnonzero(near & np.isfinite(cost[row])):
+                    d = (math.inf if f is None or not math.isfinite(left)
+                         else f.length_m(tc.targets_xy[k]) + float(extra[row, k]))
+                    if d >= TAKE_OVER_SHARE * left:
+                        cost[row, k] = np.inf
+            held.append((j, near, left))
+        return held
+
+    def _take_over(self, team: Sequence[Member], free: list[int], assignment: list[int | None],
+                   held: list[tuple[int, NDArray[np.bool_], float]], targets_xy: F64) -> None:
+        """A teammate whose goal a free robot was assigned (see ``_hold``) chooses again."""
+        for j, near, left in held:
+            taker = next((free[row] for row, k in enumerate(assignment)
+                          if k is not None and near[k]), None)
+            if taker is None:
+                continue
+            nav = team[j].nav
+            log.info("%s takes over %s's goal %s: %.1f m of %s's path were left",
+                     team[taker].robot_id, team[j].robot_id,
+                     tuple(round(v, 2) for v in nav.target_xy or ()), left, team[j].robot_id)
+            nav.drop_target()
+            self.takeovers += 1
 
     def _sight_clashes(self, grid: OccupancyGrid, targets_xy: F64,
                        ranges_m: Sequence[float]) -> NDArray[np.bool_] | None:
