@@ -84,6 +84,12 @@ def test_each_seeds_speed_up_uses_that_seeds_single_robot() -> None:
     assert sp["per_seed"] == {"0": 4.0, "1": 3.0, "2": None}
     assert sp["median"] == 3.5 and sp["min"] == 3.0 and sp["max"] == 4.0
     assert sp["missing"] == ["2"]
+    assert sp["of_medians"] == 3.5                    # 3,500 s over 1,000 s (seeds 0 and 1)
+    # the median of the seeds' ratios and the ratio of the medians differ in general
+    uneven = keyed(run("3", 0, 4000.0, robots=1), run("3", 1, 3000.0, robots=1),
+                   run("4", 0, 1000.0, robots=5), run("4", 1, 1500.0, robots=5))
+    sp = multi.speedups(uneven, "4")
+    assert sp["median"] == 3.0 and sp["of_medians"] == 2.8
     # --single-seed: the first seed's single robot serves every seed
     only_first = keyed(run("3", 0, 4000.0, robots=1), run("4", 0, 800.0, robots=5),
                        run("4", 1, 2000.0, robots=5))
