@@ -267,3 +267,47 @@ def test_without_a_place_near_the_submaps_the_robots_meet_on_floor_both_maps_kno
     w2 = compose(np.array(SPAWN["r2"]), np.array([*r2.meeting.target_xy, 0.0]))
     assert math.hypot(*(w1[:2] - w2[:2])) < 0.05
     assert math.hypot(*(r1.meeting.target_xy - r1.pose[:2])) < 5.0
+
+
+def test_maps_that_only_touch_meet_across_a_doorway() -> None:
+    """Two maps that share no floor, only a wall with a doorway that each saw from its own
+    side: the places face each other through the doorway, not through the wall."""
+    from server.planning.costmap import CostParams, build_cost_layer
+    from server.planning.grid import OccupancyGrid
+
+    res = 0.05
+    x = (np.arange(200) + 0.5) * res                       # 10 m × 5 m, wall at x = 5 m
+    y = (np.arange(100) + 0.5) * res
+    X, Y = np.meshgrid(x, y)
+    wall = (np.abs(X - 5.0) < 0.06) & ~((Y > 2.0) & (Y < 3.0))
+    a = np.where(X < 4.95, 0, -1).astype(np.int8)          # a knows the west room ...
+    b = np.where(X > 5.05, 0, -1).astype(np.int8)          # ... b the east one, same frame
+    a[wall], b[wall] = 100, 100
+    ga, gb = OccupancyGrid(a, res, (0.0, 0.0)), OccupancyGrid(b, res, (0.0, 0.0))
+    la, lb = build_cost_layer(ga, CostParams()), build_cost_layer(gb, CostParams())
+    T = np.zeros(3)
+    robots = [(np.array([1.0, 4.5]), np.array([9.0, 4.5]))]
+    assert meetings._overlap_places(la, lb, T, robots) == []
+    found = meetings._facing_places(la, lb, ga.occupied, gb.occupied, T, robots)
+    assert len(found) == 1
+    p_a, p_b = found[0]
+    assert p_a[0] < 5.0 < p_b[0] and math.hypot(*(p_a - p_b)) <= meetings.FACING_M
+    assert 2.0 < p_a[1] < 3.0 and 2.0 < p_b[1] < 3.0       # through the doorway
+
+
+def test_at_a_place_facing_the_others_the_robot_turns_toward_it_then_stands() -> None:
+    """Two places across where the maps meet: on arrival the robot turns toward the other's
+    place (its camera looks forward), the short way round, and stands once facing it."""
+    from types import SimpleNamespace
+
+    from server.command.steering import FACE_TOL_RAD, Steering
+
+    nav = SimpleNamespace(pursuit=SimpleNamespace(params=SimpleNamespace(omega_max_rps=0.8)))
+    r = SimpleNamespace(pose=np.array([0.0, 0.0, 0.0]), nav=nav)
+    left = Steering._face(r, np.array([0.0, 1.5]))             # the other place to its left
+    assert left.v_mps == 0.0 and left.omega_rps == pytest.approx(0.8)
+    right = Steering._face(r, np.array([1.0, -0.2]))           # a little to its right
+    assert -0.8 <= right.omega_rps < 0.0
+    r.pose[2] = math.pi / 2 - FACE_TOL_RAD / 2                   # facing it, nearly
+    assert Steering._face(r, np.array([0.0, 1.5])).omega_rps == 0.0
+    assert Steering._face(r, None).omega_rps == 0.0            # one place: just stand

@@ -61,8 +61,13 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     if not places:
         # none near the submaps' centres: the free floor of both maps nearest each pair of
         # robots (under a right transform they meet wherever both maps know the floor)
-        places = _overlap_places(layer_a, layer_b, e.T_ab,
-                                 [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b])
+        pairs = [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b]
+        places = _overlap_places(layer_a, layer_b, e.T_ab, pairs)
+        if not places:
+            # maps that only touch (each saw the other's walls from its side): two places
+            # facing each other across where they meet, each on its own map's floor
+            places = _facing_places(layer_a, layer_b, fleet.planning_grid(e.team_a).occupied,
+                                    fleet.planning_grid(e.team_b).occupied, e.T_ab, pairs)
     best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
     tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
                          math.hypot(*(rb.pose[:2] - p_b))),
@@ -100,8 +105,15 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     until = now_ns * 1e-9 + min(math.inf if finishing else t.meet_timeout_s,
                                 1.5 * cost / max(v, 0.05) + 30.0)
     idx = desk.log.index(e)
-    ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
-    rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
+    # two places (facing each other across where the maps meet): each robot turns toward
+    # the other's on arrival, so that the cameras face each other
+    b_in_a = transform_points(e.T_ab, p_b[None, :])[0]
+    apart = math.hypot(*(b_in_a - p)) > 0.2
+    ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id,
+                         face_xy=b_in_a if apart else None)
+    rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id,
+                         face_xy=transform_points(inverse(e.T_ab), p[None, :])[0]
+                         if apart else None)
     e.status = "meeting"
     desk.counters.meetings += 1
     msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to one place "
@@ -159,29 +171,83 @@ OVERLAP_STEP_M = 0.5
 def _overlap_places(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64,
                     pairs: list[tuple[F64, F64]]) -> list[tuple[F64, F64]]:
     """For each pair of robots (a's position in a's frame, b's in b's), the cell that both
-    maps let a robot stand on, ``PLACE_CLEARANCE_M`` clear of walls on both, nearest to the
-    farther of the two (straight lines): its centre in a's frame and in b's."""
+    maps let a robot stand on (``PLACE_CLEARANCE_M`` clear of walls on both first) nearest
+    to the farther of the two (straight lines): its centre in a's frame and in b's."""
     geo = layer_a.geometry
     step = max(1, round(OVERLAP_STEP_M / geo.resolution_m))
-    sub = layer_a.clearance_m[::step, ::step] >= PLACE_CLEARANCE_M
-    sub &= np.isfinite(layer_a.cost[::step, ::step])
-    rc = np.argwhere(sub) * step
+    rc = np.argwhere(np.isfinite(layer_a.cost[::step, ::step])) * step
     if not len(rc):
         return []
     xy_a = geo.cell_to_world(rc)
     xy_b = transform_points(inverse(T_ab), xy_a)
     rc_b = layer_b.geometry.world_to_cell(xy_b)
     ok = layer_b.geometry.contains(rc_b)
-    ok[ok] = np.isfinite(layer_b.cost[rc_b[ok, 0], rc_b[ok, 1]]) & \
-        (layer_b.clearance_m[rc_b[ok, 0], rc_b[ok, 1]] >= PLACE_CLEARANCE_M)
+    ok[ok] = np.isfinite(layer_b.cost[rc_b[ok, 0], rc_b[ok, 1]])
     if not ok.any():
         return []
+    narrow = np.minimum(layer_a.clearance_m[rc[ok, 0], rc[ok, 1]],
+                        layer_b.clearance_m[rc_b[ok, 0], rc_b[ok, 1]]) < PLACE_CLEARANCE_M
     xy_a, xy_b = xy_a[ok], xy_b[ok]
     out: list[tuple[F64, F64]] = []
     for pa, pb in pairs:
-        k = int(np.argmin(np.maximum(np.hypot(*(xy_a - pa).T), np.hypot(*(xy_b - pb).T))))
+        far = np.maximum(np.hypot(*(xy_a - pa).T), np.hypot(*(xy_b - pb).T))
+        k = int(np.lexsort((far, narrow))[0])
         if not any(np.array_equal(xy_a[k], q) for q, _ in out):
             out.append((xy_a[k], xy_b[k]))
+    return out
+
+
+#: two places facing each other are at most this far apart, with no wall between them on
+#: either map: close enough for the tags (read within 2 m) [m]
+FACING_M = 1.5
+
+
+def _facing_places(layer_a: CostLayer, layer_b: CostLayer, occ_a: NDArray[np.bool_],
+                   occ_b: NDArray[np.bool_], T_ab: F64, pairs: list[tuple[F64, F64]]
+                   ) -> list[tuple[F64, F64]]:
+    """For each pair of robots, a place on a's floor and one on b's floor (each in its own
+    frame) at most ``FACING_M`` apart under ``T_ab`` with no occupied cell of either map on
+    the line between them, the farther of the two robots' straight lines the shortest."""
+    from scipy.spatial import cKDTree
+
+    def floor(layer: CostLayer) -> F64:
+        step = max(1, round(OVERLAP_STEP_M / 2 / layer.geometry.resolution_m))
+        rc = np.argwhere(np.isfinite(layer.cost[::step, ::step])) * step
+        return layer.geometry.cell_to_world(rc) if len(rc) else np.zeros((0, 2))
+
+    xy_a, xy_b = floor(layer_a), floor(layer_b)
+    if not len(xy_a) or not len(xy_b):
+        return []
+    b_in_a = transform_points(T_ab, xy_b)
+    near = cKDTree(xy_a).sparse_distance_matrix(cKDTree(b_in_a), FACING_M,
+                                                 output_type="ndarray")
+    if not len(near):
+        return []
+    i, j = near["i"], near["j"]
+    # the line sampled at half a cell of the finer map, so that no wall slips between
+    res = min(layer_a.geometry.resolution_m, layer_b.geometry.resolution_m)
+    t = np.linspace(0.0, 1.0, math.ceil(2 * FACING_M / res) + 1)
+    line = xy_a[i][:, None, :] + (b_in_a[j] - xy_a[i])[:, None, :] * t[None, :, None]
+
+    def blocked(occ: NDArray[np.bool_], layer: CostLayer, pts: F64) -> NDArray[np.bool_]:
+        rc = layer.geometry.world_to_cell(pts)
+        inside = layer.geometry.contains(rc)
+        hit = np.zeros(inside.shape, dtype=bool)
+        hit[inside] = occ[rc[inside][:, 0], rc[inside][:, 1]]
+        return np.asarray(hit.any(axis=-1), dtype=bool)
+
+    clear = ~blocked(occ_a, layer_a, line) & \
+        ~blocked(occ_b, layer_b, transform_points(inverse(T_ab), line.reshape(-1, 2))
+                 .reshape(line.shape))
+    if not clear.any():
+        return []
+    i, j = i[clear], j[clear]
+    out: list[tuple[F64, F64]] = []
+    for pa, pb in pairs:
+        k = int(np.argmin(np.maximum(np.hypot(*(xy_a[i] - pa).T),
+                                     np.hypot(*(xy_b[j] - pb).T))))
+        if not any(np.array_equal(xy_a[i[k]], q) for q, _ in out):
+            out.append((xy_a[i[k]], xy_b[j[k]]))
     return out
 
 
