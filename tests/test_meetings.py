@@ -283,16 +283,22 @@ def test_maps_that_only_touch_meet_across_a_doorway() -> None:
     a = np.where(X < 4.95, 0, -1).astype(np.int8)          # a knows the west room ...
     b = np.where(X > 5.05, 0, -1).astype(np.int8)          # ... b the east one, same frame
     a[wall], b[wall] = 100, 100
+    a[(np.abs(X - 5.0) < 0.1) & ~wall] = 0                 # a saw through the doorway
     ga, gb = OccupancyGrid(a, res, (0.0, 0.0)), OccupancyGrid(b, res, (0.0, 0.0))
     la, lb = build_cost_layer(ga, CostParams()), build_cost_layer(gb, CostParams())
     T = np.zeros(3)
     robots = [(np.array([1.0, 4.5]), np.array([9.0, 4.5]))]
     assert meetings._overlap_places(la, lb, T, robots) == []
-    found = meetings._facing_places(la, lb, ga.occupied, gb.occupied, T, robots)
+    found = meetings._facing_places(la, lb, ga.free, gb.free, T, robots)
     assert len(found) == 1
     p_a, p_b = found[0]
     assert p_a[0] < 5.0 < p_b[0] and math.hypot(*(p_a - p_b)) <= meetings.FACING_M
     assert 2.0 < p_a[1] < 3.0 and 2.0 < p_b[1] < 3.0       # through the doorway
+    # a wall that neither map saw (a band both leave unknown) is no way to see each other
+    a2, b2 = np.where(X < 4.9, 0, -1).astype(np.int8), np.where(X > 5.1, 0, -1).astype(np.int8)
+    g2a, g2b = OccupancyGrid(a2, res, (0.0, 0.0)), OccupancyGrid(b2, res, (0.0, 0.0))
+    l2a, l2b = build_cost_layer(g2a, CostParams()), build_cost_layer(g2b, CostParams())
+    assert meetings._facing_places(l2a, l2b, g2a.free, g2b.free, T, robots) == []
 
 
 def test_at_a_place_facing_the_others_the_robot_turns_toward_it_then_stands() -> None:
