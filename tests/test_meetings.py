@@ -135,6 +135,23 @@ def test_both_robots_at_their_places_unseen_refute_it_before_the_time_runs_out(
     assert r1.meeting is None and r2.meeting is None
 
 
+def test_robots_unseen_at_places_facing_each_other_refute_nothing(core: ServerCore) -> None:
+    """At two places facing each other across where the maps meet, a wall neither map saw
+    can hide the robots from each other under a right transform: standing there unseen
+    ends the meeting, the transform stays pending, and no such meeting is planned again."""
+    e = _plan(core, T_TRUE)
+    r1, r2 = core.robots["r1"], core.robots["r2"]
+    assert r1.meeting is not None and r2.meeting is not None
+    r1.meeting.face_xy, r2.meeting.face_xy = np.array([1.0, 0.0]), np.array([0.0, 1.0])
+    now = r1.last_stamp_ns
+    r1.meeting.path_xy, r1.meeting.arrived_ns = None, now
+    r2.meeting.path_xy, r2.meeting.arrived_ns = None, now
+    core.matcher.tick(now + int((meetings.MEET_SEEN_S + 1) * 1e9))
+    assert e.status == "pending" and e.faced and "facing each other" in e.reason
+    assert r1.meeting is None and r2.meeting is None
+    assert core.tag_counters["meetings_refuted"] == 0
+
+
 def test_a_robot_that_reaches_its_place_is_marked_there(core: ServerCore) -> None:
     e = _plan(core, T_TRUE)
     r2 = core.robots["r2"]

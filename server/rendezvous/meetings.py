@@ -63,7 +63,7 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
         # robots (under a right transform they meet wherever both maps know the floor)
         pairs = [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b]
         places = _overlap_places(layer_a, layer_b, e.T_ab, pairs)
-        if not places:
+        if not places and not e.faced:
             # maps that only touch (each saw the other's walls from its side): two places
             # facing each other across where they meet, each on its own map's floor
             places = _facing_places(layer_a, layer_b, fleet.planning_grid(e.team_a).free,
@@ -299,6 +299,13 @@ def follow(desk: MapMatchDesk, now_ns: int) -> None:
         elif now_ns * 1e-9 > m.until_s:
             settle(desk, e, "refuted", "the robots did not meet where the maps said",
                          now_ns)
+        elif _both_there(m, other.meeting, now_ns) and m.face_xy is not None:
+            # two places: under a right transform something neither map knows (a wall
+            # neither saw) can stand between them, so their robots not seeing each other
+            # refutes nothing; the transform waits for the maps, as before the meeting
+            e.faced = True
+            settle(desk, e, "pending", f"both robots stood {MEET_SEEN_S:.0f} s at places "
+                   f"facing each other and read no tag: not tried again", now_ns)
         elif _both_there(m, other.meeting, now_ns):
             settle(desk, e, "refuted", f"both robots stood at the place the maps agree on "
                    f"for {MEET_SEEN_S:.0f} s and saw no tag of each other: not one place",
