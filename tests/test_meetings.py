@@ -135,23 +135,6 @@ def test_both_robots_at_their_places_unseen_refute_it_before_the_time_runs_out(
     assert r1.meeting is None and r2.meeting is None
 
 
-def test_robots_unseen_at_places_facing_each_other_refute_nothing(core: ServerCore) -> None:
-    """At two places facing each other across where the maps meet, a wall neither map saw
-    can hide the robots from each other under a right transform: standing there unseen
-    ends the meeting, the transform stays pending, and no such meeting is planned again."""
-    e = _plan(core, T_TRUE)
-    r1, r2 = core.robots["r1"], core.robots["r2"]
-    assert r1.meeting is not None and r2.meeting is not None
-    r1.meeting.face_xy, r2.meeting.face_xy = np.array([1.0, 0.0]), np.array([0.0, 1.0])
-    now = r1.last_stamp_ns
-    r1.meeting.path_xy, r1.meeting.arrived_ns = None, now
-    r2.meeting.path_xy, r2.meeting.arrived_ns = None, now
-    core.matcher.tick(now + int((meetings.MEET_SEEN_S + 1) * 1e9))
-    assert e.status == "pending" and e.faced and "facing each other" in e.reason
-    assert r1.meeting is None and r2.meeting is None
-    assert core.tag_counters["meetings_refuted"] == 0
-
-
 def test_a_robot_that_reaches_its_place_is_marked_there(core: ServerCore) -> None:
     e = _plan(core, T_TRUE)
     r2 = core.robots["r2"]
@@ -284,53 +267,3 @@ def test_without_a_place_near_the_submaps_the_robots_meet_on_floor_both_maps_kno
     w2 = compose(np.array(SPAWN["r2"]), np.array([*r2.meeting.target_xy, 0.0]))
     assert math.hypot(*(w1[:2] - w2[:2])) < 0.05
     assert math.hypot(*(r1.meeting.target_xy - r1.pose[:2])) < 5.0
-
-
-def test_maps_that_only_touch_meet_across_a_doorway() -> None:
-    """Two maps that share no floor, only a wall with a doorway that each saw from its own
-    side: the places face each other through the doorway, not through the wall."""
-    from server.planning.costmap import CostParams, build_cost_layer
-    from server.planning.grid import OccupancyGrid
-
-    res = 0.05
-    x = (np.arange(200) + 0.5) * res                       # 10 m × 5 m, wall at x = 5 m
-    y = (np.arange(100) + 0.5) * res
-    X, Y = np.meshgrid(x, y)
-    wall = (np.abs(X - 5.0) < 0.06) & ~((Y > 2.0) & (Y < 3.0))
-    a = np.where(X < 4.95, 0, -1).astype(np.int8)          # a knows the west room ...
-    b = np.where(X > 5.05, 0, -1).astype(np.int8)          # ... b the east one, same frame
-    a[wall], b[wall] = 100, 100
-    a[(np.abs(X - 5.0) < 0.1) & ~wall] = 0                 # a saw through the doorway
-    ga, gb = OccupancyGrid(a, res, (0.0, 0.0)), OccupancyGrid(b, res, (0.0, 0.0))
-    la, lb = build_cost_layer(ga, CostParams()), build_cost_layer(gb, CostParams())
-    T = np.zeros(3)
-    robots = [(np.array([1.0, 4.5]), np.array([9.0, 4.5]))]
-    assert meetings._overlap_places(la, lb, T, robots) == []
-    found = meetings._facing_places(la, lb, ga.free, gb.free, T, robots)
-    assert len(found) == 1
-    p_a, p_b = found[0]
-    assert p_a[0] < 5.0 < p_b[0] and math.hypot(*(p_a - p_b)) <= meetings.FACING_M
-    assert 2.0 < p_a[1] < 3.0 and 2.0 < p_b[1] < 3.0       # through the doorway
-    # a wall that neither map saw (a band both leave unknown) is no way to see each other
-    a2, b2 = np.where(X < 4.9, 0, -1).astype(np.int8), np.where(X > 5.1, 0, -1).astype(np.int8)
-    g2a, g2b = OccupancyGrid(a2, res, (0.0, 0.0)), OccupancyGrid(b2, res, (0.0, 0.0))
-    l2a, l2b = build_cost_layer(g2a, CostParams()), build_cost_layer(g2b, CostParams())
-    assert meetings._facing_places(l2a, l2b, g2a.free, g2b.free, T, robots) == []
-
-
-def test_at_a_place_facing_the_others_the_robot_turns_toward_it_then_stands() -> None:
-    """Two places across where the maps meet: on arrival the robot turns toward the other's
-    place (its camera looks forward), the short way round, and stands once facing it."""
-    from types import SimpleNamespace
-
-    from server.command.steering import FACE_TOL_RAD, Steering
-
-    nav = SimpleNamespace(pursuit=SimpleNamespace(params=SimpleNamespace(omega_max_rps=0.8)))
-    r = SimpleNamespace(pose=np.array([0.0, 0.0, 0.0]), nav=nav)
-    left = Steering._face(r, np.array([0.0, 1.5]))             # the other place to its left
-    assert left.v_mps == 0.0 and left.omega_rps == pytest.approx(0.8)
-    right = Steering._face(r, np.array([1.0, -0.2]))           # a little to its right
-    assert -0.8 <= right.omega_rps < 0.0
-    r.pose[2] = math.pi / 2 - FACE_TOL_RAD / 2                   # facing it, nearly
-    assert Steering._face(r, np.array([0.0, 1.5])).omega_rps == 0.0
-    assert Steering._face(r, None).omega_rps == 0.0            # one place: just stand

@@ -6,7 +6,6 @@ is priced first and taken only when worth its time (``server.fleet.detours``).""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from concurrent.futures import Executor
 
@@ -25,9 +24,6 @@ from server.lookout.offers import Offer
 from server.planning import OccupancyGrid as PlanningGrid
 
 F64 = NDArray[np.float64]
-
-#: a robot at a meeting's place turns toward the other's place until within this [rad]
-FACE_TOL_RAD = math.radians(8.0)
 
 
 def mapped_obstacles(grid: PlanningGrid | None, pose: F64, radius_m: float) -> F64:
@@ -108,24 +104,12 @@ class Steering:
         m = r.meeting
         assert m is not None
         if m.path_xy is None or len(m.path_xy) == 0:
-            return self._face(r, m.face_xy)
+            return Twist(0.0, 0.0)
         drive = r.nav.driver.follow(r.nav.pursuit, r.pose, m.path_xy, obstacles)
         if drive.reached:
             m.path_xy = None
             m.arrived_ns = stamp_ns or r.last_stamp_ns
         return drive.twist
-
-    @staticmethod
-    def _face(r: RobotContext, xy: F64 | None) -> Twist:
-        """Stand; turned toward ``xy`` first (within ``FACE_TOL_RAD``) when it is given."""
-        if xy is None:
-            return Twist(0.0, 0.0)
-        err = math.remainder(math.atan2(xy[1] - r.pose[1], xy[0] - r.pose[0]) - r.pose[2],
-                             math.tau)
-        if abs(err) <= FACE_TOL_RAD:
-            return Twist(0.0, 0.0)
-        w = r.nav.pursuit.params.omega_max_rps
-        return Twist(0.0, math.copysign(min(w, max(0.3 * w, 2.0 * abs(err))), err))
 
     def sweep_stop(self, r: RobotContext, stamp_ns: int) -> bool:
         """Whether the robot stands still for its turning camera now: when its sensor asks for

@@ -55,9 +55,6 @@ class Meeting:
     path_xy: F64 | None = None     # planned on the team's map
     team_id: str = ""              # the robot's team when planned (whose frame these are in)
     arrived_ns: int = 0            # when it reached its place (0: not yet)
-    #: where the other robot's place lies (team frame), when the two places face each other
-    #: across where the maps meet: the robot turns toward it on arrival (None: one place)
-    face_xy: F64 | None = None
 
 
 @dataclass

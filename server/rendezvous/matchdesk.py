@@ -89,10 +89,6 @@ class HypothesisEntry:
     seen: int = 1             # queries that found it
     #: the coverage of the two maps joined under T_ab, at its latest query while pending
     union_coverage: float | None = None
-    #: its robots stood at two places facing each other and read no tag: something neither
-    #: map knows can stand between such places, so that proves nothing, but they are not
-    #: sent there again (``server.rendezvous.meetings``)
-    faced: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return {"first_ns": self.first_ns, "last_ns": self.last_ns, "team_a": self.team_a,

@@ -61,13 +61,8 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     if not places:
         # none near the submaps' centres: the free floor of both maps nearest each pair of
         # robots (under a right transform they meet wherever both maps know the floor)
-        pairs = [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b]
-        places = _overlap_places(layer_a, layer_b, e.T_ab, pairs)
-        if not places and not e.faced:
-            # maps that only touch (each saw the other's walls from its side): two places
-            # facing each other across where they meet, each on its own map's floor
-            places = _facing_places(layer_a, layer_b, fleet.planning_grid(e.team_a).free,
-                                    fleet.planning_grid(e.team_b).free, e.T_ab, pairs)
+        places = _overlap_places(layer_a, layer_b, e.T_ab,
+                                 [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b])
     best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
     tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
                          math.hypot(*(rb.pose[:2] - p_b))),
@@ -105,20 +100,12 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
     until = now_ns * 1e-9 + min(math.inf if finishing else t.meet_timeout_s,
                                 1.5 * cost / max(v, 0.05) + 30.0)
     idx = desk.log.index(e)
-    # two places (facing each other across where the maps meet): each robot turns toward
-    # the other's on arrival, so that the cameras face each other
-    b_in_a = transform_points(e.T_ab, p_b[None, :])[0]
-    apart = math.hypot(*(b_in_a - p)) > 0.2
-    ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id,
-                         face_xy=b_in_a if apart else None)
-    rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id,
-                         face_xy=transform_points(inverse(e.T_ab), p[None, :])[0]
-                         if apart else None)
+    ra.meeting = Meeting("go", rb.robot_id, idx, until, p, path_a, ra.team_id)
+    rb.meeting = Meeting("go", ra.robot_id, idx, until, p_b, path_b, rb.team_id)
     e.status = "meeting"
     desk.counters.meetings += 1
-    msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to "
-           + ("two places facing each other across where the maps meet" if apart else
-              "one place") + f" ({e.support} places of the maps agree on where it is)")
+    msg = (f"meeting planned: {ra.robot_id} and {rb.robot_id} to one place "
+           f"({e.support} places of the maps agree on where it is)")
     log.info("%s; %s at %s, %s at %s", msg, ra.robot_id, p.round(2), rb.robot_id,
              p_b.round(2))
     desk.events.emit("meeting", [ra.robot_id, rb.robot_id], e.team_a, msg, now_ns)
@@ -173,10 +160,7 @@ def _overlap_places(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64,
                     pairs: list[tuple[F64, F64]]) -> list[tuple[F64, F64]]:
     """For each pair of robots (a's position in a's frame, b's in b's), the cell that both
     maps let a robot stand on, ``PLACE_CLEARANCE_M`` clear of walls on both, nearest to the
-    farther of the two (straight lines): its centre in a's frame and in b's. (Only floor
-    clear of walls: with places in a wall's margin allowed, case 4's seed 0 met on one, the
-    robots stood 15 s without reading each other's tags, and the right transform was
-    refuted.)"""
+    farther of the two (straight lines): its centre in a's frame and in b's."""
     geo = layer_a.geometry
     step = max(1, round(OVERLAP_STEP_M / geo.resolution_m))
     sub = layer_a.clearance_m[::step, ::step] >= PLACE_CLEARANCE_M
@@ -198,63 +182,6 @@ def _overlap_places(layer_a: CostLayer, layer_b: CostLayer, T_ab: F64,
         k = int(np.argmin(np.maximum(np.hypot(*(xy_a - pa).T), np.hypot(*(xy_b - pb).T))))
         if not any(np.array_equal(xy_a[k], q) for q, _ in out):
             out.append((xy_a[k], xy_b[k]))
-    return out
-
-
-#: two places facing each other are at most this far apart, with no wall between them on
-#: either map: close enough for the tags (read within 2 m) [m]
-FACING_M = 1.5
-
-
-def _facing_places(layer_a: CostLayer, layer_b: CostLayer, free_a: NDArray[np.bool_],
-                   free_b: NDArray[np.bool_], T_ab: F64, pairs: list[tuple[F64, F64]]
-                   ) -> list[tuple[F64, F64]]:
-    """For each pair of robots, a place on a's floor and one on b's floor (each in its own
-    frame) at most ``FACING_M`` apart under ``T_ab``, the line between them all on floor
-    that one map or the other knows free (``free_a``, ``free_b``: the maps' free cells), the
-    farther of the two robots' straight lines the shortest. Floor known free all the way:
-    where neither map knows a stretch of the line, it can be a wall that neither saw (case
-    4's seed 0 met across one, 1.8 m apart and facing each other, and read no tag)."""
-    from scipy.spatial import cKDTree
-
-    def floor(layer: CostLayer) -> F64:
-        step = max(1, round(OVERLAP_STEP_M / 2 / layer.geometry.resolution_m))
-        rc = np.argwhere(np.isfinite(layer.cost[::step, ::step])) * step
-        return layer.geometry.cell_to_world(rc) if len(rc) else np.zeros((0, 2))
-
-    xy_a, xy_b = floor(layer_a), floor(layer_b)
-    if not len(xy_a) or not len(xy_b):
-        return []
-    b_in_a = transform_points(T_ab, xy_b)
-    near = cKDTree(xy_a).sparse_distance_matrix(cKDTree(b_in_a), FACING_M,
-                                                 output_type="ndarray")
-    if not len(near):
-        return []
-    i, j = near["i"], near["j"]
-    # the line sampled at half a cell of the finer map, so that no wall slips between
-    res = min(layer_a.geometry.resolution_m, layer_b.geometry.resolution_m)
-    t = np.linspace(0.0, 1.0, math.ceil(2 * FACING_M / res) + 1)
-    line = xy_a[i][:, None, :] + (b_in_a[j] - xy_a[i])[:, None, :] * t[None, :, None]
-
-    def known_free(free: NDArray[np.bool_], layer: CostLayer, pts: F64) -> NDArray[np.bool_]:
-        rc = layer.geometry.world_to_cell(pts)
-        inside = layer.geometry.contains(rc)
-        out = np.zeros(inside.shape, dtype=bool)
-        out[inside] = free[rc[inside][:, 0], rc[inside][:, 1]]
-        return out
-
-    clear = (known_free(free_a, layer_a, line)
-             | known_free(free_b, layer_b, transform_points(inverse(T_ab), line.reshape(-1, 2))
-                          .reshape(line.shape))).all(axis=-1)
-    if not clear.any():
-        return []
-    i, j = i[clear], j[clear]
-    out: list[tuple[F64, F64]] = []
-    for pa, pb in pairs:
-        k = int(np.argmin(np.maximum(np.hypot(*(xy_a[i] - pa).T),
-                                     np.hypot(*(xy_b[j] - pb).T))))
-        if not any(np.array_equal(xy_a[i[k]], q) for q, _ in out):
-            out.append((xy_a[i[k]], xy_b[j[k]]))
     return out
 
 
@@ -299,13 +226,6 @@ def follow(desk: MapMatchDesk, now_ns: int) -> None:
         elif now_ns * 1e-9 > m.until_s:
             settle(desk, e, "refuted", "the robots did not meet where the maps said",
                          now_ns)
-        elif _both_there(m, other.meeting, now_ns) and m.face_xy is not None:
-            # two places: under a right transform something neither map knows (a wall
-            # neither saw) can stand between them, so their robots not seeing each other
-            # refutes nothing; the transform waits for the maps, as before the meeting
-            e.faced = True
-            settle(desk, e, "pending", f"both robots stood {MEET_SEEN_S:.0f} s at places "
-                   f"facing each other and read no tag: not tried again", now_ns)
         elif _both_there(m, other.meeting, now_ns):
             settle(desk, e, "refuted", f"both robots stood at the place the maps agree on "
                    f"for {MEET_SEEN_S:.0f} s and saw no tag of each other: not one place",
