@@ -254,13 +254,16 @@ def test_a_place_in_a_walls_margin_moves_to_floor_free_on_both_maps(core: Server
 
 def test_without_a_place_near_the_submaps_the_robots_meet_on_floor_both_maps_know(
         core: ServerCore) -> None:
-    """A place far from anything both maps know: the robots are sent instead to the floor
-    free on both maps nearest to them, the same spot in the world."""
+    """A place far from anything both maps know: no meeting, unless the maps joined would
+    finish the exploration; then the robots are sent to the floor free on both maps nearest
+    to them, the same spot in the world."""
     e = HypothesisEntry(0, 0, "team-r1", "team-r2", "r1", "r2", T_TRUE, 3, 2, 1, 0, 0.99)
     core.matcher.log.append(e)
-    meetings.arrange(core.matcher, e, _hypothesis(T_TRUE, [(40.0, 40.0)] * 3),
-                     core.robots["r1"].last_stamp_ns)
     r1, r2 = core.robots["r1"], core.robots["r2"]
+    far = _hypothesis(T_TRUE, [(40.0, 40.0)] * 3)
+    meetings.arrange(core.matcher, e, far, r1.last_stamp_ns)
+    assert e.status == "pending" and r1.meeting is None and r2.meeting is None
+    meetings.arrange(core.matcher, e, far, r1.last_stamp_ns, finishing=True)
     assert e.status == "meeting" and r1.meeting is not None and r2.meeting is not None
     assert r1.meeting.target_xy is not None and r2.meeting.target_xy is not None
     w1 = compose(np.array(SPAWN["r1"]), np.array([*r1.meeting.target_xy, 0.0]))
