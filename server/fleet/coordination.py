@@ -191,7 +191,7 @@ class TeamExplorer:
         if mine is None:
             return self._alone(grid, robot_pose, start_pose, visited, committed)
         self.assignments += 1
-        self._take_over(team, free, assignment, held, tc.targets_xy)
+        self._take_over(team, free, assignment, held)
         for row, i in enumerate(free):
             k = assignment[row]
             if i == me or k is None:
@@ -235,7 +235,7 @@ class TeamExplorer:
         return held
 
     def _take_over(self, team: Sequence[Member], free: list[int], assignment: list[int | None],
-                   held: list[tuple[int, NDArray[np.bool_], float]], targets_xy: F64) -> None:
+                   held: list[tuple[int, NDArray[np.bool_], float]]) -> None:
         """A teammate whose goal a free robot was assigned (see ``_hold``) chooses again."""
         for j, near, left in held:
             taker = next((free[row] for row, k in enumerate(assignment)
