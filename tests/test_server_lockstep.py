@@ -86,3 +86,20 @@ def test_a_robot_leaving_is_not_waited_for_and_its_news_comes_first() -> None:
         out = b.take(q.inbox, q.cv, {"r1", "r2"})   # at once: r2 is leaving
     assert [name for name, _ in out] == ["#alive:r2", "r1"] and out[0][1].alive is False
     assert b.timeouts == 0 and len(q.inbox) == 0 and not q.inbox.control
+
+
+def test_robots_joining_come_out_in_robot_order_whatever_order_their_tokens_came_in() -> None:
+    """The order robots are added in gives them their graph symbols, so a fleet whose tokens
+    come in another order at the start must still make the same run. One robot's own news
+    keeps its order (it came, then went)."""
+    for perm in itertools.permutations(["r3", "r1", "r2"]):
+        q, b = Queues(), StepBarrier(5.0)
+        for rid in perm:
+            q.put(f"#alive:{rid}", AliveWork(rid, True))
+        q.put("#alive:r1", AliveWork("r1", False))
+        for rid in ("r2", "r3"):
+            q.arrive(scan(rid, 100))
+        with q.cv:
+            out = b.take(q.inbox, q.cv, {"r2", "r3"})
+        assert [(name, item.alive) for name, item in out[:4]] == [
+            ("#alive:r1", True), ("#alive:r1", False), ("#alive:r2", True), ("#alive:r3", True)]

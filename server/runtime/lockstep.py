@@ -10,10 +10,11 @@ placed). So the server's worker takes a step at a time:
    expected are the robots alive by their liveliness token or by the core, less those leaving
    and those that missed a step (a stranger with a token, a robot whose scans are refused:
    waited for once, then again only when a scan of theirs comes);
-2. take the step's messages: robots coming and going (in arrival order), the oldest scan of
-   each robot at the step's stamp (in robot order), then the sightings of earlier steps (in
-   robot order). A step's sightings wait for the next step: an agent may read a camera frame
-   after it sent the step's scan, but it sends that frame's sightings before its next scan.
+2. take the step's messages: robots coming and going (in robot order, each robot's in arrival
+   order), the oldest scan of each robot at the step's stamp (in robot order), then the
+   sightings of earlier steps (in robot order). A step's sightings wait for the next step:
+   an agent may read a camera frame after it sent the step's scan, but it sends that frame's
+   sightings before its next scan.
 
 Queues are the node's ``Inbox``: name -> deque of items, control items by name in arrival
 order.
@@ -57,8 +58,11 @@ class StepBarrier:
                     self.timeouts += 1
                 break
             cv.wait(left)
-        batch: list[tuple[str, Any]] = [(n, None) for n in inbox.control
-                                        if n.startswith(ALIVE)]
+        # robots coming and going in robot order (each robot's own in arrival order): the
+        # order a fleet's tokens arrive in at the start differs from run to run, and the
+        # order robots are added in gives them their graph symbols
+        batch: list[tuple[str, Any]] = [(n, None) for n in sorted(
+            n for n in inbox.control if n.startswith(ALIVE))]
         if heads:
             step = min(heads.values())
             batch += [(rid, None) for rid in sorted(heads) if heads[rid] == step]
