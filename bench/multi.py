@@ -498,21 +498,22 @@ def speedups(runs: dict[str, dict[str, Any]], team_case: str, variant: str = "pl
                and r.get("repeat", 1) == 1}
     fallback = singles[min(singles)] if singles else None
     per: dict[str, float | None] = {}
+    both: list[tuple[float, float]] = []   # (single, team) times where both have one
     for r in sorted((r for r in runs.values()
                      if r.get("case") == team_case and r.get("variant") == variant),
                     key=lambda r: (r["seed"], r.get("repeat", 1))):
         label = str(r["seed"]) + (f"#{r['repeat']}" if r.get("repeat", 1) > 1 else "")
-        per[label] = ratio(_t(singles.get(r["seed"], fallback)), _t(r))
+        a, b = _t(singles.get(r["seed"], fallback)), _t(r)
+        per[label] = ratio(a, b)
+        if a is not None and b is not None:
+            both.append((a, b))
     if not per:
         return None
     out = stats(per)
     # also the single robot's median time over the team's median time, on the seeds both
     # reached the threshold (how a speed-up between different seeds is stated)
-    pairs = [(_t(singles.get(r["seed"], fallback)), _t(r)) for r in runs.values()
-             if r.get("case") == team_case and r.get("variant") == variant]
-    pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
-    out["of_medians"] = (ratio(float(np.median([a for a, _ in pairs])),
-                               float(np.median([b for _, b in pairs]))) if pairs else None)
+    out["of_medians"] = (ratio(float(np.median([a for a, _ in both])),
+                               float(np.median([b for _, b in both]))) if both else None)
     return out
 
 

@@ -67,11 +67,11 @@ def arrange(desk: MapMatchDesk, e: HypothesisEntry, h: Hypothesis, now_ns: int,
         # decimetres)
         found = [_common_place(layer_a, layer_b, e.T_ab, c.centre_a) for c in h.members]
         places = [f for f in found if f is not None]
-    if not places and finishing:
-        # none near the submaps' centres: the free floor of both maps nearest each pair of
-        # robots (under a right transform they meet wherever both maps know the floor)
-        places = _overlap_places(layer_a, layer_b, e.T_ab,
-                                 [(ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b])
+        if not places:
+            # none near the submaps' centres: the free floor of both maps nearest each pair
+            # of robots (under a right transform they meet wherever both maps know the floor)
+            places = _overlap_places(layer_a, layer_b, e.T_ab, [
+                (ra.pose[:2], rb.pose[:2]) for ra in side_a for rb in side_b])
     best: tuple[float, RobotContext, RobotContext, F64, F64, F64, F64] | None = None
     tries = sorted(((max(math.hypot(*(ra.pose[:2] - p)),
                          math.hypot(*(rb.pose[:2] - p_b))),
