@@ -49,6 +49,7 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
     from server.core import ServerCore
     from server.runtime.hugepages import Collapser
     from server.runtime.snapshot import Pending, Snapshots
+    from server.slam.field_cache import FIELDS
 
     tracks = make_tracks(600)
     core = ServerCore(ServerConfig.model_validate({"robots": None}))
@@ -150,6 +151,9 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
                  "step_cpu_ms_mean_otherwise": mean(other),
                  "steps_while_a_snapshot_is_taken": len(during)},
         "goal_worker_ms_max_10": bool(held.max() <= 10.0),
+        # loop closure's likelihood fields (a cache shared by the robots, ``field_cache``)
+        "fields": {"made": FIELDS.made, "reused": FIELDS.reused,
+                   "held_mb": round(FIELDS.held_bytes / 2**20, 1)},
     }
     if prof_out:
         out["profile_last_prepare"] = prof_out

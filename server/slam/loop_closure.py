@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +25,7 @@ from numpy.typing import NDArray
 from schemas.se2 import between, compose, inverse, pose_distance
 from server.slam.config import LoopClosureConfig
 from server.slam.correlative import LikelihoodField, search
+from server.slam.field_cache import FIELDS, new_owner
 from server.slam.icp import IcpParams, MatchResult, PointMap, icp
 from server.slam.keyframes import Keyframe, points_in_frame, voxel_thin
 from server.slam.loop_kernel import relax
@@ -34,7 +34,8 @@ log = logging.getLogger(__name__)
 
 F64 = NDArray[np.float64]
 FIELD_CACHE = 24                 # likelihood fields kept (the submaps searched most lately) ...
-FIELD_CACHE_BYTES = 8 << 20      # ... within this many bytes (each is 8 levels of float32)
+FIELD_CACHE_BYTES = 8 << 20      # ... within this many bytes (each is 8 levels of float32), and
+                                 # within the process's bound for all robots (``field_cache``)
 LOOP_EDGE_LENGTH_M = 0.1
 
 
@@ -130,13 +131,18 @@ class LoopCloser:
         self.submaps: list[Submap] = []
         self.stats = LoopStats()
         self._graph = _Graph()
-        self._fields: OrderedDict[int, LikelihoodField] = OrderedDict()
+        self._owner = new_owner()            # its fields in the process's cache
         self._pending: list[LoopClosure] = []
 
     def __getstate__(self) -> dict[str, object]:
         state = dict(self.__dict__)
-        state["_fields"] = OrderedDict()     # a cache of what the submaps give again
+        state.pop("_owner", None)            # fields are a cache of what the submaps give again
         return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        state.pop("_fields", None)           # a snapshot of an older release kept them here
+        self.__dict__.update(state)
+        self._owner = new_owner()            # a copy does not share the original's fields
 
     # -- bookkeeping ---------------------------------------------------------------------
     def add_edge(self, i: int, j: int, length_m: float) -> None:
@@ -165,20 +171,13 @@ class LoopCloser:
         self.submaps.append(Submap(anchor, members, pts, nrm))
 
     def _field(self, sm_index: int) -> LikelihoodField:
-        f = self._fields.get(sm_index)
+        f = FIELDS.get(self._owner, sm_index)
         if f is None:
             sm = self.submaps[sm_index]
             res = self.cfg.resolution_m
             f = LikelihoodField(np.asarray(sm.points, dtype=np.float64), res, sigma_m=res,
                                 margin_m=4 * res, levels=7)
-            self._fields[sm_index] = f
-            held = sum(lv.nbytes for g in self._fields.values() for lv in g.pyramid)
-            while len(self._fields) > 1 and (len(self._fields) > FIELD_CACHE
-                                             or held > self.field_bytes):
-                _, old = self._fields.popitem(last=False)
-                held -= sum(lv.nbytes for lv in old.pyramid)
-        else:
-            self._fields.move_to_end(sm_index)
+            FIELDS.put(self._owner, sm_index, f, self.field_bytes, FIELD_CACHE)
         return f
 
     # -- search --------------------------------------------------------------------------
