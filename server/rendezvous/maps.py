@@ -9,6 +9,7 @@ matches also become factors of a team's graph (``server.rendezvous.surgery``). N
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -78,6 +79,28 @@ def map_agreement(grid_a: OccupancyGrid, grid_b: OccupancyGrid, T_ab: F64,
     return MapAgreement(len(ia), checked, conflicts)
 
 
+def known_share(grid: OccupancyGrid, back_m: float = 0.15) -> Callable[[F64, F64], float]:
+    """A function of a scan's points (robot frame) and the pose placing them in ``grid``'s
+    frame: the share of them whose near side the grid knows, that is, whose cell ``back_m``
+    back along the beam, toward the sensor, the grid holds as free or occupied. A keyframe of
+    another team whose scan sees walls this map saw only from behind (an office's rooms, a
+    wall apart), or rooms it never looked into, cannot be matched against it, however right
+    its placement: most of its points have nothing facing them to be matched with."""
+    known = grid.occupied_mask() | grid.free_mask()
+    h, w = known.shape
+
+    def share(points: F64, T_map_robot: F64) -> float:
+        if len(points) == 0 or not known.size:
+            return 0.0
+        r = np.hypot(points[:, 0], points[:, 1])
+        front = points * (np.maximum(r - back_m, 0.0) / np.maximum(r, 1e-9))[:, None]
+        ij = grid.cell_of(transform_points(T_map_robot, front))
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        return float(known[ij[inside, 1], ij[inside, 0]].sum()) / len(points)
+
+    return share
+
+
 def union_area_m2(grid_a: PlanningMap, grid_b: PlanningMap, T_ab: F64,
                   sample_m: float = 0.2) -> float:
     """The area both maps know together [m²] when grid b is moved into a's frame by
@@ -114,7 +137,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                   max_correction_rad: float = math.radians(5.0),
                   T_ab: F64 | None = None, tried: list[int] | None = None,
                   only: list[int] | None = None,
-                  min_seen_fraction: float = 0.0) -> list[CrossMatch]:
+                  min_seen_fraction: float = 0.0,
+                  known: Callable[[F64, F64], float] | None = None) -> list[CrossMatch]:
     """Scan-to-map matches of b's keyframes (every ``every``-th, or those in ``only``) against
     a's keyframes within ``radius_m``, both placed by the current joint estimate (or b's by
     ``T_ab``): the overlap of the two maps says how they fit together, far more precisely than
@@ -124,7 +148,10 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     ``min_seen_fraction``, only for one whose points a's map shows, from the same side, in at
     least that share (``seen_fraction``), and whose match is not degenerate: a keyframe that
     could not pass even where the fit is perfect, or that sees one wall, along which no fit
-    can be told from a misfit, is no test of it."""
+    can be told from a misfit, is no test of it. With ``known`` (``known_share`` of a's map),
+    a keyframe so placed whose points' near side a's map knows in less than
+    ``min_inlier_fraction`` of them is no test either, and is not tried: it sees mostly what
+    a never saw from its side, and could not pass were it placed right."""
     from server.slam.frontend import icp_params, min_points
     from server.slam.icp import icp
     from server.slam.keyframes import local_point_map
@@ -144,6 +171,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         near = np.flatnonzero(d <= radius_m)
         scan = b.keyframes[kb].matchable
         if len(near) == 0 or len(scan) < min_points(scan, a.cfg.matcher):
+            continue
+        if known is not None and known(scan.points, pb[kb]) < min_inlier_fraction:
             continue
         target = local_point_map([a.keyframes[i] for i in near], pa[near],
                                  a.cfg.local_map.voxel_m)

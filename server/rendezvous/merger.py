@@ -27,6 +27,7 @@ from server.rendezvous.counters import RendezvousCounters
 from server.rendezvous.evidence import MergeProposal, MergeVerifier, SightingRecord
 from server.rendezvous.maps import (
     cross_matches,
+    known_share,
     map_agreement,
     square_turn,
     square_walls_agree,
@@ -137,8 +138,8 @@ class Merger:
         """Check a proposal on the two teams' maps; ``info`` gets what was found."""
         t = self.cfg.teams
         ta, tb = self.fleet.teams[p.team_a], self.fleet.teams[p.team_b]
-        agree = map_agreement(self.fleet.team_grid(ta.team_id),
-                              self.fleet.team_grid(tb.team_id), p.T_ab)
+        grid_a = self.fleet.team_grid(ta.team_id)
+        agree = map_agreement(grid_a, self.fleet.team_grid(tb.team_id), p.T_ab)
         info.update({"overlap_cells": agree.overlap_cells, "wall_cells": agree.occupied_checked,
                      "conflicts": agree.conflicts,
                      "conflict_ratio": round(agree.conflict_ratio, 4)})
@@ -158,11 +159,15 @@ class Merger:
         # well the maps fit, and is no test of the fit (tried only where it could pass)
         seen = inliers if any(robots[r].slam.narrow
                               for r in (*ta.robot_ids, *tb.robot_ids)) else 0.0
+        # a keyframe beside the other team's but in a room that team never looked into (an
+        # office's rooms, a wall apart) is no test of the sightings' transform either: it
+        # could not pass were the transform right (maps that fit alone keep the old test)
+        known = None if on_maps else known_share(grid_a)
         matches = [m for ra in ta.robot_ids for rb in tb.robot_ids
                    for m in cross_matches(robots[ra].slam, robots[rb].slam, T_ab=p.T_ab,
                                           tried=tried, min_inlier_fraction=inliers,
                                           radius_m=KNOWN_MAP_RADIUS_M if kind == "placed"
-                                          else 5.0, min_seen_fraction=seen)]
+                                          else 5.0, min_seen_fraction=seen, known=known)]
         found = len(matches)
         info["map_match_tries"], info["map_matches_before"] = tried[0], found
         if tried[0] >= t.min_map_match_tries and found == 0:
