@@ -150,8 +150,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     could not pass even where the fit is perfect, or that sees one wall, along which no fit
     can be told from a misfit, is no test of it. With ``known`` (``known_share`` of a's map),
     a keyframe so placed whose points' near side a's map knows in less than
-    ``min_inlier_fraction`` of them is no test either, and is not tried: it sees mostly what
-    a never saw from its side, and could not pass were it placed right."""
+    ``min_inlier_fraction`` of them counts as tried only if it matches: it sees mostly what a
+    never saw from its side, and its failing says nothing of the placement."""
     from server.slam.frontend import icp_params, min_points
     from server.slam.icp import icp
     from server.slam.keyframes import local_point_map
@@ -172,8 +172,6 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         scan = b.keyframes[kb].matchable
         if len(near) == 0 or len(scan) < min_points(scan, a.cfg.matcher):
             continue
-        if known is not None and known(scan.points, pb[kb]) < min_inlier_fraction:
-            continue
         target = local_point_map([a.keyframes[i] for i in near], pa[near],
                                  a.cfg.local_map.voxel_m)
         if len(target) < a.cfg.matcher.min_points:
@@ -183,12 +181,14 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                 params.min_normal_cos) < min_seen_fraction:
             continue
         m = icp(scan.points, scan.normals, target, pb[kb], params)
-        if tried is not None and not (min_seen_fraction > 0 and m.degenerate):
-            tried[0] += 1
         shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
         turn = abs(wrap_angle(m.T_map_scan[2] - pb[kb, 2]))
-        if (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
-                or shift > max_correction_m or turn > max_correction_rad):
+        passed = not (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
+                      or shift > max_correction_m or turn > max_correction_rad)
+        if tried is not None and not (min_seen_fraction > 0 and m.degenerate) and (
+                passed or known is None or known(scan.points, pb[kb]) >= min_inlier_fraction):
+            tried[0] += 1
+        if not passed:
             continue
         ka = int(near[np.argmin(d[near])])
         c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
