@@ -95,17 +95,6 @@ class FieldCache:
                 del self._fields[k]
                 self._held -= n
 
-    def drop(self, owner: int) -> None:
-        """Forget an owner's fields (its closer is gone)."""
-        with self._lock:
-            for k in [k for k in self._fields if k[0] == owner]:
-                self._held -= self._fields.pop(k)[1]
-
-    def clear(self) -> None:
-        with self._lock:
-            self._fields.clear()
-            self._held = 0
-
 
 #: the process's cache
 FIELDS = FieldCache()
