@@ -28,6 +28,7 @@ import argparse
 import cProfile
 import json
 import pstats
+import shutil
 import sys
 import tempfile
 import threading
@@ -159,6 +160,7 @@ def run(robots: int, steps: int, every: int, late: int, profile: bool, check: bo
         out["profile_last_prepare"] = prof_out
     if check:
         out["check"] = _check(core, folder)
+    shutil.rmtree(folder, ignore_errors=True)     # the state folder was this run's alone
     return out
 
 
