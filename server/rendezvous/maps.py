@@ -85,11 +85,15 @@ def known_share(grid: OccupancyGrid, back_m: float = 0.15) -> Callable[[F64, F64
     back along the beam, toward the sensor, the grid holds as free or occupied. A keyframe of
     another team whose scan sees walls this map saw only from behind (an office's rooms, a
     wall apart), or rooms it never looked into, cannot be matched against it, however right
-    its placement: most of its points have nothing facing them to be matched with."""
-    known = grid.occupied_mask() | grid.free_mask()
-    h, w = known.shape
+    its placement: most of its points have nothing facing them to be matched with. The
+    grid's masks are taken at the first call: a check whose keyframes all match needs none."""
+    masks: list[NDArray[np.bool_]] = []
 
     def share(points: F64, T_map_robot: F64) -> float:
+        if not masks:
+            masks.append(grid.occupied_mask() | grid.free_mask())
+        known = masks[0]
+        h, w = known.shape
         if len(points) == 0 or not known.size:
             return 0.0
         r = np.hypot(points[:, 0], points[:, 1])
@@ -183,8 +187,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         m = icp(scan.points, scan.normals, target, pb[kb], params)
         shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
         turn = abs(wrap_angle(m.T_map_scan[2] - pb[kb, 2]))
-        passed = not (not m.converged or m.degenerate or m.inlier_fraction < min_inlier_fraction
-                      or shift > max_correction_m or turn > max_correction_rad)
+        passed = (m.converged and not m.degenerate and m.inlier_fraction >= min_inlier_fraction
+                  and shift <= max_correction_m and turn <= max_correction_rad)
         if tried is not None and not (min_seen_fraction > 0 and m.degenerate) and (
                 passed or known is None or known(scan.points, pb[kb]) >= min_inlier_fraction):
             tried[0] += 1
