@@ -6,7 +6,9 @@ in one core. A merged team moved on afterwards keeps its joint graph and its mer
 from __future__ import annotations
 
 import math
+import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +167,13 @@ def test_a_parcel_from_other_code_or_damaged_is_refused() -> None:
 BUS_SPAWN = {"r1": SPAWN["r1"], "r7": SPAWN["r2"]}
 
 
+@dataclass(frozen=True)
+class Gate:
+    """Holds a worker's thread until ``event`` is set."""
+
+    event: threading.Event
+
+
 class Robots:
     """The robots' side of the wire: liveliness tokens, scans and tags out, commands in."""
 
@@ -180,7 +189,8 @@ class Robots:
 
 
 @pytest.mark.e2e
-def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
+@pytest.mark.parametrize("busy_at", [0, 1])
+def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path, busy_at: int) -> None:
     assert [max((0, 1), key=lambda w: _rank(r, w)) for r in BUS_SPAWN] == [1, 0]
     endpoint = free_local_endpoint()
     base = {**config(("r1", "r7")).model_dump(), "clock": {"source": "stamps"}}
@@ -199,12 +209,30 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
         assert within(lambda: all(n.cluster is not None and n.cluster.workers == {0, 1}
                                   for n in nodes.values()), 10.0)
         unanswered = 0
+        # the giver is busy when the team is asked for: r1's scan of that step waits in its
+        # queue (busy_at=1: the asker had let that scan pass by, as another worker's), or its
+        # first scan does (busy_at=0: it has not mapped r1 yet)
+        gate = threading.Event()
+        nodes[1]._handlers[Gate] = lambda g: g.event.wait(5.0)
+        early: list[TagDetections] = []    # sightings before the busy step go with it
         try:
-            for _ in range(200):
+            for step in range(200):
                 obs = sim.sense()
                 scans, tags = step_messages(sim, detector, obs)
+                if step < busy_at:
+                    early, tags = early + tags, []
+                if step == busy_at:
+                    nodes[1]._queue_control("#gate:", Gate(gate))
                 for rid, scan in scans.items():
                     robot_bus.publish(keys.robot_scan(rid), scan, block=True)
+                if step == busy_at:
+                    # (once worker 0 knows who serves r1: then its sightings ask for it)
+                    assert within(lambda: nodes[0].cluster.owner_of("r1") == 1, 5.0)
+                    for msg in early + tags:
+                        robot_bus.publish(keys.robot_tags(msg.robot_id), msg, block=True)
+                    tags = []
+                    time.sleep(0.5)
+                    gate.set()
                 stamp = obs.stamp_ns
                 if not within(lambda s=stamp: all(s in robots.cmds[r] for r in BUS_SPAWN), 5.0):
                     unanswered += 1
@@ -223,9 +251,13 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path) -> None:
                 n.bus.close()
     # worker 0 asked worker 1 for r1's team, got it and merged it with r7's
     c0, c1 = summaries[0]["cluster"], summaries[1]["cluster"]
-    assert c0["asked"] == 1 and c0["adopted"] == 1 and c1["given"] == 1
+    if busy_at == 0:       # nothing to give: worker 1 let r1 go, worker 0 mapped it afresh
+        assert c0["asked"] == 1 and c0["not_adopted"] == 1 and c1["let_go"] == 1
+        assert "given" not in c1
+    else:
+        assert c0["asked"] == 1 and c0["adopted"] == 1 and c1["given"] == 1
     assert c0["robots_served"] == ["r1", "r7"] and c1["robots_served"] == []
-    assert merged and not nodes[1].core.robots
+    assert gate.is_set() and merged and not nodes[1].core.robots
     core = nodes[0].core
     assert core.robots["r1"].slam.graph is core.robots["r7"].slam.graph
     # every scan was taken by one worker or the other, once: none lost in the move

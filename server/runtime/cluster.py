@@ -293,6 +293,15 @@ class Cluster:
         finally:
             query.drop()
 
+    def let_go(self, robot_id: str) -> None:
+        """Stop serving ``robot_id`` (claimed here, not yet mapped) for the worker that asks
+        for it; its token goes after the same grace as a given team's."""
+        with self._lock:
+            if robot_id in self.mine:
+                self.released[robot_id] = time.monotonic() + RELEASE_GRACE_S
+            self.resumed.discard(robot_id)
+        self.counters["let_go"] += 1
+
     def serves(self, robot_id: str) -> bool:
         with self._lock:
             return robot_id in self.mine and robot_id not in self.released

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from server.runtime import handover
@@ -22,7 +23,8 @@ log = logging.getLogger(__name__)
 def routed(node: ServerNode, rid: str, ready: list[tuple[str, int, Any]]
             ) -> list[tuple[str, int, Any]]:
     """Of the admitted messages, those this worker serves; a robot whose team is on its
-    way here has its scans held until it arrives (the caller holds ``_cv``)."""
+    way here has its scans held until it arrives, and another worker's robot its last
+    ``queue_per_robot`` scans (the caller holds ``_cv``)."""
     assert node.cluster is not None
     route = node.cluster.route(rid)
     out = []
@@ -32,8 +34,17 @@ def routed(node: ServerNode, rid: str, ready: list[tuple[str, int, Any]]
                 out.append(item)
         elif route is Route.MINE:
             out.append(item)
+            if node._recent:
+                node._recent.pop(rid, None)
         elif route is Route.WAIT:
             node._held.setdefault(rid, []).append(item)
+        else:
+            # another worker's: kept a while, as the scans its owner may still have waiting
+            # when its team is asked for here (given away unprocessed, they come from here)
+            recent = node._recent.get(rid)
+            if recent is None:
+                recent = node._recent[rid] = deque(maxlen=node.cfg.queue_per_robot)
+            recent.append(item)
     return out
 
 
@@ -43,8 +54,14 @@ def give(node: ServerNode, item: GiveWork) -> None:
     assert node.cluster is not None
     query, robots = item.query, item.robots
     for rid in robots:
-        if not node.cluster.serves(rid) or rid not in node.core.robots:
+        if not node.cluster.serves(rid):
             continue
+        if rid not in node.core.robots:
+            # claimed here, its first scans still waiting: the asker serves it from them
+            node.cluster.let_go(rid)
+            node.cluster.answer(query, [], None, f"worker {node.cluster.index} had not "
+                                f"mapped {rid} yet and let it go")
+            return
         parcel = handover.release(node.core, rid)
         assert parcel is not None
         team = parcel.robot_ids
@@ -97,8 +114,8 @@ def adopt(node: ServerNode, item: AdoptWork) -> None:
         node.cluster.settled(h, adopted)
         for rid in {h.asked, *h.robots}:
             last = node._own_stamps.get(rid, -1)
-            node._enqueue(rid, [it for it in node._held.pop(rid, [])
-                                if it[2].stamp_ns > last])
+            waiting = [*node._recent.pop(rid, ()), *node._held.pop(rid, [])]
+            node._enqueue(rid, [it for it in waiting if it[2].stamp_ns > last])
 
 
 def drop(node: ServerNode, rid: str) -> None:

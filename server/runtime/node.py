@@ -114,6 +114,8 @@ class ServerNode:
         #: the core's orders as the console shows them (replaced whole by the worker)
         self.orders_view: dict[str, Any] = self.core.orders.view()
         self._held: dict[str, list[tuple[str, int, Any]]] = {}   # robots whose team is coming
+        #: the last scans of robots other workers serve (``moves.routed``)
+        self._recent: dict[str, deque[tuple[str, int, Any]]] = {}
         #: each robot's own stamp of the last scan the core took (a team that moves here
         #: brings the giver's: what it had not processed yet is taken from those held here)
         self._own_stamps: dict[str, int] = {}
