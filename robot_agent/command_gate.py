@@ -6,7 +6,11 @@ reaches the router can publish there, so the agent checks what it can on its own
 
 1. the command is for this robot (``robot_id``);
 2. a server is known: the agent binds to the first session it sees holding the server's
-   liveliness token (``Bus.watch_holders``) and keeps it while that token lives;
+   liveliness token (``Bus.watch_holders``) and keeps it while that token lives. A server
+   split over several workers (``server.runtime.cluster``) has every worker hold that token;
+   there the agent binds to the worker whose owner token names this robot (the
+   lowest-numbered if two do, as the workers settle it), and follows the robot's team when it
+   moves to another worker;
 3. the command's source (``Sample.source_info``, set by ``Bus.publish``) is that session;
 4. its stamp is on the robot's clock, where the server puts it (the stamp of the scan it
    answers): not ahead of the robot's clock, not older than ``max_age_s``, not older than the
@@ -35,13 +39,23 @@ class CommandGate:
         self.max_age_ns = round(max_age_s * 1e9)
         self.max_ahead_ns = round(max_ahead_s * 1e9)
         self.holders: list[str] = []      # sessions holding the server's token, first first
+        self.workers: dict[int, str] = {}  # a split server's workers' sessions, by number
+        self.owned_by: set[int] = set()    # the workers that hold this robot's owner token
         self.last_stamp_ns: int | None = None
         self._last_now_ns: int | None = None
 
     @property
     def server(self) -> str | None:
         """The session the agent is bound to (None: no server)."""
+        for w in sorted(self.owned_by):
+            if w in self.workers:
+                return self.workers[w]
         return self.holders[0] if self.holders else None
+
+    def _bound(self, before: str | None) -> str | None:
+        if self.server != before:
+            self.last_stamp_ns = None   # a new server, a new sequence of commands
+        return self.server
 
     def server_holder(self, zid: str, alive: bool) -> str | None:
         """A session took or dropped the server's token; returns the server bound after it."""
@@ -50,9 +64,24 @@ class CommandGate:
             self.holders.append(zid)
         elif not alive and zid in self.holders:
             self.holders.remove(zid)
-        if self.server != before:
-            self.last_stamp_ns = None   # a new server, a new sequence of commands
-        return self.server
+        return self._bound(before)
+
+    def worker_session(self, worker: int, zid: str, alive: bool) -> str | None:
+        """Worker ``worker`` of a split server is session ``zid`` (or went away); returns the
+        server bound after it."""
+        before = self.server
+        if alive:
+            self.workers[worker] = zid
+        elif self.workers.get(worker) == zid:
+            del self.workers[worker]
+        return self._bound(before)
+
+    def owner(self, worker: int, alive: bool) -> str | None:
+        """Worker ``worker`` took or dropped this robot's owner token; returns the server
+        bound after it."""
+        before = self.server
+        (self.owned_by.add if alive else self.owned_by.discard)(worker)
+        return self._bound(before)
 
     def check(self, cmd: VelocityCommand, source: str | None, now_ns: int) -> Reason | None:
         """None when ``cmd`` (from session ``source``, at robot time ``now_ns``) may drive the

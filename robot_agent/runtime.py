@@ -81,6 +81,9 @@ class Agent:
 
     def start(self) -> None:
         # who the server is before its commands: the first one is not dropped as unknown
+        # (a split server's workers first: their sessions hold the server's token too)
+        self.bus.watch_alive(keys.ALL_CLUSTER_WORKER_SESSIONS, self._on_worker_session)
+        self.bus.watch_alive(keys.cluster_owners(self.rid), self._on_owner)
         self.bus.watch_holders(keys.SERVER_ALIVE, self._on_server_holder)
         self.bus.watch_alive(keys.SERVER_ALIVE, self._on_server)
         self.bus.subscribe_with_source(keys.robot_cmd_vel(self.rid), VelocityCommand,
@@ -285,12 +288,32 @@ class Agent:
             before = self.gate.server
             now = self.gate.server_holder(zid, alive)
             others = self.gate.holders[1:]
+            split = bool(self.gate.workers)
+        self._log_bound(before, now)
+        if alive and zid in others and not split:
+            log.warning("session %s also holds the server's liveliness token; its commands "
+                        "are ignored while %s lives", zid, now)
+
+    def _on_worker_session(self, key: str, alive: bool) -> None:
+        parsed = keys.cluster_worker_session_of(key)
+        if parsed is not None:
+            with self.cond:
+                before = self.gate.server
+                now = self.gate.worker_session(*parsed, alive)
+            self._log_bound(before, now)
+
+    def _on_owner(self, key: str, alive: bool) -> None:
+        parsed = keys.cluster_owner_of(key)
+        if parsed is not None and parsed[0] == self.rid:
+            with self.cond:
+                before = self.gate.server
+                now = self.gate.owner(parsed[1], alive)
+            self._log_bound(before, now)
+
+    def _log_bound(self, before: str | None, now: str | None) -> None:
         if now != before:
             log.info("bound to the server session %s", now) if now else \
                 log.warning("no server session holds the server's token")
-        if alive and zid in others:
-            log.warning("session %s also holds the server's liveliness token; its commands "
-                        "are ignored while %s lives", zid, now)
 
     def _on_server(self, key: str, alive: bool) -> None:
         with self.cond:

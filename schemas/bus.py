@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
 from schemas.codec import decode, encode
 from schemas.errors import SchemaError
+from schemas.keys import HOLDER_CHUNK
 from schemas.messages import Message
 from schemas.tlsfiles import tls_file_problems
 
@@ -43,7 +44,6 @@ Mode = Literal["router", "client", "peer"]
 #: takes more.
 DEFAULT_MAX_MESSAGE_SIZE = 1_572_864
 #: liveliness tokens ``<key>/zid/<session id>`` say which session holds ``<key>``'s token
-HOLDER_CHUNK = "zid"
 _RUST_SOURCE = re.compile(r"\s*\bat\s+/\S+\.rs:\d+\.?")
 
 

@@ -48,6 +48,9 @@ SERVER_MAP = f"{ROOT}/server/map"
 SERVER_ROBOTS = f"{ROOT}/server/robots"
 SERVER_EVENTS = f"{ROOT}/server/events"
 SERVER_ALIVE = f"{ROOT}/server/alive"
+#: the chunk between a liveliness token's key and its holder's session id in the companion
+#: token ``Bus.declare_alive`` declares beside it
+HOLDER_CHUNK = "zid"
 
 # wildcards for subscribers
 ALL = f"{ROOT}/**"
@@ -58,15 +61,22 @@ ALL_ALIVE = f"{ROOT}/robot/*/alive"
 ALL_CMD_VEL = f"{ROOT}/robot/*/cmd_vel"
 
 
-# the workers of a server split over several processes (server.runtime.cluster)
+# the workers of a server split over several processes (server.runtime.cluster); who works
+# and who serves which robot are under the server's keys, where robots may read them (their
+# agent obeys the worker that serves it), asking for a team and leaving are not
 def cluster_worker(index: int) -> str:
-    """Liveliness token of worker ``index``."""
-    return f"{ROOT}/cluster/worker/{int(index)}"
+    """Liveliness token of worker ``index`` (declared with its session's companion)."""
+    return f"{ROOT}/server/cluster/worker/{int(index)}"
 
 
 def cluster_owner(robot_id: str, index: int) -> str:
     """Liveliness token: worker ``index`` serves robot ``robot_id``."""
-    return f"{ROOT}/cluster/owner/{_rid(robot_id)}/{int(index)}"
+    return f"{ROOT}/server/cluster/owner/{_rid(robot_id)}/{int(index)}"
+
+
+def cluster_owners(robot_id: str) -> str:
+    """The owner tokens of robot ``robot_id``, whichever worker holds them."""
+    return f"{ROOT}/server/cluster/owner/{_rid(robot_id)}/*"
 
 
 def cluster_leaving(index: int) -> str:
@@ -79,27 +89,44 @@ def cluster_give(index: int) -> str:
     return f"{ROOT}/cluster/give/{int(index)}"
 
 
-ALL_CLUSTER_WORKERS = f"{ROOT}/cluster/worker/*"
-ALL_CLUSTER_OWNERS = f"{ROOT}/cluster/owner/*/*"
+ALL_CLUSTER_WORKERS = f"{ROOT}/server/cluster/worker/*"
+#: the session companions of the workers' tokens (``Bus.declare_alive``)
+ALL_CLUSTER_WORKER_SESSIONS = f"{ROOT}/server/cluster/worker/*/{HOLDER_CHUNK}/*"
+ALL_CLUSTER_OWNERS = f"{ROOT}/server/cluster/owner/*/*"
 ALL_CLUSTER_LEAVING = f"{ROOT}/cluster/leaving/*"
+_CLUSTER_PREFIX = {"worker": [ROOT, "server", "cluster", "worker"],
+                   "owner": [ROOT, "server", "cluster", "owner"],
+                   "leaving": [ROOT, "cluster", "leaving"]}
 
 
 def cluster_owner_of(key: str) -> tuple[str, int] | None:
     """(robot, worker) of an owner token's key, or None."""
     parts = key.split("/")
-    if len(parts) != 5 or parts[:3] != [ROOT, "cluster", "owner"] or not _ID.match(parts[3]) \
-            or not parts[4].isdigit():
+    if len(parts) != 6 or parts[:4] != _CLUSTER_PREFIX["owner"] or not _ID.match(parts[4]) \
+            or not parts[5].isdigit():
         return None
-    return parts[3], int(parts[4])
+    return parts[4], int(parts[5])
 
 
 def cluster_worker_of(key: str, kind: str = "worker") -> int | None:
-    """The worker number of a ``mrslam/cluster/<kind>/<N>`` token's key (``worker`` or
-    ``leaving``), or None."""
+    """The worker number of a worker token's key (``kind`` ``worker``) or of a leaving one
+    (``leaving``), or None."""
+    prefix = _CLUSTER_PREFIX[kind]
     parts = key.split("/")
-    if len(parts) != 4 or parts[:3] != [ROOT, "cluster", kind] or not parts[3].isdigit():
+    if len(parts) != len(prefix) + 1 or parts[:-1] != prefix or not parts[-1].isdigit():
         return None
-    return int(parts[3])
+    return int(parts[-1])
+
+
+def cluster_worker_session_of(key: str) -> tuple[int, str] | None:
+    """(worker, session id) of a worker token's session companion, or None."""
+    parts = key.split("/")
+    prefix = _CLUSTER_PREFIX["worker"]
+    if len(parts) != len(prefix) + 3 or parts[:len(prefix)] != prefix \
+            or not parts[len(prefix)].isdigit() or parts[len(prefix) + 1] != HOLDER_CHUNK \
+            or not parts[-1]:
+        return None
+    return int(parts[len(prefix)]), parts[-1]
 
 
 # simulator <-> sim backend

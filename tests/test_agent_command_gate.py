@@ -71,6 +71,29 @@ def test_stamps_must_be_on_the_robot_clock_and_in_order() -> None:
     assert gate.check(cmd(1.5), "cc", 2 * S) is None
 
 
+def test_a_split_server_is_obeyed_through_the_worker_that_serves_the_robot() -> None:
+    gate = CommandGate("r1")
+    for w, zid in enumerate(("aa", "bb")):       # each worker holds the server's token
+        gate.server_holder(zid, True)
+        gate.worker_session(w, zid, True)
+    assert gate.server == "aa"                   # nobody serves r1 yet: the first holder
+    assert gate.owner(1, True) == "bb"
+    assert gate.check(cmd(1.0), "aa", 2 * S) == "not_from_server"
+    assert gate.check(cmd(1.0), "bb", 2 * S) is None
+    # its team moves to worker 0, which claims it while worker 1 still holds its token
+    assert gate.owner(0, True) == "aa"
+    assert gate.check(cmd(1.1), "bb", 2 * S) == "not_from_server"
+    assert gate.check(cmd(0.9), "aa", 2 * S) is None     # a new server: a new order
+    assert gate.owner(1, False) == "aa"
+    assert gate.owner(3, True) == "aa"           # a worker whose session is not known yet
+    # the serving worker's session goes: the next owner whose session is known, else the
+    # first holder of the server's token
+    assert gate.worker_session(0, "aa", False) == "aa"
+    gate.server_holder("aa", False)
+    assert gate.server == "bb"
+    assert gate.worker_session(3, "dd", True) == "dd"
+
+
 # -- on the wire -----------------------------------------------------------------------------
 class StillBase:
     """A base that records what it is told; the robot's clock is the wall clock."""
@@ -134,3 +157,35 @@ def test_a_strangers_commands_are_ignored_and_counted(
     assert all(v != 0.5 for v, _ in base.velocities) and (0.2, 0.0) in base.velocities
     summary: dict[str, Any] = a.summary()
     assert summary["commands_ignored"] == n + 2 and a.errors() >= n + 2
+
+
+def test_each_robot_obeys_the_worker_that_serves_it(
+        router: Bus, endpoint: str, agent: tuple[Agent, StillBase]) -> None:
+    """Two workers of a split server hold the server's token; r1's agent obeys the one whose
+    owner token names r1, then the other once r1's team has moved to it."""
+    a, base = agent
+    key = keys.robot_cmd_vel("r1")
+    with Bus.open("client", connect=[endpoint]) as w0, \
+            Bus.open("client", connect=[endpoint]) as w1:
+        for w, bus in enumerate((w0, w1)):
+            bus.declare_alive(keys.cluster_worker(w))
+            bus.declare_alive(keys.SERVER_ALIVE)
+        owner1 = w1.declare_token(keys.cluster_owner("r1", 1))
+        w0.declare_token(keys.cluster_owner("r7", 0))        # another robot's: no matter
+        assert within(lambda: a.gate.server == w1.zid, 10.0)
+        for bus in (w0, w1):
+            assert bus.wait_for_subscribers(key)
+        w0.publish(key, cmd(time.time_ns() / S, v=0.5))
+        w1.publish(key, cmd(time.time_ns() / S, v=0.2))
+        assert within(lambda: a.counters["commands_received"] == 1, 10.0)
+        assert within(lambda: a.counters["commands_ignored_not_from_server"] == 1, 10.0)
+        assert (0.2, 0.0) in base.velocities and all(v != 0.5 for v, _ in base.velocities)
+        # r1's team moves to worker 0: it claims r1, worker 1 lets its token go
+        w0.declare_token(keys.cluster_owner("r1", 0))
+        w1.undeclare(owner1)
+        assert within(lambda: a.gate.server == w0.zid and a.gate.owned_by == {0}, 10.0)
+        w1.publish(key, cmd(time.time_ns() / S, v=0.4))
+        w0.publish(key, cmd(time.time_ns() / S, v=0.3))
+        assert within(lambda: a.counters["commands_received"] == 2, 10.0)
+        assert within(lambda: a.counters["commands_ignored_not_from_server"] == 2, 10.0)
+        assert (0.3, 0.0) in base.velocities and all(v != 0.4 for v, _ in base.velocities)

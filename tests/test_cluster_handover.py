@@ -258,6 +258,8 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path, busy_at: i
         assert c0["asked"] == 1 and c0["adopted"] == 1 and c1["given"] == 1
     assert c0["robots_served"] == ["r1", "r7"] and c1["robots_served"] == []
     assert gate.is_set() and merged and not nodes[1].core.robots
+    # each worker's commands are no stranger's to the other
+    assert nodes[0].foreign_commands == nodes[1].foreign_commands == {}
     core = nodes[0].core
     assert core.robots["r1"].slam.graph is core.robots["r7"].slam.graph
     # every scan was taken by one worker or the other, once: none lost in the move

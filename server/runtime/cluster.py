@@ -5,9 +5,10 @@ this machine or another one reachable through Zenoh routers (docs/scale.md). Eve
 hears every robot; each robot is served by one of them, its *owner*, and a team lives whole
 in one worker — its joint graph with it.
 
-- **Workers** hold the liveliness token ``mrslam/cluster/worker/<N>``: a worker killed or cut
-  off vanishes within Zenoh's lease, and its robots with it.
-- **Ownership** is a liveliness token too, ``mrslam/cluster/owner/<robot>/<N>``. A robot
+- **Workers** hold the liveliness token ``mrslam/server/cluster/worker/<N>``: a worker killed
+  or cut off vanishes within Zenoh's lease, and its robots with it.
+- **Ownership** is a liveliness token too, ``mrslam/server/cluster/owner/<robot>/<N>``; a
+  robot's agent obeys the worker that holds it (``robot_agent.command_gate``). A robot
   without an owner is claimed by the live worker that ranks highest for it (rendezvous
   hashing: every worker computes the same choice from the same workers, and a worker joining
   or leaving moves only the robots it wins or held). The robots of a worker that vanished wait
@@ -85,6 +86,7 @@ class Cluster:
         self._on_give, self._on_handover = on_give, on_handover
         self._lock = threading.Lock()
         self.workers: set[int] = set()
+        self.sessions: set[str] = set()           # the workers' Zenoh sessions
         self.owners: dict[str, set[int]] = {}
         self.mine: dict[str, Any] = {}            # robot -> its owner token
         self.pulling: dict[str, float] = {}       # robot -> when asked (monotonic)
@@ -101,6 +103,7 @@ class Cluster:
 
     def start(self) -> None:
         self.bus.watch_alive(keys.ALL_CLUSTER_WORKERS, self._on_worker)
+        self.bus.watch_alive(keys.ALL_CLUSTER_WORKER_SESSIONS, self._on_worker_session)
         self.bus.watch_alive(keys.ALL_CLUSTER_OWNERS, self._on_owner)
         self.bus.watch_alive(keys.ALL_CLUSTER_LEAVING, self._on_leaving)
         self.bus.serve_queries(keys.cluster_give(self.index), self._on_query)
@@ -111,6 +114,18 @@ class Cluster:
         w = self._track(self.workers, keys.cluster_worker_of(key), alive)
         if w is not None:
             log.info("server worker %d %s", w, "is up" if alive else "went away")
+
+    def _on_worker_session(self, key: str, alive: bool) -> None:
+        parsed = keys.cluster_worker_session_of(key)
+        if parsed is not None:
+            with self._lock:
+                (self.sessions.add if alive else self.sessions.discard)(parsed[1])
+
+    def is_worker(self, session: str | None) -> bool:
+        """Whether ``session`` is one of the server's workers (whose commands are theirs to
+        give)."""
+        with self._lock:
+            return session in self.sessions
 
     def _on_leaving(self, key: str, alive: bool) -> None:
         self._track(self.leaving, keys.cluster_worker_of(key, "leaving"), alive)

@@ -127,6 +127,9 @@ class ServerNode:
 
     # -- inputs (Zenoh threads) ------------------------------------------------------------
     def start(self) -> None:
+        if self.cluster is not None:
+            # a worker first: an agent that sees the server's token knows whose it is
+            self.cluster.start()
         self.bus.declare_alive(keys.SERVER_ALIVE)
         if self.clock.source == "sim":
             # drained before each message is placed in simulated time (and by the worker):
@@ -139,8 +142,6 @@ class ServerNode:
         # access rules stop them in the router, before they get here: deploy/README.md)
         self.bus.watch_senders(keys.ALL_CMD_VEL, self._on_foreign_command)
         self.publisher.serve()
-        if self.cluster is not None:
-            self.cluster.start()
         self._worker.start()
 
     def _take_sim_clock(self) -> None:
@@ -197,6 +198,8 @@ class ServerNode:
             self._cv.notify()
 
     def _on_foreign_command(self, key: str, sender: str | None) -> None:
+        if self.cluster is not None and self.cluster.is_worker(sender):
+            return      # another worker's robot
         rid = keys.robot_id_of(key) or "?"
         with self._cv:
             self.foreign_commands[rid] = self.foreign_commands.get(rid, 0) + 1
