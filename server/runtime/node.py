@@ -60,6 +60,11 @@ from server.runtime.writer import BackgroundWriter
 log = logging.getLogger(__name__)
 
 
+#: the worker, stopping, waits this long for a snapshot being taken [s] (``ServerNode.stop``
+#: waits 10 s for the worker)
+STOP_SNAPSHOT_WAIT_S = 8.0
+
+
 class ServerNode:
     def __init__(self, bus: Bus, cfg: ServerConfig, core: ServerCore | None = None,
                  journal: JournalWriter | None = None,
@@ -316,6 +321,10 @@ class ServerNode:
             except Exception:
                 self.errors += 1
                 log.exception("publishing server outputs failed")
+        # a snapshot still being taken dies with the thread that forked it (the child's
+        # parent-death signal is the thread's, not the process's): it is waited for here
+        if self._writer.busy("snapshot"):
+            self._writer.drain(STOP_SNAPSHOT_WAIT_S)
 
     def _outputs(self, pacer: OutputPacer) -> None:
         assert self.outputs is not None

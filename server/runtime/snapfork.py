@@ -137,7 +137,8 @@ def _child(snaps: Snapshots, core: ServerCore, sequence: int, r: int, w: int) ->
 
 def _die_with_parent() -> None:
     """(Linux) The child is killed when the server dies, SIGKILL included, so no snapshot
-    process outlives it."""
+    process outlives it. Linux sends the signal when the *thread* that forked the child
+    ends: the worker waits for its snapshot before it stops (``ServerNode._work``)."""
     try:
         import ctypes
         libc = ctypes.CDLL(None, use_errno=True)
