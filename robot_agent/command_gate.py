@@ -10,7 +10,8 @@ reaches the router can publish there, so the agent checks what it can on its own
    split over several workers (``server.runtime.cluster``) has every worker hold that token;
    there the agent binds to the worker whose owner token names this robot (the
    lowest-numbered if two do, as the workers settle it), and follows the robot's team when it
-   moves to another worker;
+   moves to another worker. A worker's session is the first that holds its token and the
+   server's, as for a single server;
 3. the command's source (``Sample.source_info``, set by ``Bus.publish``) is that session;
 4. its stamp is on the robot's clock, where the server puts it (the stamp of the scan it
    answers): not ahead of the robot's clock, not older than ``max_age_s``, not older than the
@@ -39,7 +40,8 @@ class CommandGate:
         self.max_age_ns = round(max_age_s * 1e9)
         self.max_ahead_ns = round(max_ahead_s * 1e9)
         self.holders: list[str] = []      # sessions holding the server's token, first first
-        self.workers: dict[int, str] = {}  # a split server's workers' sessions, by number
+        #: a split server's workers' sessions by number, first first (as ``holders``)
+        self.workers: dict[int, list[str]] = {}
         self.owned_by: set[int] = set()    # the workers that hold this robot's owner token
         self.last_stamp_ns: int | None = None
         self._last_now_ns: int | None = None
@@ -48,8 +50,9 @@ class CommandGate:
     def server(self) -> str | None:
         """The session the agent is bound to (None: no server)."""
         for w in sorted(self.owned_by):
-            if w in self.workers:
-                return self.workers[w]
+            for zid in self.workers.get(w, ()):
+                if zid in self.holders:     # a worker holds the server's token too
+                    return zid
         return self.holders[0] if self.holders else None
 
     def _bound(self, before: str | None) -> str | None:
@@ -70,9 +73,12 @@ class CommandGate:
         """Worker ``worker`` of a split server is session ``zid`` (or went away); returns the
         server bound after it."""
         before = self.server
-        if alive:
-            self.workers[worker] = zid
-        elif self.workers.get(worker) == zid:
+        sessions = self.workers.setdefault(worker, [])
+        if alive and zid not in sessions:
+            sessions.append(zid)
+        elif not alive and zid in sessions:
+            sessions.remove(zid)
+        if not sessions:
             del self.workers[worker]
         return self._bound(before)
 

@@ -91,7 +91,15 @@ def test_a_split_server_is_obeyed_through_the_worker_that_serves_the_robot() -> 
     assert gate.worker_session(0, "aa", False) == "aa"
     gate.server_holder("aa", False)
     assert gate.server == "bb"
+    gate.server_holder("dd", True)
     assert gate.worker_session(3, "dd", True) == "dd"
+    # a later session that claims to be worker 3, or one without the server's token, is not
+    # obeyed while worker 3's first session lives
+    gate.server_holder("ee", True)
+    assert gate.worker_session(3, "ee", True) == "dd"
+    assert gate.worker_session(0, "ff", True) == "dd"
+    assert gate.owner(0, True) == "dd"          # "ff" does not hold the server's token
+    assert gate.worker_session(3, "dd", False) == "ee"
 
 
 # -- on the wire -----------------------------------------------------------------------------
