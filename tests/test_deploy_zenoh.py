@@ -173,7 +173,8 @@ def test_robot_can_publish_only_under_its_own_keys(
 def test_a_server_worker_may_serve_robots_and_a_robot_may_not_pose_as_one(
         secured: tuple[Bus, str, Path], certs: Path) -> None:
     """Another worker of the server (``server.runtime.cluster``) claims robots and answers for teams
-    through the router; a robot's certificate cannot claim anything there."""
+    through the router; a robot's certificate cannot claim anything there, nor ask for a team,
+    but it sees which worker serves it (its agent obeys that one)."""
     server, endpoint, tmp = secured
     owners: list[tuple[str, bool]] = []
     server.watch_alive(keys.ALL_CLUSTER_OWNERS, lambda k, alive: owners.append((k, alive)))
@@ -182,14 +183,25 @@ def test_a_server_worker_may_serve_robots_and_a_robot_may_not_pose_as_one(
     robot = client(certs, tmp, endpoint, "r1")
     worker = client(certs, tmp, endpoint, "worker1")
     try:
+        seen: list[tuple[str, bool]] = []
+        robot.watch_alive(keys.cluster_owners("r1"), lambda k, alive: seen.append((k, alive)))
+        robot.watch_alive(keys.ALL_CLUSTER_WORKER_SESSIONS,
+                          lambda k, alive: seen.append((k, alive)))
         robot.declare_token(keys.cluster_owner("r2", 1))
+        worker.declare_alive(keys.cluster_worker(1))
         worker.declare_token(keys.cluster_owner("r1", 1))
         assert wait_for(lambda: (keys.cluster_owner("r1", 1), True) in owners, 5.0)
+        assert wait_for(lambda: (keys.cluster_owner("r1", 1), True) in seen, 5.0)
+        assert wait_for(lambda: any(keys.cluster_worker_session_of(k) == (1, worker.zid)
+                                    for k, _ in seen), 5.0)
         answers: list[list[bytes]] = []
         worker.ask(keys.cluster_give(0), b"{}", lambda r, e: answers.append(r), 3.0)
         assert wait_for(lambda: answers == [[b"ok"]], 5.0)
+        refused: list[list[bytes]] = []
+        robot.ask(keys.cluster_give(0), b"{}", lambda r, e: refused.append(r), 2.0)
         time.sleep(0.5)
         assert (keys.cluster_owner("r2", 1), True) not in owners
+        assert wait_for(lambda: refused == [[]], 5.0)      # no team for a robot's certificate
     finally:
         robot.close()
         worker.close()
