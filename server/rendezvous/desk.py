@@ -41,8 +41,8 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 
 
-#: a sighting calls the robot that was seen once the reader read it about there in another
-#: frame this recently [s] (cameras give several frames a second) ...
+#: a sighting calls the two robots together once the same robot was read about there in
+#: another frame this recently [s] (cameras give several frames a second) ...
 CALL_CONFIRM_S = 1.0
 #: ... within this distance of it, or a quarter of the range if that is more [m]
 CALL_AGREE_M = 0.5
@@ -115,16 +115,12 @@ class SightingDesk:
             log.debug("no call from %s's sighting of %s: %s stands there", a.robot_id,
                       b.robot_id, mate)
             return
-        now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
-        a.look.hear(now_a, seen,
-                    max(0.5, 0.1 * det.range_m), sure=True, caller=b.robot_id)
-        # the robot that was seen is called only when the tag was read there in another frame
-        # too: read in one, it may be another robot's tag misread, or a place off by metres,
-        # and the robot named would turn or drive toward nobody (the reader, whatever it read,
-        # faces something that stands there, and reads it again)
         if not self._seen_again(a.robot_id, b.robot_id, seen, det.range_m, stamp):
             self.counters.calls_unconfirmed += 1
             return
+        now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
+        a.look.hear(now_a, seen,
+                    max(0.5, 0.1 * det.range_m), sure=True, caller=b.robot_id)
         # the reader as the seen robot would place it: through the tag's heading, which is
         # poor at range, hence the wide tolerance
         back = inverse(rel)
