@@ -58,9 +58,8 @@ class SightingDesk:
         self.pending: list[tuple[int, str, TagDetection]] = []
         #: sightings between teammates that disagree with their team's graph, per pair
         self.contradictions: dict[tuple[str, str], list[SightingRecord]] = {}
-        #: each (observer, observed)'s latest sightings of another team's robot within
-        #: ``CALL_CONFIRM_S``: (stamp, map xy)
-        self._call_seen: dict[tuple[str, str], list[tuple[int, F64]]] = {}
+        #: each (observer, observed)'s last sighting of another team's robot: (stamp, map xy)
+        self._call_seen: dict[tuple[str, str], tuple[int, F64]] = {}
 
     # -- 1. intake -------------------------------------------------------------------------
     def receive(self, msg: TagDetections) -> None:
@@ -130,18 +129,18 @@ class SightingDesk:
 
     def _seen_again(self, observer: str, observed: str, seen: F64, range_m: float,
                     stamp_ns: int) -> bool:
-        """Whether ``observer`` read ``observed``'s tag at about ``seen`` (map frame) in an
-        earlier frame within ``CALL_CONFIRM_S``: a tag misread in one frame (another robot's
-        id, a place off by metres) calls nobody across the building; a robot in view is read
-        in frame after frame."""
-        window = round(CALL_CONFIRM_S * 1e9)
-        recent = [(t, xy) for t, xy in self._call_seen.get((observer, observed), ())
-                  if 0 <= stamp_ns - t <= window]
-        agree = max(CALL_AGREE_M, 0.25 * range_m)
-        again = any(t < stamp_ns and float(np.hypot(*(seen - xy))) <= agree
-                    for t, xy in recent)
-        self._call_seen[(observer, observed)] = [*recent[-7:], (stamp_ns, seen)]
-        return again
+        """Whether ``observer`` read ``observed``'s tag at about ``seen`` (map frame) in
+        another frame within ``CALL_CONFIRM_S`` before: a tag misread in one frame (another
+        robot's id, a place off by metres) calls nobody across the building; a robot in
+        view is read in frame after frame."""
+        key = (observer, observed)
+        last = self._call_seen.get(key)
+        self._call_seen[key] = (stamp_ns, seen)
+        if last is None:
+            return False
+        dt_s = (stamp_ns - last[0]) * 1e-9
+        return 0.0 < dt_s <= CALL_CONFIRM_S and \
+            float(np.hypot(*(seen - last[1]))) <= max(CALL_AGREE_M, 0.25 * range_m)
 
     def _teammate_near(self, a: RobotContext, observed: str, det: TagDetection, seen: F64,
                        stamp_ns: int) -> str | None:
