@@ -33,7 +33,6 @@ class RendezvousCounters:
     meetings_refuted: int = 0   # ... whose robots did not meet
     calls_paused: int = 0       # tag calls not passed on: the two teams' maps keep refusing a merge
     calls_misread: int = 0      # ... nor where the observer's teammate stands: a misread tag
-    calls_unconfirmed: int = 0  # ... nor a robot read once only (not again there within 1 s)
     one_place_proposals: int = 0   # sightings from one place turned by the square walls
     short_path_proposals: int = 0  # ... and from a short path, turned so
     map_refuted_by_view: int = 0   # transforms refuted: a robot saw open floor where one put

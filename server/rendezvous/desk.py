@@ -41,13 +41,6 @@ log = logging.getLogger(__name__)
 F64 = NDArray[np.float64]
 
 
-#: a sighting calls the two robots together once the same robot was read about there in
-#: another frame this recently [s] (cameras give several frames a second) ...
-CALL_CONFIRM_S = 1.0
-#: ... within this distance of it, or a quarter of the range if that is more [m]
-CALL_AGREE_M = 0.5
-
-
 class SightingDesk:
     """Intake, pending queue and time matching of tag sightings (one thread)."""
 
@@ -58,8 +51,6 @@ class SightingDesk:
         self.pending: list[tuple[int, str, TagDetection]] = []
         #: sightings between teammates that disagree with their team's graph, per pair
         self.contradictions: dict[tuple[str, str], list[SightingRecord]] = {}
-        #: each (observer, observed)'s last sighting of another team's robot: (stamp, map xy)
-        self._call_seen: dict[tuple[str, str], tuple[int, F64]] = {}
 
     # -- 1. intake -------------------------------------------------------------------------
     def receive(self, msg: TagDetections) -> None:
@@ -107,15 +98,12 @@ class SightingDesk:
         rel = np.array([det.range_m * math.cos(det.bearing_rad),
                         det.range_m * math.sin(det.bearing_rad), det.yaw_rad])
         seen = transform_points(a.pose, rel[None, :2])[0]
-        stamp = a.last_stamp_ns if stamp_ns is None else stamp_ns
-        mate = self._teammate_near(a, b.robot_id, det, seen, stamp)
+        mate = self._teammate_near(a, b.robot_id, det, seen,
+                                   a.last_stamp_ns if stamp_ns is None else stamp_ns)
         if mate is not None:
             self.counters.calls_misread += 1
             log.debug("no call from %s's sighting of %s: %s stands there", a.robot_id,
                       b.robot_id, mate)
-            return
-        if not self._seen_again(a.robot_id, b.robot_id, seen, det.range_m, stamp):
-            self.counters.calls_unconfirmed += 1
             return
         now_a, now_b = a.last_stamp_ns * 1e-9, b.last_stamp_ns * 1e-9
         a.look.hear(now_a, seen,
@@ -126,21 +114,6 @@ class SightingDesk:
         b.look.hear(now_b, transform_points(b.pose, back[None, :2])[0],
                     max(1.0, 0.35 * det.range_m), sure=False, range_m=det.range_m,
                     range_tolerance_m=3.0 * det.sigma_range_m + 0.2, caller=a.robot_id)
-
-    def _seen_again(self, observer: str, observed: str, seen: F64, range_m: float,
-                    stamp_ns: int) -> bool:
-        """Whether ``observer`` read ``observed``'s tag at about ``seen`` (map frame) in
-        another frame within ``CALL_CONFIRM_S`` before: a tag misread in one frame (another
-        robot's id, a place off by metres) calls nobody across the building; a robot in
-        view is read in frame after frame."""
-        key = (observer, observed)
-        last = self._call_seen.get(key)
-        self._call_seen[key] = (stamp_ns, seen)
-        if last is None:
-            return False
-        dt_s = (stamp_ns - last[0]) * 1e-9
-        return 0.0 < dt_s <= CALL_CONFIRM_S and \
-            float(np.hypot(*(seen - last[1]))) <= max(CALL_AGREE_M, 0.25 * range_m)
 
     def _teammate_near(self, a: RobotContext, observed: str, det: TagDetection, seen: F64,
                        stamp_ns: int) -> str | None:
