@@ -316,6 +316,7 @@ class ServerNode:
                 with self._cv:
                     for rid in self.registry.forget_silent(self.clock.now_ns()):
                         self._queue_alive(rid, False)
+                        self._recent.pop(rid, None)    # another worker's robot, gone quiet
             try:
                 self.publisher.tick(self.core, self.clock.now_ns())
             except Exception:
