@@ -5,6 +5,7 @@ in one core. A merged team moved on afterwards keeps its joint graph and its mer
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -190,8 +191,10 @@ class Robots:
 
 @pytest.mark.e2e
 @pytest.mark.parametrize("busy_at", [0, 1])
-def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path, busy_at: int) -> None:
+def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path, busy_at: int,
+                                                      caplog: pytest.LogCaptureFixture) -> None:
     assert [max((0, 1), key=lambda w: _rank(r, w)) for r in BUS_SPAWN] == [1, 0]
+    caplog.set_level(logging.INFO, logger="server.runtime.moves")
     endpoint = free_local_endpoint()
     base = {**config(("r1", "r7")).model_dump(), "clock": {"source": "stamps"}}
     sim = Simulator(load_world(WORLD), BUS_SPAWN, SimParams(), seed=3)
@@ -254,6 +257,11 @@ def test_two_worker_nodes_hand_a_team_over_on_the_bus(tmp_path: Path, busy_at: i
     if busy_at == 0:       # nothing to give: worker 1 let r1 go, worker 0 mapped it afresh
         assert c0["asked"] == 1 and c0["not_adopted"] == 1 and c1["let_go"] == 1
         assert "given" not in c1
+        # the usual start of a split server, not a team lost: no warning for it
+        assert any("mapped here from its first scans" in r.getMessage()
+                   for r in caplog.records if r.levelno == logging.INFO)
+        assert not [r.getMessage() for r in caplog.records
+                    if r.name == "server.runtime.moves" and r.levelno >= logging.WARNING]
     else:
         assert c0["asked"] == 1 and c0["adopted"] == 1 and c1["given"] == 1
     assert c0["robots_served"] == ["r1", "r7"] and c1["robots_served"] == []

@@ -50,6 +50,9 @@ log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1_000_000      # below the bus's 1.5 MB message limit
 RELEASE_GRACE_S = 2.0        # a giver keeps its tokens this long after giving the team away
+#: how a give request's answer begins when the robot was claimed but not mapped yet: the
+#: asking worker maps it from its first scans, as a robot just joined (nothing is lost)
+LET_GO = "let go before it was mapped"
 
 
 class Route(Enum):

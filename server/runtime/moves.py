@@ -11,7 +11,7 @@ from collections import deque
 from typing import TYPE_CHECKING, Any
 
 from server.runtime import handover
-from server.runtime.cluster import Route
+from server.runtime.cluster import LET_GO, Route
 from server.runtime.work import AdoptWork, GiveWork
 
 if TYPE_CHECKING:
@@ -59,8 +59,8 @@ def give(node: ServerNode, item: GiveWork) -> None:
         if rid not in node.core.robots:
             # claimed here, its first scans still waiting: the asker serves it from them
             node.cluster.let_go(rid)
-            node.cluster.answer(query, [], None, f"worker {node.cluster.index} had not "
-                                f"mapped {rid} yet and let it go")
+            node.cluster.answer(query, [], None, f"{LET_GO}: worker {node.cluster.index} "
+                                f"had claimed {rid}, its first scans still waiting")
             return
         parcel = handover.release(node.core, rid)
         assert parcel is not None
@@ -108,6 +108,8 @@ def adopt(node: ServerNode, item: AdoptWork) -> None:
             node._own_stamps.update(parcel.extra)
             if node.journal is not None:
                 node.journal.adopted(h.parcel, node.clock.now_ns())
+    elif LET_GO in h.error:     # the usual start: two workers claimed it at once
+        log.info("%s: mapped here from its first scans (%s)", h.asked, h.error)
     else:
         log.warning("the team of %s did not come (%s): served afresh", h.asked, h.error)
     with node._cv:
