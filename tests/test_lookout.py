@@ -314,3 +314,31 @@ def test_things_standing_free_at_a_distance_are_found_where_the_map_does_not_rea
     assert len(found) == 1 and math.hypot(*(found[0] - [6.0, 2.0])) < 0.2
     assert objects_at_range(pts, pose, unknown, 9.0, 0.3) == []   # the walls: too wide
     assert objects_at_range(pts, pose, None, 4.0, 0.3) == []
+
+
+def test_a_rough_call_with_nobody_at_the_readers_distance_is_not_answered() -> None:
+    """A LIDAR that sees past the reader's distance all round, and nothing standing there:
+    no robot read this one's tag from there (a tag misread, or read where no robot stood),
+    so the robot neither turns on the spot nor follows the nearest mover. A sensor that
+    sees less far than that distance (a depth camera's 3 m) still turns to find the
+    reader."""
+    g = free_room()
+    pose = np.array([-3.5, 0.0, math.pi / 2])
+    decoy = np.array([-1.0, -3.5])
+    pts = np.concatenate([walls_seen(pose), to_robot(pose, blob(*decoy))])
+    rough = np.array([0.5, -3.5])               # 1.5 m from the decoy, within tolerance
+    # a LIDAR of 10 m: the call leads nowhere; the robot goes on with what it did
+    look = Lookout(LookParams(approach_range_m=10.0, omega_rps=1.0))
+    look.sensor_range_m = 10.0
+    look.hear(0.0, rough, 2.0, sure=False, range_m=5.4, range_tolerance_m=0.3)
+    assert look.step(0.05, pose, pts, g, np.zeros((0, 2))) is None
+    assert not look.active and look.track is None and look.calls_unseen == 1
+    # a depth camera's 3 m: it could not have seen the reader, so it looks for it
+    look = Lookout(LookParams(approach_range_m=10.0, omega_rps=1.0))
+    look.sensor_range_m = 3.0
+    pts_near = walls_seen(pose)[np.hypot(*walls_seen(pose).T) < 3.0]
+    look.hear(0.0, np.array([-3.5, -4.0]), 1.0, sure=False, range_m=5.4,
+              range_tolerance_m=0.3)
+    tw = look.step(0.05, pose, pts_near, g, np.zeros((0, 2)))
+    assert tw is not None and look.active and look.calls == 1
+    assert look.calls_unseen == 0

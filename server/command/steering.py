@@ -139,6 +139,7 @@ class Steering:
                 r.look.reset()
                 r.nav.drop_target()
             return None
+        r.look.sensor_range_m = r.sensor_range_m
         twist = r.look.step(now_s, r.pose, obstacles.points_xy,
                             self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))

@@ -21,6 +21,13 @@ log = logging.getLogger(__name__)
 class Lookout:
     """One robot's turns toward moving things (see the module docstring)."""
 
+    #: how far its range sensor sees [m] (its latest scan's maximum range, set by steering;
+    #: 0 while not known)
+    sensor_range_m: float = 0.0
+    #: rough calls dropped: its sensor would have seen the reader at the reader's distance,
+    #: and nothing stood there (a tag misread, or read where no robot was)
+    calls_unseen: int = 0
+
     def __init__(self, params: LookParams | None = None, name: str = "") -> None:
         self.p = params or LookParams()
         self.name = name                     # the robot's id, for log lines
@@ -119,6 +126,16 @@ class Lookout:
                 self.offers.make("call", self.caller, reader, now_s)
                 self._look_toward(now_s, pose, reader, meet=True)
                 return self.step(now_s, pose, np.zeros((0, 2)), None, np.zeros((0, 2)))
+            if grid is not None and sum(ranged) < self.sensor_range_m:
+                # the scan reaches past the reader's distance all round, and nothing stands
+                # there: no robot read this one's tag from there. Turning on the spot for it
+                # (below) would cost a whole turn for a tag misread or read where no robot
+                # stood: in case 4, such calls came 0-10 times a run with false tag views,
+                # at most once without (a sensor that sees less far still turns)
+                self.calls_unseen += 1
+                log.info("%s: a call from %.1f m away not answered: nothing stands at that "
+                         "distance", self.name, ranged[0])
+                return None
         best = min(groups, key=lambda g: math.hypot(*(g[0] - xy)), default=None)
         target = best[0] if best is not None and math.hypot(*(best[0] - xy)) <= tol else \
             (xy if sure or near else None)
