@@ -225,6 +225,7 @@ def collect_outputs(core: ServerCore, extra: dict[str, Any] | None = None) -> Ou
             "decisions": r.nav.stats.decisions, "targets_reached": r.nav.stats.targets_reached,
             "recoveries": r.nav.stats.recoveries, "looks": r.look.looks,
             "approaches": r.look.approaches, "calls": r.look.calls,
+            "calls_unseen": r.look.calls_unseen,
             "decision_ms_median": float(np.median(ms)) if ms else None,
             "matches": dict(r.slam.stats.matches),
         }
