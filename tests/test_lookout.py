@@ -342,3 +342,22 @@ def test_a_rough_call_with_nobody_at_the_readers_distance_is_not_answered() -> N
     tw = look.step(0.05, pose, pts_near, g, np.zeros((0, 2)))
     assert tw is not None and look.active and look.calls == 1
     assert look.calls_unseen == 0
+
+
+def test_only_a_scan_all_round_tells_how_far_nobody_stands() -> None:
+    """The lookout is told the robot's sensor range only when its latest scan spans all
+    round: a 360° LIDAR's; not a 270° one's (a reader in its blind sector), nor a depth
+    camera's, nor before any scan."""
+    from types import SimpleNamespace
+
+    from server.command.steering import sight_range_m
+
+    def robot(span_deg: float | None, range_m: float = 12.0) -> object:
+        view = None if span_deg is None else SimpleNamespace(
+            angles=np.radians(np.arange(0.0, span_deg, 1.0) - span_deg / 2))
+        return SimpleNamespace(view=view, sensor_range_m=range_m)
+
+    assert sight_range_m(robot(360.0)) == 12.0            # type: ignore[arg-type]
+    assert sight_range_m(robot(270.0)) == 0.0             # type: ignore[arg-type]
+    assert sight_range_m(robot(60.0, 3.0)) == 0.0         # type: ignore[arg-type]
+    assert sight_range_m(robot(None)) == 0.0              # type: ignore[arg-type]

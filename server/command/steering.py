@@ -22,8 +22,22 @@ from server.fleet.events import EventLog
 from server.fleet.model import Fleet, RobotContext
 from server.lookout.offers import Offer
 from server.planning import OccupancyGrid as PlanningGrid
+from server.slam.scan import field_of_view
+
+#: a scan spanning this much sees all round (a 360-beam LIDAR's span is 2π) [rad]
+ALL_ROUND_RAD = 0.97 * 2 * np.pi
 
 F64 = NDArray[np.float64]
+
+
+def sight_range_m(r: RobotContext) -> float:
+    """How far the robot's latest scan would have shown another robot, whatever its
+    direction: its sensor's range for a scan that spans all round, else 0 (a narrow sensor,
+    or a LIDAR with a blind sector, cannot say that nobody stands at some distance)."""
+    v = r.view
+    if v is None or field_of_view(v.angles)[0] < ALL_ROUND_RAD:
+        return 0.0
+    return r.sensor_range_m
 
 
 def mapped_obstacles(grid: PlanningGrid | None, pose: F64, radius_m: float) -> F64:
@@ -139,7 +153,7 @@ class Steering:
                 r.look.reset()
                 r.nav.drop_target()
             return None
-        r.look.sensor_range_m = r.sensor_range_m
+        r.look.sensor_range_m = sight_range_m(r)
         twist = r.look.step(now_s, r.pose, obstacles.points_xy,
                             self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))
