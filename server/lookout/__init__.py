@@ -21,8 +21,11 @@ is not) and goes there; the one that was seen learns roughly where the reader st
 the unreliable heading) and goes toward the moving thing its LIDAR sees nearest that place.
 When it sees none there, the place is no guide (past 3 m a tag's heading is off by tens of
 degrees), so it stops and turns once on the spot: the reader is coming, and once its tag is in
-view the robot knows where the reader is, too. Each further sighting keeps the approach alive, so a
-robot that stands still behind the other's LIDAR shadow is not lost. A call from within tag
+view the robot knows where the reader is, too. But a robot whose LIDAR sees all round and past
+the reader's distance, and finds nothing standing at that distance, does not answer: no robot
+read its tag from there (a tag misread, or read where no robot stood). Each further sighting
+keeps the approach alive, so a robot that stands still behind the other's LIDAR shadow is not
+lost. A call from within tag
 range cuts short whatever else the robot was looking at or driving to: it faces the other robot
 and both hold still a few seconds, so that each reads the other's tag.
 """
