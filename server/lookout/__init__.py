@@ -25,9 +25,9 @@ view the robot knows where the reader is, too. But a robot whose LIDAR sees all 
 the reader's distance, and finds nothing standing at that distance, does not answer: no robot
 read its tag from there (a tag misread, or read where no robot stood). Each further sighting
 keeps the approach alive, so a robot that stands still behind the other's LIDAR shadow is not
-lost. A call from within tag
-range cuts short whatever else the robot was looking at or driving to: it faces the other robot
-and both hold still a few seconds, so that each reads the other's tag.
+lost. A call from within tag range cuts short whatever else the robot was looking at or
+driving to: it faces the other robot and both hold still a few seconds, so that each reads the
+other's tag.
 """
 
 from server.lookout.lookout import Lookout, LookParams, NullLookout
