@@ -361,3 +361,16 @@ def test_only_a_scan_all_round_tells_how_far_nobody_stands() -> None:
     assert sight_range_m(robot(270.0)) == 0.0             # type: ignore[arg-type]
     assert sight_range_m(robot(60.0, 3.0)) == 0.0         # type: ignore[arg-type]
     assert sight_range_m(robot(None)) == 0.0              # type: ignore[arg-type]
+
+
+def test_a_rough_call_from_within_tag_range_is_answered_even_with_nobody_seen_there() -> None:
+    """A reader within tag range that the LIDAR does not find standing free (it has stood
+    there long enough to be in the map's walls) is still faced: the call is answered."""
+    g = free_room()
+    pose = np.array([-3.5, 0.0, math.pi / 2])
+    look = Lookout(LookParams(approach_range_m=10.0, omega_rps=1.0))
+    look.sensor_range_m = 10.0
+    look.hear(0.0, np.array([-2.2, 0.5]), 1.0, sure=False, range_m=1.4,
+              range_tolerance_m=0.3)
+    tw = look.step(0.05, pose, walls_seen(pose), g, np.zeros((0, 2)))
+    assert tw is not None and look.active and look.calls == 1 and look.calls_unseen == 0
