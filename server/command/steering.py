@@ -153,7 +153,8 @@ class Steering:
                 r.look.reset()
                 r.nav.drop_target()
             return None
-        r.look.sensor_range_m = sight_range_m(r)
+        if r.look.call is not None:     # only a call's answer asks how far it sees
+            r.look.sensor_range_m = sight_range_m(r)
         twist = r.look.step(now_s, r.pose, obstacles.points_xy,
                             self.fleet.latest_grids.get(r.team_id),
                             self.fleet.mates_xy(r, alive_only=False))
