@@ -99,9 +99,11 @@ def test_back_off_doubles_up_to_its_cap() -> None:
     assert max(waits) == MAX_BACK_OFF_S and waits == sorted(waits)
 
 
-def server_pids(run: Path) -> list[int]:
-    """Processes running ``mrslam server -c <run>/server.yaml``."""
-    found = subprocess.run(["pgrep", "-f", f"mrslam server -c {run / 'server.yaml'}"],
+def server_pids(run: Path, parent: int) -> list[int]:
+    """Children of ``parent`` running ``mrslam server -c <run>/server.yaml``. A snapshot the
+    server forks has the same command line, so only the demo's own children count."""
+    found = subprocess.run(["pgrep", "-P", str(parent), "-f",
+                            f"mrslam server -c {run / 'server.yaml'}"],
                            capture_output=True, text=True, check=False)
     return [int(p) for p in found.stdout.split()]
 
@@ -129,7 +131,7 @@ def kill_server_at(run: Path, demo: subprocess.Popen[bytes], at_sim_s: float) ->
         assert demo.poll() is None, demo.communicate()[0].decode()
         assert time.monotonic() - t0 < 180, f"the simulation never reached {at_sim_s} s"
         time.sleep(0.2)
-    (victim,) = server_pids(run)
+    (victim,) = server_pids(run, demo.pid)
     os.kill(victim, signal.SIGKILL)
     return victim
 
