@@ -217,8 +217,8 @@ def test_the_controller_stops_when_the_host_goes_silent(tmp_path: Path) -> None:
     try:
         port.write(proto.encode("HOME"))
         assert within(lambda: fake.state == "READY", 1.0)
+        t_last = time.monotonic()   # before the write: the fake may read it before we go on
         port.write(proto.encode("MOVE", 6000))       # 3 s at 2000 microsteps/s
-        t_last = time.monotonic()
         assert within(lambda: fake.state == "MOVING", 0.2)
         assert within(lambda: fake.timeouts == 1, 1.0)
         assert fake.stopped_at is not None
