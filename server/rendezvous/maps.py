@@ -26,6 +26,12 @@ if TYPE_CHECKING:
 
 F64 = NDArray[np.float64]
 
+#: a degenerate match matched again (``cross_matches(hold_weak=True)``) is held this close
+#: [m] to the keyframe's placement along its weak direction
+HELD_ALONG_SIGMA_M = 0.01
+#: ... and its factor knows the position along that direction to this σ [m]: nothing
+UNKNOWN_ALONG_SIGMA_M = 10.0
+
 
 @dataclass(frozen=True)
 class MapAgreement:
@@ -134,6 +140,7 @@ class CrossMatch:
     information: F64      # in kb's frame (the between factor's error space)
     inlier_fraction: float
     turn_rad: float = 0.0  # how far the match turned kb from where it was placed
+    weak: bool = False     # degenerate, held along its weak direction (``hold_weak``)
 
 
 def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 5.0,
@@ -142,7 +149,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                   T_ab: F64 | None = None, tried: list[int] | None = None,
                   only: list[int] | None = None,
                   min_seen_fraction: float = 0.0,
-                  known: Callable[[F64, F64], float] | None = None) -> list[CrossMatch]:
+                  known: Callable[[F64, F64], float] | None = None,
+                  hold_weak: bool = False) -> list[CrossMatch]:
     """Scan-to-map matches of b's keyframes (every ``every``-th, or those in ``only``) against
     a's keyframes within ``radius_m``, both placed by the current joint estimate (or b's by
     ``T_ab``): the overlap of the two maps says how they fit together, far more precisely than
@@ -155,9 +163,11 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
     can be told from a misfit, is no test of it. With ``known`` (``known_share`` of a's map),
     a keyframe so placed whose points' near side a's map knows in less than
     ``min_inlier_fraction`` of them counts as tried only if it matches: it sees mostly what a
-    never saw from its side, and its failing says nothing of the placement."""
+    never saw from its side, and its failing says nothing of the placement. With
+    ``hold_weak``, a degenerate match is matched again held along its weak direction, and
+    kept with no information along it (``_without``)."""
     from server.slam.frontend import icp_params, min_points
-    from server.slam.icp import icp
+    from server.slam.icp import icp, translation_degeneracy
     from server.slam.keyframes import local_point_map
 
     if not a.keyframes or not b.keyframes:
@@ -185,9 +195,24 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
                 params.min_normal_cos) < min_seen_fraction:
             continue
         m = icp(scan.points, scan.normals, target, pb[kb], params)
+        weak = None
+        if hold_weak and m.degenerate_dir is not None and \
+                m.inlier_fraction >= min_inlier_fraction:
+            # one wall's or a corridor's match: matched again with the keyframe held where it
+            # is placed along the weak direction, it still says where it is across and how
+            # it is turned
+            weak = np.array([*m.degenerate_dir, 0.0])
+            m = icp(scan.points, scan.normals, target, pb[kb], params,
+                    np.outer(weak, weak) / HELD_ALONG_SIGMA_M ** 2)
+            # the direction again, at the pose it settled on (the first match's was taken at
+            # a pose still turned: a tenth of a degree off the walls leaves them some say)
+            again = translation_degeneracy(m.information, 1.0)
+            if again is not None:
+                weak = np.array([*again, 0.0])
         shift = math.hypot(*(m.T_map_scan[:2] - pb[kb, :2]))
         turn = abs(wrap_angle(m.T_map_scan[2] - pb[kb, 2]))
-        passed = (m.converged and not m.degenerate and m.inlier_fraction >= min_inlier_fraction
+        passed = (m.converged and (weak is not None or not m.degenerate)
+                  and m.inlier_fraction >= min_inlier_fraction
                   and shift <= max_correction_m and turn <= max_correction_rad)
         if tried is not None and not (min_seen_fraction > 0 and m.degenerate) and (
                 passed or known is None or known(scan.points, pb[kb]) >= min_inlier_fraction):
@@ -197,10 +222,19 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
         ka = int(near[np.argmin(d[near])])
         c, s = math.cos(m.T_map_scan[2]), math.sin(m.T_map_scan[2])
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        info = m.information if weak is None else _without(m.information, weak)
         out.append(CrossMatch(ka, kb, between(pa[ka], m.T_map_scan),
-                              R.T @ m.information @ R, m.inlier_fraction,
-                              wrap_angle(m.T_map_scan[2] - pb[kb, 2])))
+                              R.T @ info @ R, m.inlier_fraction,
+                              wrap_angle(m.T_map_scan[2] - pb[kb, 2]), weak is not None))
     return out
+
+
+def _without(information: F64, weak: F64) -> F64:
+    """``information`` (x, y, θ) with nothing known along the unit direction ``weak``
+    (x, y, 0), but for a σ of ``UNKNOWN_ALONG_SIGMA_M`` that keeps it invertible: the match's
+    position along it was the placement's, not the map's."""
+    Q = np.eye(3) - np.outer(weak, weak)
+    return Q @ information @ Q + np.outer(weak, weak) / UNKNOWN_ALONG_SIGMA_M ** 2
 
 
 def seen_fraction(points: F64, normals: F64, target: PointMap, T_map_scan: F64,

@@ -155,7 +155,10 @@ class GraphSurgery:
         scan of a narrow sensor's, ``_whole``): match the newest against its teammates' maps
         where they overlap. Without this, each robot's map
         would drift on its own after the merge, and the joint map would come apart where two
-        robots went past the same walls at different times."""
+        robots went past the same walls at different times. A narrow robot's whole scan that
+        sees one wall or a corridor is kept for its turn and its place across the walls
+        (``cross_matches(hold_weak=True)``): a merge from tags leaves its map turned a degree
+        or two, and it drives in corridors most."""
         every = self.cfg.teams.team_match_every
         team = self.fleet.team_of(r)
         k = len(r.slam.keyframes) - 1
@@ -164,7 +167,8 @@ class GraphSurgery:
         if (not self._whole(r, k)) if r.slam.narrow else k % every:
             return
         mates = [o for o in team.robot_ids if o != r.robot_id]
-        kept = self.refine_on_maps(mates, [r.robot_id], team.links, only=[k])
+        kept = self.refine_on_maps(mates, [r.robot_id], team.links, only=[k],
+                                   hold_weak=r.slam.narrow)
         if not r.slam.narrow:
             kept += self._tie_wholes(r, mates, team.links)
         if kept and self.retire_sightings(team.links):
@@ -213,7 +217,7 @@ class GraphSurgery:
 
     def refine_on_maps(self, side_a: list[str], side_b: list[str], links: list[Link],
                        only: list[int] | None = None, tried: list[int] | None = None,
-                       min_seen_fraction: float = 0.0) -> int:
+                       min_seen_fraction: float = 0.0, hold_weak: bool = False) -> int:
         """Match each joining robot's keyframes (or the ones in ``only``) against the other
         side's map where they overlap, and add the matches as robust between-factors (``links``
         gets them); those still inconsistent after optimisation are taken out. Returns how
@@ -230,11 +234,14 @@ class GraphSurgery:
                 a, b = self.fleet.robots[ra].slam, self.fleet.robots[rb].slam
                 graph = a.graph
                 for m in cross_matches(a, b, only=only, radius_m=self._radius_m(ra),
-                                       tried=tried, min_seen_fraction=min_seen_fraction):
+                                       tried=tried, min_seen_fraction=min_seen_fraction,
+                                       hold_weak=hold_weak):
                     f = loop_closure_factor(a.trajectory.key(m.ka), b.trajectory.key(m.kb),
                                             m.T_ka_kb, m.information, loop.sigma_scale ** 2,
                                             floor, "huber", loop.huber_k)
-                    rec = FactorRecord(f, "cross")
+                    # one wall's match ties the maps across it only: it does not count
+                    # toward retiring the sightings (``tied_by_maps``)
+                    rec = FactorRecord(f, "cross_weak" if m.weak else "cross")
                     (rec.index,) = graph.add([f], {})
                     added.append(Link(ra, rb, 0, rec))
         if graph is None or not added:
