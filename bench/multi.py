@@ -48,6 +48,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -256,6 +257,8 @@ def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
 def _demo(spec: RunSpec, out: Path, max_sim_time_s: float) -> dict[str, Any]:
     from mrslam.demo import run
 
+    if out.exists():   # an earlier bench's run of this case and seed: it starts afresh
+        shutil.rmtree(out)
     report = run(spec.demo_config(out, max_sim_time_s), progress=False)
     # the report as written to the run folder is what counts; fall back on the one returned
     path = out / "report.json"

@@ -137,6 +137,19 @@ class DemoConfig(ConfigModel):
         return data
 
 
+def previous_run(out: Path) -> str | None:
+    """What of an earlier run ``out`` holds (its server's state, its report), or None. A
+    demo started there would have its server resume the old state (as after a crash, when
+    the demo restarts it) while the simulation starts again from nothing: every scan is
+    refused as older than the state, and the run never ends."""
+    state = out / "server" / "state"
+    if state.is_dir() and any(state.iterdir()):
+        return f"{state} is not empty"
+    if (out / "report.json").exists():
+        return f"{out / 'report.json'} exists"
+    return None
+
+
 def run(overrides: dict[str, Any] | None = None, progress: bool = True,
         foxglove_port: int | None = None, console_port: int | None = None,
         config: str | Path | None = None) -> dict[str, Any]:
@@ -155,6 +168,10 @@ def run(overrides: dict[str, Any] | None = None, progress: bool = True,
         name = cfg.scenario or Path(cfg.world or "world").stem
         cfg.out = str(Path("runs") / time.strftime(f"{name}-%Y%m%d-%H%M%S"))
     out = Path(cfg.out)
+    if (held := previous_run(out)) is not None:
+        raise ConfigError(f"out: {out} already holds a run ({held}): its server would resume "
+                          "that run's state under a new simulation; give another folder, or "
+                          "remove this one")
     console = Console(stderr=True)
     with SignalStop(name="mrslam demo") as stopping:
         plan = plan_run(cfg)

@@ -51,6 +51,9 @@ def write_files(folder: Path) -> None:
     _bad_maps(folder)
     _mistyped_certificates(folder)
     _known_maps(folder)
+    earlier = folder / "earlier-run" / "server" / "state"   # a run's folder, used again
+    earlier.mkdir(parents=True, exist_ok=True)
+    (earlier / "journal-0001.mcap").write_bytes(b"\x00" * 16)
 
 
 def _known_maps(folder: Path) -> None:
@@ -186,6 +189,9 @@ def cases(folder: Path) -> list[BadInput]:
                                              UNDER_A_FILE), "/etc/passwd is a file"),
         BadInput("demo", "out-under-a-file", ("demo", "--out", UNDER_A_FILE),
                  "/etc/passwd is a file"),
+        BadInput("demo", "out-holds-a-run", ("demo", "--out", f"{f}/earlier-run"),
+                 f"{f}/earlier-run already holds a run ({f}/earlier-run/server/state is not "
+                 "empty)"),
         BadInput("world-map", "out-under-a-file", ("world-map", str(WORLD), "--out",
                                                    UNDER_A_FILE), "/etc/passwd is a file"),
         BadInput("slam-log", "out-under-a-file", ("slam-log", f"{f}/none.clf", "--out",
