@@ -257,8 +257,6 @@ def one(case: str, out: Path, seed: int, spurious: float, max_sim_time_s: float,
 def _demo(spec: RunSpec, out: Path, max_sim_time_s: float) -> dict[str, Any]:
     from mrslam.demo import run
 
-    if out.exists():   # an earlier bench's run of this case and seed: it starts afresh
-        shutil.rmtree(out)
     report = run(spec.demo_config(out, max_sim_time_s), progress=False)
     # the report as written to the run folder is what counts; fall back on the one returned
     path = out / "report.json"
@@ -327,6 +325,9 @@ def run_all(specs: list[RunSpec], base: Path, max_sim_time_s: float, jobs: int =
             results[spec.key] = refresh(done)
         else:
             todo.append(spec)
+            # an earlier bench's run of this case and seed: its folder starts afresh (a demo
+            # refuses a folder that holds a run)
+            shutil.rmtree(base / spec.key, ignore_errors=True)
 
     def finish(spec: RunSpec, res: dict[str, Any]) -> None:
         results[spec.key] = res

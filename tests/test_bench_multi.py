@@ -210,11 +210,18 @@ def test_runs_are_written_as_they_end_a_failure_does_not_stop_the_bench_and_resu
     assert got["case-2-seed1"]["status"] == "failed"
     assert json.loads((tmp_path / "runs" / "case-1-seed1.json").read_text())["seed"] == 1
     (tmp_path / "runs" / "case-1-seed0.json").write_text("{not json")
+    for key in ("case-1-seed0", "case-2-seed0"):   # the folders of earlier runs
+        (tmp_path / key / "server" / "state").mkdir(parents=True)
+        (tmp_path / key / "report.json").write_text("{}")
     calls.clear()
     again = multi.run_all(specs, tmp_path, 60.0, resume=True, runner=runner, log=lambda s: None)
     # kept the finished runs; ran again the failed one and the one whose file is broken
     assert sorted(calls) == ["case-1-seed0", "case-2-seed1"]
     assert again["case-2-seed0"]["status"] == "ok"
+    # a run done again starts in an empty folder (a demo refuses one that holds a run); a
+    # run kept keeps its folder
+    assert not (tmp_path / "case-1-seed0").exists()
+    assert (tmp_path / "case-2-seed0" / "report.json").is_file()
 
 
 def test_a_run_that_raises_is_recorded_as_failed(
