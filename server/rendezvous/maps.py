@@ -204,8 +204,8 @@ def cross_matches(a: RobotSlam, b: RobotSlam, every: int = 4, radius_m: float = 
             weak = np.array([*m.degenerate_dir, 0.0])
             m = icp(scan.points, scan.normals, target, pb[kb], params,
                     np.outer(weak, weak) / HELD_ALONG_SIGMA_M ** 2)
-            # the direction again, at the pose it settled on (the first match's was taken at
-            # a pose still turned: a tenth of a degree off the walls leaves them some say)
+            # the direction again, at the pose it settled on (the first match's was taken
+            # at the pose it was placed at, turned by the error it corrects)
             again = translation_degeneracy(m.information, 1.0)
             if again is not None:
                 weak = np.array([*again, 0.0])
